@@ -1,0 +1,34 @@
+"""Process-wide numerics set-up: float64 for every JAX computation jtet does, compile cache."""
+
+import os
+
+import jax
+
+# Geometry is never computed in float32: jtet's kernels are written for float64 and the
+# quality signs (correct / degenerate / inverted) depend on it.
+jax.config.update("jax_enable_x64", True)
+
+# A persistent compilation cache keeps a second run from compiling the same kernels again.
+_cache_dir = os.environ.get(
+    "JTET_COMPILATION_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "jtet", "jax")
+)
+if _cache_dir and _cache_dir.lower() != "off":
+    try:
+        os.makedirs(_cache_dir, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", _cache_dir)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    except OSError:  # a read-only home must not stop jtet; it only costs compile time
+        pass
+
+
+def bucket_capacity(n: int, minimum: int = 256) -> int:
+    """Smallest capacity from the fixed set {minimum * 2**k} holding ``n`` items.
+
+    Batches are padded to these sizes so that jitted kernels see few distinct shapes
+    and never recompile inside the optimizer's loop.
+    """
+    cap = minimum
+    while cap < n:
+        cap *= 2
+    return cap

@@ -1,0 +1,224 @@
+"""TetMesh: the immutable host-side mesh every stage of jtet reads and returns."""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+from jaxtyping import Float, Int
+
+from ._errors import MeshInputError
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a = np.ascontiguousarray(a)
+    a.flags.writeable = False
+    return a
+
+
+def _orient_volumes6(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """6 x signed volume of every tet in plain float64 NumPy (no robustness filter)."""
+    p0, p1, p2, p3 = (points[tets[:, i]] for i in range(4))
+    return np.einsum("ij,ij->i", p1 - p0, np.cross(p2 - p0, p3 - p0))
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class TetMesh:
+    """An immutable tetrahedral mesh.
+
+    Attributes:
+        points: (n, 3) float64 vertex coordinates.
+        tets: (m, 4) int64 vertex indices. Orientation convention (VTK / pyvista): a tet
+            is correct when ``det[p1-p0, p2-p0, p3-p0] > 0``.
+        region: (m,) int64 region label of every tet (all 0 when the input had none).
+        protected_faces: (k, 3) int64 user-protected triangles (sorted vertex triples);
+            they are subfacets in addition to the boundary and region interfaces.
+        protected_edges: (k, 2) int64 user-protected edges (sorted pairs); subsegments.
+
+    Methods that transform a mesh return a new ``TetMesh``. The constructor checks
+    shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it
+    also handles all-inverted orientation).
+    """
+
+    points: Float[np.ndarray, "n 3"]
+    tets: Int[np.ndarray, "m 4"]
+    region: Int[np.ndarray, " m"] = field(default=None)
+    protected_faces: Int[np.ndarray, "k 3"] = field(default=None)
+    protected_edges: Int[np.ndarray, "k 2"] = field(default=None)
+
+    def __post_init__(self):
+        points = np.asarray(self.points)
+        tets = np.asarray(self.tets)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise MeshInputError(f"points must have shape (n, 3), got {points.shape}")
+        if not np.issubdtype(points.dtype, np.number):
+            raise MeshInputError(f"points must be numeric, got dtype {points.dtype}")
+        points = points.astype(np.float64, copy=False)
+        if tets.size == 0:
+            tets = tets.reshape(0, 4)
+        if tets.ndim != 2 or tets.shape[1] != 4:
+            raise MeshInputError(f"tets must have shape (m, 4), got {tets.shape}")
+        if not np.issubdtype(tets.dtype, np.integer):
+            if np.issubdtype(tets.dtype, np.floating) and np.all(tets == np.round(tets)):
+                tets = tets.astype(np.int64)
+            else:
+                raise MeshInputError(f"tets must hold integer indices, got dtype {tets.dtype}")
+        tets = tets.astype(np.int64, copy=False)
+        if len(tets) == 0:
+            raise MeshInputError("the mesh is empty: it has no tetrahedra")
+        bad = ~np.isfinite(points).all(axis=1)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise MeshInputError(
+                f"{int(bad.sum())} point(s) have NaN or infinite coordinates "
+                f"(first: point {i} = {points[i].tolist()})"
+            )
+        out = (tets < 0) | (tets >= len(points))
+        if out.any():
+            t = int(np.flatnonzero(out.any(axis=1))[0])
+            raise MeshInputError(
+                f"tet {t} has vertex indices {tets[t].tolist()} out of range "
+                f"[0, {len(points)}) ({int(out.any(axis=1).sum())} such tet(s))"
+            )
+        s = np.sort(tets, axis=1)
+        rep = (s[:, 1:] == s[:, :-1]).any(axis=1)
+        if rep.any():
+            t = int(np.flatnonzero(rep)[0])
+            raise MeshInputError(
+                f"tet {t} repeats a vertex: {tets[t].tolist()} ({int(rep.sum())} such tet(s))"
+            )
+        region = (
+            np.zeros(len(tets), np.int64)
+            if self.region is None
+            else np.asarray(self.region).astype(np.int64).reshape(-1)
+        )
+        if region.shape != (len(tets),):
+            raise MeshInputError(f"region must have one label per tet ({len(tets)}), got {region.shape}")
+        pf = self._entity_array(self.protected_faces, 3, "protected_faces", len(points))
+        pe = self._entity_array(self.protected_edges, 2, "protected_edges", len(points))
+        object.__setattr__(self, "points", _readonly(points))
+        object.__setattr__(self, "tets", _readonly(tets))
+        object.__setattr__(self, "region", _readonly(region))
+        object.__setattr__(self, "protected_faces", _readonly(pf))
+        object.__setattr__(self, "protected_edges", _readonly(pe))
+
+    @staticmethod
+    def _entity_array(a, k: int, name: str, n_points: int) -> np.ndarray:
+        if a is None:
+            return np.zeros((0, k), np.int64)
+        a = np.asarray(a)
+        if a.size == 0:
+            return np.zeros((0, k), np.int64)
+        if a.ndim != 2 or a.shape[1] != k or not np.issubdtype(a.dtype, np.integer):
+            raise MeshInputError(f"{name} must be an integer array of shape (n, {k}), got {a.shape}")
+        if ((a < 0) | (a >= n_points)).any():
+            raise MeshInputError(f"{name} holds vertex indices out of range [0, {n_points})")
+        return np.unique(np.sort(a.astype(np.int64), axis=1), axis=0)
+
+    # ------------------------------------------------------------------ constructors
+    @classmethod
+    def from_arrays(
+        cls,
+        points,
+        tets,
+        region=None,
+        protected_faces=None,
+        protected_edges=None,
+        *,
+        source: str = "input",
+    ) -> TetMesh:
+        """Build a mesh from user arrays, fixing a globally reversed orientation.
+
+        If every non-degenerate tet is negatively oriented the whole mesh is reoriented
+        (with a warning); a mesh mixing both orientations is kept as it is, and its
+        inverted tets are reported by ``is_valid()``.
+        """
+        mesh = cls(points, tets, region, protected_faces, protected_edges)
+        vol = _orient_volumes6(mesh.points, mesh.tets)
+        neg, pos = int((vol < 0).sum()), int((vol > 0).sum())
+        if neg and not pos:
+            warnings.warn(
+                f"{source}: all {neg} tets are negatively oriented; reoriented to jtet's "
+                "(VTK) convention of positive volume",
+                stacklevel=2,
+            )
+            t = mesh.tets[:, [1, 0, 2, 3]]
+            mesh = cls(mesh.points, t, mesh.region, mesh.protected_faces, mesh.protected_edges)
+        elif neg:
+            warnings.warn(
+                f"{source}: {neg} of {len(vol)} tets are inverted (negative volume); "
+                "jtet keeps them and tries to repair them by edge removal",
+                stacklevel=2,
+            )
+        return mesh
+
+    @classmethod
+    def from_pyvista(cls, grid, *, source: str = "pyvista grid") -> TetMesh:
+        """Build a mesh from a ``pyvista.UnstructuredGrid`` of tetra cells.
+
+        Reads a ``region`` cell array when present (also ``gmsh:physical``,
+        ``medit:ref``, ``CellEntityIds`` as written by meshio / VTK readers).
+        """
+        from ._io import grid_to_arrays
+
+        return cls.from_arrays(*grid_to_arrays(grid, source), source=source)
+
+    def replace(self, **changes) -> TetMesh:
+        """A copy with some fields replaced (the constructor's checks run again)."""
+        kw = dict(
+            points=self.points,
+            tets=self.tets,
+            region=self.region,
+            protected_faces=self.protected_faces,
+            protected_edges=self.protected_edges,
+        )
+        kw.update(changes)
+        return TetMesh(**kw)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def n_points(self) -> int:
+        return len(self.points)
+
+    @property
+    def n_tets(self) -> int:
+        return len(self.tets)
+
+    @functools.cached_property
+    def volumes(self) -> np.ndarray:
+        """(m,) signed volumes."""
+        return _orient_volumes6(self.points, self.tets) / 6.0
+
+    @functools.cached_property
+    def topology(self):
+        """Vectorized adjacency: faces, edges, rings, boundary, protection (cached)."""
+        from ._topology import Topology
+
+        return Topology.build(self)
+
+    def quality(self, measure: str = "min_sine") -> np.ndarray:
+        """(m,) quality of every tet under ``measure`` (see ``jtet.MEASURES``)."""
+        from ._quality import tet_quality
+
+        return tet_quality(self.points, self.tets, measure)
+
+    def is_valid(self):
+        """Full (expensive) validity check; returns a ``ValidityReport``."""
+        from ._validity import check_validity
+
+        return check_validity(self)
+
+    def to_pyvista(self, cell_data: dict | None = None):
+        """A ``pyvista.UnstructuredGrid`` with a ``region`` cell array (plus ``cell_data``)."""
+        from ._io import mesh_to_grid
+
+        return mesh_to_grid(self, cell_data)
+
+    def __repr__(self) -> str:
+        nreg = len(np.unique(self.region))
+        return (
+            f"TetMesh({self.n_points} points, {self.n_tets} tets, {nreg} region(s), "
+            f"{len(self.protected_faces)} protected faces, {len(self.protected_edges)} protected edges)"
+        )

@@ -1,0 +1,238 @@
+"""Tetrahedron quality measures, written for ONE tet in structure-of-arrays form.
+
+Every function takes the four corners ``p0, p1, p2, p3`` of a tet, each a tuple
+``(x, y, z)`` of arrays of the same (broadcastable) shape, and returns an array of
+that shape. Written per component on purpose: the same code evaluates one tet or a
+whole SoA batch elementwise (and is trivially ``vmap``-able), and measured 10-60x
+faster than ``(..., 3)`` vectors with ``jnp.cross`` (see DESIGN.md).
+
+Orientation convention (the one of VTK and pyvista): a tet ``(p0, p1, p2, p3)`` is
+correctly oriented when its signed volume ``det[p1-p0, p2-p0, p3-p0] / 6`` is positive,
+i.e. ``p0, p1, p2`` appear counterclockwise seen from ``p3``. Every measure is
+normalized to 1 for the regular tet, positive for a correctly oriented tet, zero for a
+degenerate (flat) one and negative for an inverted one, as Shewchuk's algorithms need.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from . import _config
+from ._errors import JtetError
+
+Vec = tuple[Array, Array, Array]  # SoA point: (x, y, z), each of the same shape
+
+# sin of the regular tet's dihedral angle arccos(1/3)
+_SIN_REGULAR = 2.0 * math.sqrt(2.0) / 3.0
+
+
+def _sub(p: Vec, q: Vec) -> Vec:
+    return (p[0] - q[0], p[1] - q[1], p[2] - q[2])
+
+
+def _cross(u: Vec, v: Vec) -> Vec:
+    return (
+        u[1] * v[2] - u[2] * v[1],
+        u[2] * v[0] - u[0] * v[2],
+        u[0] * v[1] - u[1] * v[0],
+    )
+
+
+def _dot(u: Vec, v: Vec) -> Array:
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+def _norm(u: Vec) -> Array:
+    return jnp.sqrt(_dot(u, u))
+
+
+def _safe_div(num: Array, den: Array) -> Array:
+    """num / den, and 0 where den == 0 (a degenerate tet has quality 0, not NaN)."""
+    ok = den > 0
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
+
+
+class _TetGeometry:
+    """Shared intermediate quantities of one tet (SoA).
+
+    ``d``: 6 * signed volume. ``edges``: six edge vectors in the order
+    01, 02, 03, 12, 13, 23. ``normals``: outward (for a positive tet) face normals,
+    length = 2 * face area, ``normals[i]`` for the face opposite vertex i.
+    """
+
+    # The two faces containing edge (i, j) are the faces opposite the other two vertices.
+    EDGE_VERTS = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+    EDGE_FACES = ((2, 3), (1, 3), (1, 2), (0, 3), (0, 2), (0, 1))
+
+    def __init__(self, p0: Vec, p1: Vec, p2: Vec, p3: Vec):
+        e01, e02, e03 = _sub(p1, p0), _sub(p2, p0), _sub(p3, p0)
+        e12, e13, e23 = _sub(p2, p1), _sub(p3, p1), _sub(p3, p2)
+        self.edges = (e01, e02, e03, e12, e13, e23)
+        self.d = _dot(e01, _cross(e02, e03))
+        self.normals = (
+            _cross(e12, e13),
+            _cross(e03, e02),
+            _cross(e01, e03),
+            _cross(e02, e01),
+        )
+
+    def edge_lengths_sq(self) -> tuple[Array, ...]:
+        return tuple(_dot(e, e) for e in self.edges)
+
+    def normal_lengths(self) -> tuple[Array, ...]:
+        return tuple(_norm(n) for n in self.normals)
+
+
+def signed_volume(p0: Vec, p1: Vec, p2: Vec, p3: Vec) -> Array:
+    """Signed volume (length^3): positive for a correctly oriented tet."""
+    return _TetGeometry(p0, p1, p2, p3).d / 6.0
+
+
+def min_sine(p0: Vec, p1: Vec, p2: Vec, p3: Vec) -> Array:
+    """Smallest sine of the six dihedral angles, divided by the regular tet's (signed).
+
+    sin(theta_ij) = 6V * l_ij / (|N_k| |N_l|) with N the face normals of length 2*area.
+    Small for both tiny and near-180-degree dihedral angles, so it catches every sliver.
+    """
+    g = _TetGeometry(p0, p1, p2, p3)
+    lsq = g.edge_lengths_sq()
+    nl = g.normal_lengths()
+    sines = [
+        _safe_div(g.d * jnp.sqrt(lsq[e]), nl[f0] * nl[f1])
+        for e, (f0, f1) in enumerate(_TetGeometry.EDGE_FACES)
+    ]
+    m = sines[0]
+    for s in sines[1:]:
+        m = jnp.minimum(m, s)
+    return m / _SIN_REGULAR
+
+
+def radius_ratio(p0: Vec, p1: Vec, p2: Vec, p3: Vec) -> Array:
+    """Normalized radius ratio 3 r_in / R_circ (signed).
+
+    r_in = 6V / sum|N|, R_circ = sqrt(P) / (4 * 6V) with P the product formula on the
+    products of opposite edge lengths; hence 3 r / R = 12 (6V)^2 / (sum|N| sqrt(P)).
+    """
+    g = _TetGeometry(p0, p1, p2, p3)
+    lsq = g.edge_lengths_sq()
+    nl = g.normal_lengths()
+    # products of opposite edges: 01*23, 02*13, 03*12
+    pa = jnp.sqrt(lsq[0] * lsq[5])
+    pb = jnp.sqrt(lsq[1] * lsq[4])
+    pc = jnp.sqrt(lsq[2] * lsq[3])
+    prod = (pa + pb + pc) * (pa + pb - pc) * (pa - pb + pc) * (-pa + pb + pc)
+    prod = jnp.maximum(prod, 0.0)  # round-off can push a cospherical-flat P below zero
+    den = (nl[0] + nl[1] + nl[2] + nl[3]) * jnp.sqrt(prod)
+    return _safe_div(12.0 * g.d * jnp.abs(g.d), den)
+
+
+def vol_length(p0: Vec, p1: Vec, p2: Vec, p3: Vec) -> Array:
+    """Normalized volume-length ratio 6*sqrt(2) V / l_rms^3 (signed)."""
+    g = _TetGeometry(p0, p1, p2, p3)
+    lsq = g.edge_lengths_sq()
+    msq = (lsq[0] + lsq[1] + lsq[2] + lsq[3] + lsq[4] + lsq[5]) / 6.0
+    return _safe_div(math.sqrt(2.0) * g.d, msq * jnp.sqrt(msq))
+
+
+def mean_ratio(p0: Vec, p1: Vec, p2: Vec, p3: Vec) -> Array:
+    """Mean ratio 12 (3|V|)^(2/3) / sum(l^2), with the sign of V."""
+    g = _TetGeometry(p0, p1, p2, p3)
+    lsq = g.edge_lengths_sq()
+    ssq = lsq[0] + lsq[1] + lsq[2] + lsq[3] + lsq[4] + lsq[5]
+    return _safe_div(12.0 * jnp.sign(g.d) * jnp.cbrt(0.25 * g.d * g.d), ssq)
+
+
+def dihedral_angles(p0: Vec, p1: Vec, p2: Vec, p3: Vec) -> tuple[Array, ...]:
+    """The six interior dihedral angles in degrees, at edges 01, 02, 03, 12, 13, 23.
+
+    theta = atan2(|6V| l, -N_k . N_l): stable near 0 and 180 degrees, no arccos.
+    """
+    g = _TetGeometry(p0, p1, p2, p3)
+    lsq = g.edge_lengths_sq()
+    ad = jnp.abs(g.d)
+    return tuple(
+        jnp.degrees(jnp.arctan2(ad * jnp.sqrt(lsq[e]), -_dot(g.normals[f0], g.normals[f1])))
+        for e, (f0, f1) in enumerate(_TetGeometry.EDGE_FACES)
+    )
+
+
+QualityFn = Callable[[Vec, Vec, Vec, Vec], Array]
+
+MEASURES: dict[str, QualityFn] = {
+    "min_sine": min_sine,
+    "radius_ratio": radius_ratio,
+    "vol_length": vol_length,
+    "mean_ratio": mean_ratio,
+}
+
+
+def get_measure(name: str) -> QualityFn:
+    """The quality function registered under ``name`` (see ``MEASURES``)."""
+    try:
+        return MEASURES[name]
+    except KeyError:
+        raise JtetError(
+            f"unknown quality measure {name!r}; choose one of {sorted(MEASURES)}"
+        ) from None
+
+
+# ---------------------------------------------------------------------------------------
+# Host-side evaluation on whole meshes: gather SoA corners, pad to a bucket capacity.
+
+
+def soa_corners(
+    points: Float[np.ndarray, "n 3"], tets: np.ndarray
+) -> tuple[Vec, Vec, Vec, Vec]:
+    """Corner coordinates of ``tets`` (m, 4) as four SoA points of (m,) arrays."""
+    xyz = np.ascontiguousarray(points.T)  # (3, n): gathers below read contiguous rows
+    return tuple(tuple(xyz[c][tets[:, i]] for c in range(3)) for i in range(4))
+
+
+@functools.partial(jax.jit, static_argnames=("name",))
+def _quality_soa(corners, name: str):
+    return MEASURES[name](*corners)
+
+
+@jax.jit
+def _dihedral_soa(corners):
+    angles = dihedral_angles(*corners)
+    lo = angles[0]
+    hi = angles[0]
+    for a in angles[1:]:
+        lo = jnp.minimum(lo, a)
+        hi = jnp.maximum(hi, a)
+    return jnp.stack(angles, axis=-1), lo, hi
+
+
+def _padded_corners(points: np.ndarray, tets: np.ndarray) -> tuple[tuple, int]:
+    m = len(tets)
+    cap = _config.bucket_capacity(m, 1024)
+    if cap != m:
+        pad = np.broadcast_to(tets[:1] if m else np.zeros((1, 4), np.int64), (cap - m, 4))
+        tets = np.concatenate([tets, pad]) if m else np.zeros((cap, 4), np.int64)
+    return soa_corners(points, tets), m
+
+
+def tet_quality(points: np.ndarray, tets: np.ndarray, measure: str = "min_sine") -> np.ndarray:
+    """Quality ``measure`` of every tet: (m,) float64 NumPy array."""
+    get_measure(measure)
+    if len(points) == 0:
+        return np.zeros(len(tets))
+    corners, m = _padded_corners(points, tets)
+    return np.asarray(_quality_soa(corners, measure))[:m]
+
+
+def tet_dihedrals(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(angles (m, 6), min (m,), max (m,)) dihedral angles of every tet, in degrees."""
+    if len(points) == 0:
+        return np.zeros((0, 6)), np.zeros(0), np.zeros(0)
+    corners, m = _padded_corners(points, tets)
+    angles, lo, hi = _dihedral_soa(corners)
+    return np.asarray(angles)[:m], np.asarray(lo)[:m], np.asarray(hi)[:m]

@@ -1,0 +1,59 @@
+"""Tiny canonical meshes and seeded random meshes shared by the tests."""
+
+import numpy as np
+from scipy.spatial import Delaunay
+
+import jtet
+
+REGULAR_TET = np.array(
+    [[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]]
+)
+
+
+def orient_positive(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Swap two vertices of every negatively oriented tet (VTK convention)."""
+    p = points[tets]
+    vol = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
+    tets = tets.copy()
+    neg = vol < 0
+    tets[neg] = tets[neg][:, [1, 0, 2, 3]]
+    return tets
+
+
+def delaunay_mesh(n_points: int = 200, seed: int = 0, clustered: bool = False) -> "jtet.TetMesh":
+    """Delaunay tetrahedralization of seeded random points in the unit cube (scipy).
+
+    Cube corners are included so the boundary is the cube; nearly flat hull slivers are
+    dropped by qhull's 'Qbb Qc Qz Q12' defaults plus removal of zero-volume tets.
+    """
+    rng = np.random.default_rng(seed)
+    pts = rng.random((n_points, 3))
+    if clustered:
+        pts = 0.5 + 0.15 * rng.standard_normal((n_points, 3))
+        pts = np.clip(pts, 0.01, 0.99)
+    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], float)
+    pts = np.vstack([corners, pts])
+    tri = Delaunay(pts)
+    tets = orient_positive(pts, tri.simplices.astype(np.int64))
+    p = pts[tets]
+    vol = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
+    tets = tets[vol > 1e-14]
+    return jtet.TetMesh(pts, tets)
+
+
+def grid_mesh(n: int = 3, perturb: float = 0.0, seed: int = 0) -> "jtet.TetMesh":
+    """Structured n^3 cube grid, each cube cut into 6 tets (Kuhn/Freudenthal), perturbed."""
+    ax = np.linspace(0.0, 1.0, n + 1)
+    X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
+    pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+    idx = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
+    c = [idx[i : i + n, j : j + n, k : k + n].ravel() for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+    # corners: c[0]=000 c[1]=001 c[2]=010 c[3]=011 c[4]=100 c[5]=101 c[6]=110 c[7]=111
+    paths = [(4, 6), (4, 5), (2, 6), (2, 3), (1, 5), (1, 3)]
+    tets = np.concatenate([np.stack([c[0], c[a], c[b], c[7]], axis=1) for a, b in paths])
+    if perturb:
+        rng = np.random.default_rng(seed)
+        interior = ((pts > 0) & (pts < 1)).all(axis=1)
+        pts = pts.copy()
+        pts[interior] += perturb / n * rng.uniform(-1, 1, (interior.sum(), 3))
+    return jtet.TetMesh(pts, orient_positive(pts, tets))
