@@ -1,0 +1,137 @@
+"""Topology against brute-force per-element references on small seeded meshes."""
+
+import numpy as np
+import pytest
+from helpers import delaunay_mesh, grid_mesh
+
+import jtet
+from jtet._topology import CORNER, FREE, SEGMENT, SURFACE, Topology
+
+
+def _volume6(p):
+    return np.dot(p[1] - p[0], np.cross(p[2] - p[0], p[3] - p[0]))
+
+
+def _pytetwild_mesh():
+    pv = pytest.importorskip("pyvista")
+    pytetwild = pytest.importorskip("pytetwild")
+    grid = pytetwild.tetrahedralize_pv(pv.Sphere(theta_resolution=12, phi_resolution=12), edge_length_fac=0.2)
+    return jtet.TetMesh.from_pyvista(grid)
+
+
+MESHES = {
+    "delaunay": lambda: delaunay_mesh(150, seed=1),
+    "clustered": lambda: delaunay_mesh(150, seed=2, clustered=True),
+    "grid": lambda: grid_mesh(3, perturb=0.3, seed=3),
+    "pytetwild": _pytetwild_mesh,
+}
+
+
+@pytest.fixture(params=sorted(MESHES))
+def mesh(request):
+    return MESHES[request.param]()
+
+
+def test_faces_and_neighbors_match_brute_force(mesh):
+    T = mesh.topology
+    ref = {}
+    for t, tet in enumerate(mesh.tets):
+        for i in range(4):
+            key = tuple(sorted(np.delete(tet, i)))
+            ref.setdefault(key, []).append((t, tet[i]))
+    assert len(ref) == len(T.faces)
+    for f, face in enumerate(T.faces):
+        entries = ref[tuple(face)]
+        got = {(t, a) for t, a in zip(T.face_tets[f], T.face_apex[f]) if t >= 0}
+        assert got == set(entries)
+        assert T.boundary_face[f] == (len(entries) == 1)
+    for t in range(mesh.n_tets):
+        for i in range(4):
+            f = T.tet_faces[t, i]
+            assert set(T.faces[f]) == set(np.delete(mesh.tets[t], i))
+            nb = T.tet_neighbors[t, i]
+            assert nb == (T.face_tets[f, 1] if T.face_tets[f, 0] == t else T.face_tets[f, 0])
+
+
+def test_edge_rings_are_ordered_and_oriented(mesh):
+    T = mesh.topology
+    P = mesh.points
+    ref = {}
+    for t, tet in enumerate(mesh.tets):
+        for i in range(4):
+            for j in range(i + 1, 4):
+                ref.setdefault(tuple(sorted((tet[i], tet[j]))), set()).add(t)
+    assert len(ref) == len(T.edges)
+    for e, (a, b) in enumerate(T.edges):
+        tets = T.edge_tets[T.edge_tets_ptr[e] : T.edge_tets_ptr[e + 1]]
+        ring = T.edge_ring[T.edge_ring_ptr[e] : T.edge_ring_ptr[e + 1]]
+        assert set(tets) == ref[(a, b)]
+        assert T.edge_manifold[e]
+        k = len(tets)
+        assert len(ring) == k + (1 if T.edge_boundary[e] else 0)
+        for i, t in enumerate(tets):
+            c, d = ring[i], ring[(i + 1) % len(ring)]
+            # consecutive ring vertices share the tet with ab
+            assert set(mesh.tets[t]) == {a, b, c, d}
+            # counterclockwise about ab seen from a: (a, b, v_{i+1}, v_i) positive
+            assert _volume6(P[[a, b, d, c]]) > 0
+        if T.edge_boundary[e]:
+            # an open chain runs from boundary vertex to boundary vertex
+            bfaces = {tuple(f) for f in T.faces[T.boundary_face]}
+            assert tuple(sorted((a, b, ring[0]))) in bfaces
+            assert tuple(sorted((a, b, ring[-1]))) in bfaces
+
+
+def test_grid_protection_classes():
+    mesh = grid_mesh(3)
+    T = mesh.topology
+    on = lambda v: np.isclose(mesh.points[v], 0) | np.isclose(mesh.points[v], 1)  # noqa: E731
+    n_on = on(np.arange(mesh.n_points)).sum(axis=1)
+    expect = np.select([n_on == 0, n_on == 1, n_on == 2], [FREE, SURFACE, SEGMENT], CORNER)
+    np.testing.assert_array_equal(T.vertex_kind, expect)
+    # subsegments are exactly the edges lying on the cube's 12 edges
+    e_on = on(T.edges[:, 0]) & on(T.edges[:, 1])
+    np.testing.assert_array_equal(T.subsegment, e_on.sum(axis=1) >= 2)
+    surf = np.flatnonzero(T.vertex_kind == SURFACE)
+    n = T.surface_normal[surf]
+    assert np.allclose(np.abs(n).max(axis=1), 1.0)
+
+
+def test_region_interface_and_protected_entities():
+    mesh = grid_mesh(2)
+    c = mesh.points[mesh.tets].mean(axis=1)
+    region = (c[:, 0] > 0.5).astype(int)
+    T = Topology.build(mesh.replace(region=region))
+    f = T.faces[T.interface_face]
+    assert len(f) == 8 and np.allclose(mesh.points[f][..., 0], 0.5)
+    assert T.subfacet[T.interface_face].all()
+    # interface edges on the plane x = 0.5 which are not on the outer boundary are
+    # removable (flat), edges where the interface meets the boundary are subsegments
+    ex = np.isclose(mesh.points[T.edges][..., 0], 0.5).all(axis=1)
+    inner = ex & (T.edge_n_subfacets == 2)
+    assert inner.any() and not T.subsegment[inner].any()
+    assert T.subsegment[ex & (T.edge_n_subfacets > 2)].all()
+    # user protection
+    e0 = np.flatnonzero(~T.subsegment)[0]
+    prot = mesh.replace(protected_edges=T.edges[[e0]], protected_faces=T.faces[[0]])
+    P = prot.topology
+    assert P.subsegment[e0] and P.subfacet[0]
+    with pytest.raises(jtet.MeshInputError, match="not an edge"):
+        Topology.build(mesh.replace(protected_edges=[[0, mesh.n_points - 1]]))
+
+
+def test_feature_angle_controls_curved_boundary():
+    mesh = _pytetwild_mesh()
+    exact = Topology.build(mesh)
+    loose = Topology.build(mesh, feature_angle=60.0)
+    bnd = exact.edge_n_subfacets == 2
+    # a sphere is curved everywhere: every boundary edge is a feature at angle 0
+    assert exact.subsegment[bnd].all()
+    assert loose.subsegment[bnd].sum() < bnd.sum()
+
+
+def test_nonconforming_mesh_is_rejected():
+    pts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, -1], [1, 1, 1.0]])
+    tets = np.array([[0, 1, 2, 3], [0, 2, 1, 4], [0, 1, 2, 5]])
+    with pytest.raises(jtet.MeshInputError, match="shared by 3 tets"):
+        Topology.build(jtet.TetMesh(pts, tets))
