@@ -1,0 +1,248 @@
+"""One batched pass of optimal edge removal (Shewchuk, Section 2).
+
+gather -> Klincsek kernels (one compiled kernel per polygon size) -> select -> apply.
+
+Every candidate edge ab becomes one or two polygons ("chains") that Klincsek's dynamic
+program triangulates:
+- an interior edge: its closed ring v_1..v_m (final 3-2 flip);
+- an edge on the exterior boundary whose two boundary faces are coplanar: the open chain
+  from one boundary vertex to the other (final 2-2 flip);
+- an edge on an interior bounding surface (region interface or user-protected faces):
+  the ring split at the two subfacets into chains C1 and C2 (final 4-4 flip).
+Subsegments are never candidates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ._apply import replace_tets
+from ._kernels.klincsek import solve_rings
+from ._mesh import TetMesh
+from ._select import select_conflict_free
+from ._topology import match_rows
+
+
+@dataclass
+class PassStats:
+    """Counts of one pass of a topological operation."""
+
+    op: str
+    attempts: int = 0
+    successes: int = 0
+    by_size: dict = field(default_factory=dict)  # ring / tree size -> successes
+    overflow: int = 0  # candidates skipped because they exceed the configured capacity
+
+    def as_dict(self) -> dict:
+        return {
+            "op": self.op,
+            "attempts": self.attempts,
+            "successes": self.successes,
+            "by_size": {str(k): v for k, v in sorted(self.by_size.items())},
+            "overflow": self.overflow,
+        }
+
+
+@dataclass
+class _Chains:
+    """Polygons to triangulate, flattened: chain c has vertices verts[ptr[c]:ptr[c+1]]."""
+
+    cand: np.ndarray  # (C,) candidate index of each chain
+    ptr: np.ndarray  # (C+1,)
+    verts: np.ndarray  # ring vertex ids
+    region: np.ndarray  # (C,) region of the tets on this chain's side
+
+
+def _segments(ptr: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(row id, offset) of every entry of the CSR segments ``rows``."""
+    lens = ptr[rows + 1] - ptr[rows]
+    owner = np.repeat(np.arange(len(rows)), lens)
+    start = np.repeat(np.cumsum(lens) - lens, lens)
+    return owner, np.arange(lens.sum()) - start
+
+
+def edge_candidates(mesh: TetMesh, max_ring: int, dirty: np.ndarray | None) -> np.ndarray:
+    """Edge ids worth trying: removable, manifold, small enough, neighbourhood changed."""
+    T = mesh.topology
+    size = np.diff(T.edge_ring_ptr)  # polygon size: ring (closed) or chain (open)
+    ok = ~T.subsegment & T.edge_manifold & (size >= 3)
+    # interior-surface edges split their ring in two chains, each <= max_ring; the
+    # whole ring may be up to 2 * max_ring - 2
+    surface = (T.edge_n_subfacets == 2) & ~T.edge_boundary
+    ok &= np.where(surface, size <= 2 * max_ring - 2, size <= max_ring)
+    if dirty is not None:
+        d = dirty[T.edge_tets].astype(np.int64)
+        ok &= np.add.reduceat(d, T.edge_tets_ptr[:-1]) > 0 if len(d) else False
+    return np.flatnonzero(ok)
+
+
+def _build_chains(mesh: TetMesh, edges: np.ndarray) -> _Chains:
+    """Chains (polygons) of the candidate ``edges`` with their region."""
+    T = mesh.topology
+    n = mesh.n_points
+    rp, tp = T.edge_ring_ptr, T.edge_tets_ptr
+    surface = (T.edge_n_subfacets[edges] == 2) & ~T.edge_boundary[edges]
+    single = np.flatnonzero(~surface)
+    # one chain per interior / exterior-boundary edge: the ring as it is
+    e1 = edges[single]
+    own1, off1 = _segments(rp, e1)
+    verts1 = T.edge_ring[rp[e1][own1] + off1]
+    ptr1 = np.concatenate([[0], np.cumsum(rp[e1 + 1] - rp[e1])])
+    reg1 = mesh.region[T.edge_tets[tp[e1]]]
+    cand1 = single
+    # two chains per interior-surface edge: split the closed ring at its two subfacets
+    sidx = np.flatnonzero(surface)
+    e2 = edges[sidx]
+    own2, off2 = _segments(rp, e2)
+    ring2 = T.edge_ring[rp[e2][own2] + off2]
+    ab = T.edges[e2][own2]
+    fid = match_rows(T.faces, np.column_stack([ab, ring2]), n)
+    is_sub = T.subfacet[fid]
+    # positions (offsets) of the two subfacet vertices x (first) and y (second) per edge
+    sub_off = off2[is_sub].reshape(-1, 2)
+    m2 = (rp[e2 + 1] - rp[e2]).astype(np.int64)
+    px, py = sub_off[:, 0], sub_off[:, 1]
+    len_a = py - px + 1  # chain x -> y
+    len_b = m2 - (py - px) + 1  # chain y -> x (wrapping)
+    starts = np.concatenate([px, py])
+    lens = np.concatenate([len_a, len_b])
+    which = np.concatenate([np.arange(len(e2)), np.arange(len(e2))])
+    own, off = _segments(np.concatenate([[0], np.cumsum(lens)]), np.arange(len(lens)))
+    mm = m2[which][own]
+    verts2 = T.edge_ring[rp[e2][which][own] + (starts[own] + off) % mm]
+    ptr2 = np.concatenate([[0], np.cumsum(lens)])
+    reg2 = mesh.region[T.edge_tets[tp[e2][which] + starts]]
+    cand2 = sidx[which]
+    return _Chains(
+        cand=np.concatenate([cand1, cand2]),
+        ptr=np.concatenate([ptr1, ptr1[-1] + ptr2[1:]]),
+        verts=np.concatenate([verts1, verts2]),
+        region=np.concatenate([reg1, reg2]),
+    )
+
+
+def edge_removal_pass(
+    mesh: TetMesh,
+    *,
+    measure: str = "min_sine",
+    max_ring: int = 7,
+    quality: np.ndarray | None = None,
+    dirty: np.ndarray | None = None,
+    min_improvement: float = 1e-9,
+    prune: bool = True,
+) -> tuple[TetMesh, PassStats, np.ndarray | None]:
+    """One pass: try every candidate edge at once, apply a conflict-free set of winners.
+
+    Args:
+        mesh: input mesh.
+        measure: quality measure name.
+        max_ring: largest polygon (ring or chain) size tried.
+        quality: (m,) quality of ``mesh``'s tets under ``measure`` if already known.
+        dirty: (m,) bool; only edges touching a dirty tet are tried (None: all edges).
+        min_improvement: a winner must raise its worst tet by more than this (guards
+            against flipping back and forth between configurations equal to round-off).
+
+    Returns:
+        (new mesh, stats, keep): ``keep`` (m,) marks the old tets that survive, in order,
+        at the front of the new mesh; the new tets follow. ``keep`` is None (and the
+        mesh returned unchanged) when nothing improved.
+    """
+    stats = PassStats("edge")
+    T = mesh.topology
+    q = mesh.quality(measure) if quality is None else quality
+    edges = edge_candidates(mesh, max_ring, dirty)
+    if len(edges) == 0:
+        return mesh, stats, None
+    ch = _build_chains(mesh, edges)
+    clen = np.diff(ch.ptr)
+    tp = T.edge_tets_ptr
+    q_old = np.minimum.reduceat(q[T.edge_tets], tp[:-1])[edges]
+    valid = np.ones(len(edges), bool)
+    np.logical_and.at(valid, ch.cand, (clen >= 3) & (clen <= max_ring))
+    stats.attempts = int(valid.sum())
+    stats.overflow = int((~valid).sum())
+    q_new = np.full(len(edges), np.inf)
+    tris_of = {}
+    a_all = T.edges[edges[ch.cand], 0]
+    b_all = T.edges[edges[ch.cand], 1]
+    pts = mesh.points
+    for k in range(3, max_ring + 1):
+        sel = np.flatnonzero((clen == k) & valid[ch.cand])
+        if len(sel) == 0:
+            continue
+        ring_ids = ch.verts[ch.ptr[sel][:, None] + np.arange(k)]
+        qn, tris = solve_rings(
+            pts[a_all[sel]],
+            pts[b_all[sel]],
+            pts[ring_ids],
+            q_old[ch.cand[sel]],
+            measure=measure,
+            prune=prune,
+        )
+        np.minimum.at(q_new, ch.cand[sel], np.asarray(qn))
+        tris_of[k] = (sel, ring_ids, np.asarray(tris))
+    q_new[~valid] = -np.inf
+    improves = q_new > q_old + min_improvement
+    cand = np.flatnonzero(improves)
+    ce = edges[cand]
+    claim_ptr = np.concatenate([[0], np.cumsum(tp[ce + 1] - tp[ce])])
+    own, off = _segments(tp, ce)
+    claims = T.edge_tets[tp[ce][own] + off]
+    win_local = select_conflict_free(claim_ptr, claims, q_old[cand], mesh.n_tets)
+    winners = np.zeros(len(edges), bool)
+    winners[cand[win_local]] = True
+    if not winners.any():
+        return mesh, stats, None
+    remove = np.zeros(mesh.n_tets, bool)
+    remove[claims[win_local[own]]] = True
+    new_tets, new_region = [], []
+    for _k, (sel, ring_ids, tris) in tris_of.items():
+        w = winners[ch.cand[sel]]
+        if not w.any():
+            continue
+        rid = ring_ids[w]  # (W, k)
+        tri = np.take_along_axis(rid[:, None, :], tris[w].reshape(w.sum(), -1)[:, None, :], 2)
+        tri = tri.reshape(-1, 3)  # (W*(k-2), 3) global (v_i, v_k, v_j)
+        nper = tris.shape[1]
+        a = np.repeat(a_all[sel][w], nper)
+        b = np.repeat(b_all[sel][w], nper)
+        top = np.column_stack([tri[:, 0], tri[:, 1], tri[:, 2], a])
+        bot = np.column_stack([tri[:, 0], tri[:, 2], tri[:, 1], b])
+        new_tets += [top, bot]
+        reg = np.repeat(ch.region[sel][w], nper)
+        new_region += [reg, reg]
+    sizes = np.diff(T.edge_tets_ptr)[edges[winners]]
+    stats.successes = int(winners.sum())
+    stats.by_size = {int(s): int(c) for s, c in zip(*np.unique(sizes, return_counts=True))}
+    old_p, new_p = _protected_updates(mesh, edges[winners])
+    out, _ = replace_tets(
+        mesh, remove, np.concatenate(new_tets), np.concatenate(new_region), old_p, new_p
+    )
+    return out, stats, ~remove
+
+
+def _protected_updates(mesh: TetMesh, edges: np.ndarray):
+    """Old/new user-protected faces of winning interior-surface edges (4-4 flips)."""
+    T = mesh.topology
+    if len(mesh.protected_faces) == 0:
+        return None, None
+    surf = edges[(T.edge_n_subfacets[edges] == 2) & ~T.edge_boundary[edges]]
+    if len(surf) == 0:
+        return None, None
+    # the two subfacets at ab: faces (a, b, x) and (a, b, y); after the flip the surface
+    # carries (a, x, y) and (b, x, y)
+    rp = T.edge_ring_ptr
+    own, off = _segments(rp, surf)
+    ring = T.edge_ring[rp[surf][own] + off]
+    ab = T.edges[surf][own]
+    tri = np.sort(np.column_stack([ab, ring]), axis=1)
+    fid = match_rows(T.faces, tri, mesh.n_points)
+    xs = ring[T.subfacet[fid]].reshape(-1, 2)
+    a, b = T.edges[surf, 0], T.edges[surf, 1]
+    old = np.concatenate([np.column_stack([a, b, xs[:, 0]]), np.column_stack([a, b, xs[:, 1]])])
+    new = np.concatenate(
+        [np.column_stack([a, xs[:, 0], xs[:, 1]]), np.column_stack([b, xs[:, 0], xs[:, 1]])]
+    )
+    return old, new

@@ -1,0 +1,98 @@
+"""Invariants every operation must keep, checked against the mesh the run started from."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._errors import InvariantError
+from ._mesh import TetMesh
+
+# Volumes are sums of O(m) float64 terms of both signs; a flip regroups them, so the sums
+# differ by round-off ~ m * eps * max|term|. 1e-12 relative leaves 3-4 digits of margin
+# on million-tet meshes and still catches any lost or doubled tet.
+VOLUME_RTOL = 1e-12
+
+
+def _surface_signature(mesh: TetMesh, which: str) -> tuple[np.ndarray, np.ndarray]:
+    """Per surface label: (vertex ids, [area, vector area x3]) of boundary / interface faces.
+
+    A flip of coplanar subfacets changes the triangles but not the surface, so the
+    vertex set, the total area and the vector area per surface stay the same.
+    """
+    T = mesh.topology
+    mask = T.boundary_face if which == "boundary" else T.interface_face
+    faces = T.faces[mask]
+    t0 = T.face_tets[mask, 0]
+    # orient every face outward from its first tet so vector areas do not cancel
+    apex = T.face_apex[mask, 0]
+    p = mesh.points
+    n = np.cross(p[faces[:, 1]] - p[faces[:, 0]], p[faces[:, 2]] - p[faces[:, 0]])
+    inward = np.einsum("ij,ij->i", n, p[apex] - p[faces[:, 0]]) > 0
+    n[inward] *= -1
+    r0 = mesh.region[t0]
+    t1 = T.face_tets[mask, 1]
+    r1 = np.where(t1 >= 0, mesh.region[np.maximum(t1, 0)], -1)
+    # label by region pair; flip the vector area sign so it points from min to max region
+    key = np.stack([np.minimum(r0, r1), np.maximum(r0, r1)], 1)
+    n[r0 > r1] *= -1
+    labels, inv = np.unique(key, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    area = np.linalg.norm(n, axis=1) / 2.0
+    sig = np.zeros((len(labels), 4))
+    np.add.at(sig[:, 0], inv, area)
+    np.add.at(sig[:, 1:], inv, n / 2.0)
+    return labels, sig, np.unique(faces)
+
+
+class InvariantChecker:
+    """Remembers the start mesh; ``check(mesh, pass_no, op)`` raises ``InvariantError``."""
+
+    def __init__(self, mesh: TetMesh):
+        self.volume = mesh.volumes.sum()
+        self.region_volume = self._region_volumes(mesh)
+        self.boundary = _surface_signature(mesh, "boundary")
+        self.interface = _surface_signature(mesh, "interface")
+        self.n_inverted = self._count_bad(mesh)
+        self.scale = float(np.abs(mesh.volumes).sum())
+
+    @staticmethod
+    def _region_volumes(mesh: TetMesh) -> dict:
+        labels, inv = np.unique(mesh.region, return_inverse=True)
+        return dict(zip(labels.tolist(), np.bincount(inv, mesh.volumes).tolist(), strict=True))
+
+    @staticmethod
+    def _count_bad(mesh: TetMesh) -> int:
+        from ._predicates import orient3d_tets
+
+        return int((orient3d_tets(mesh.points, mesh.tets) <= 0).sum())
+
+    def check(self, mesh: TetMesh, pass_no: int, op: str) -> None:
+        where = f"pass {pass_no}, operation {op!r}"
+
+        def fail(msg):
+            raise InvariantError(f"{where}: {msg}")
+
+        report = mesh.is_valid()
+        if not report.conforming:
+            fail(f"the mesh is no longer valid:\n{report}")
+        tol = VOLUME_RTOL * self.scale
+        if abs(mesh.volumes.sum() - self.volume) > tol:
+            fail(f"total volume changed from {self.volume!r} to {mesh.volumes.sum()!r}")
+        rv = self._region_volumes(mesh)
+        if rv.keys() != self.region_volume.keys() or any(
+            abs(rv[k] - v) > tol for k, v in self.region_volume.items()
+        ):
+            fail(f"region volumes changed from {self.region_volume} to {rv}")
+        bad = self._count_bad(mesh)
+        if bad > self.n_inverted:
+            fail(f"{bad - self.n_inverted} new inverted or degenerate tet(s)")
+        for which, ref in (("boundary", self.boundary), ("interface", self.interface)):
+            labels, sig, verts = _surface_signature(mesh, which)
+            if not (
+                np.array_equal(labels, ref[0])
+                and np.array_equal(verts, ref[2])
+                and np.allclose(
+                    sig, ref[1], rtol=1e-12, atol=1e-12 * max(ref[1][:, 0].sum(), 1e-300)
+                )
+            ):
+                fail(f"the {which} surface changed")

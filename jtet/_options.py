@@ -1,0 +1,90 @@
+"""The one options object shared by the Python API, the CLI and the config files."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from ._errors import JtetError
+from ._quality import MEASURES
+
+OPS = ("edge", "face", "smooth")
+BOUNDARY_MODES = ("fixed", "slide")
+
+
+@dataclass(frozen=True)
+class Options:
+    """Settings of ``jtet.improve``.
+
+    Attributes:
+        ops: operations to run, any of "edge" (optimal edge removal), "face" (optimal
+            multi-face removal), "smooth" (vertex smoothing).
+        quality: quality measure the optimizer maximizes (see ``jtet.MEASURES``).
+        max_ring: largest ring (or boundary chain) tried by edge removal, 3..16.
+        max_faces: capacity of a multi-face removal tree (faces sandwiched between a, b).
+        boundary: "fixed" keeps every boundary / interface vertex in place; "slide" lets
+            vertices slide inside flat facets and along straight subsegments.
+        feature_angle: degrees; two subfacets whose planes differ by more than this make
+            their edge a subsegment. 0 (default): only exactly coplanar subfacets may be
+            flipped, so the boundary stays geometrically identical.
+        max_passes: stop after this many passes.
+        patience: stop after this many passes in a row without progress.
+        time_limit: seconds of wall time, or None.
+        min_improvement: an operation must raise its worst tet by more than this.
+        smooth_threshold: vertices whose worst tet has quality below this are smoothed
+            (None: every vertex whose neighbourhood changed).
+        check: verify the invariants after every operation (slower; on in tests).
+        seed: seed of every random choice (independent sets); runs are reproducible.
+        progress: show a progress bar / per-pass log on stderr.
+    """
+
+    ops: tuple[str, ...] = OPS
+    quality: str = "min_sine"
+    max_ring: int = 7
+    max_faces: int = 16
+    boundary: str = "fixed"
+    feature_angle: float = 0.0
+    max_passes: int = 50
+    patience: int = 2
+    time_limit: float | None = None
+    min_improvement: float = 1e-9
+    smooth_threshold: float | None = None
+    check: bool = False
+    seed: int = 0
+    progress: bool = False
+
+    def __post_init__(self):
+        ops = (self.ops,) if isinstance(self.ops, str) else tuple(self.ops)
+        object.__setattr__(self, "ops", ops)
+        bad = [o for o in ops if o not in OPS]
+        if bad or not ops:
+            raise JtetError(f"unknown operation(s) {bad or ops}; choose from {list(OPS)}")
+        if self.quality not in MEASURES:
+            raise JtetError(
+                f"unknown quality measure {self.quality!r}; choose from {sorted(MEASURES)}"
+            )
+        if not 3 <= int(self.max_ring) <= 16:
+            raise JtetError(f"max_ring must be in 3..16, got {self.max_ring}")
+        if not 1 <= int(self.max_faces) <= 256:
+            raise JtetError(f"max_faces must be in 1..256, got {self.max_faces}")
+        if self.boundary not in BOUNDARY_MODES:
+            raise JtetError(
+                f"boundary must be one of {list(BOUNDARY_MODES)}, got {self.boundary!r}"
+            )
+        if not 0.0 <= float(self.feature_angle) < 90.0:
+            raise JtetError(f"feature_angle must be in [0, 90) degrees, got {self.feature_angle}")
+        if int(self.max_passes) < 0 or int(self.patience) < 1:
+            raise JtetError("max_passes must be >= 0 and patience >= 1")
+        if self.time_limit is not None and float(self.time_limit) <= 0:
+            raise JtetError(f"time_limit must be positive seconds, got {self.time_limit}")
+
+    def replace(self, **changes) -> Options:
+        unknown = set(changes) - {f.name for f in dataclasses.fields(self)}
+        if unknown:
+            raise JtetError(f"unknown option(s) {sorted(unknown)}")
+        return dataclasses.replace(self, **changes)
+
+    def as_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["ops"] = list(self.ops)
+        return d
