@@ -1,11 +1,27 @@
 """jtet: a JAX-based batch optimizer for the quality of tetrahedral meshes."""
 
 from . import _config  # noqa: F401  (float64 + compilation cache, before any kernel)
+from ._driver import ImproveResult as ImproveResult
+from ._driver import improve as improve
 from ._errors import InvariantError as InvariantError
 from ._errors import JtetError as JtetError
 from ._errors import MeshFileError as MeshFileError
 from ._errors import MeshInputError as MeshInputError
+from ._io import demo_mesh as demo_mesh
+from ._io import load as load
+from ._io import save as save
 from ._mesh import TetMesh as TetMesh
+from ._options import Options as Options
 from ._quality import MEASURES as MEASURES
+from ._stats import MeshStats as MeshStats
+from ._stats import format_table as format_table
+from ._stats import mesh_stats as stats
+from ._validity import ValidityReport as ValidityReport
+
+
+def quality(mesh: TetMesh, measure: str = "min_sine"):
+    """(m,) quality of every tet of ``mesh`` under ``measure`` (see ``MEASURES``)."""
+    return mesh.quality(measure)
+
 
 __version__ = "0.1.0"

@@ -116,7 +116,7 @@ class ImproveResult:
     def summary(self) -> str:
         from ._stats import format_table
 
-        return format_table(self.stats_before, self.stats_after, seconds=self.seconds)
+        return format_table(self.stats_before, self.stats_after, time_s=self.seconds)
 
     def as_dict(self) -> dict:
         return {
@@ -129,13 +129,16 @@ class ImproveResult:
         }
 
 
-def improve(mesh: TetMesh, options: Options | None = None, **overrides) -> ImproveResult:
+def improve(
+    mesh: TetMesh, options: Options | None = None, *, callback=None, **overrides
+) -> ImproveResult:
     """Improve the quality of ``mesh`` by hill climbing; see ``jtet.Options``.
 
     ``improve(mesh, ops=("edge",), quality="min_sine", max_ring=7)`` and
     ``improve(mesh, Options(...))`` are equivalent. Returns an ``ImproveResult`` whose
     ``.mesh`` is the improved mesh (the input is never modified). Ctrl-C and
     ``time_limit`` stop the run between operations and return the best mesh so far.
+    ``callback(entry)``, if given, is called with each history entry as it is made.
     """
     from ._stats import mesh_stats
 
@@ -196,6 +199,8 @@ def improve(mesh: TetMesh, options: Options | None = None, **overrides) -> Impro
                 history.append(entry)
                 if opts.progress:
                     _log(entry)
+                if callback is not None:
+                    callback(entry)
             obj = _objective(q)
             progress = bool((obj > pass_obj + 1e-12).any())
             stall = 0 if progress else stall + 1

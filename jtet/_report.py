@@ -1,0 +1,97 @@
+"""Outputs people read or open: JSON reports, per-tet arrays for ParaView, histograms."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import MeshFileError
+from ._mesh import TetMesh
+from ._quality import MEASURES, tet_dihedrals, tet_quality
+
+
+def quality_cell_data(mesh: TetMesh) -> dict[str, np.ndarray]:
+    """Per-tet arrays written with an output mesh: every measure and the dihedral range.
+
+    Named so ParaView lists them plainly: ``quality_min_sine``, ..., ``min_dihedral``,
+    ``max_dihedral`` (degrees), ``volume``.
+    """
+    _, lo, hi = tet_dihedrals(mesh.points, mesh.tets)
+    data = {f"quality_{name}": tet_quality(mesh.points, mesh.tets, name) for name in MEASURES}
+    data["min_dihedral"] = lo
+    data["max_dihedral"] = hi
+    data["volume"] = np.asarray(mesh.volumes)
+    return data
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` through a temporary file and a rename (no partial file)."""
+    path = Path(path)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except OSError as e:
+        if "tmp" in locals() and os.path.exists(tmp):
+            os.unlink(tmp)
+        raise MeshFileError(f"{path}: cannot write ({e.strerror or e})") from None
+
+
+def write_report(result, path: str | os.PathLike) -> None:
+    """The JSON report of an ``ImproveResult``: options, stats before/after, history."""
+    write_text_atomic(path, json.dumps(result.as_dict(), indent=1))
+
+
+def plot_histograms(result, path: str | os.PathLike, measure: str | None = None) -> None:
+    """Before/after histograms of dihedral angles and of the optimized quality (PNG/PDF/SVG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    measure = measure or (result.options.quality if result.options else "min_sine")
+    before, after = result.stats_before, result.stats_after
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+    edges = np.linspace(0.0, 180.0, len(before.dihedral_hist) + 1)
+    for s, label, color in ((before, "before", "tab:red"), (after, "after", "tab:blue")):
+        ax1.stairs(np.maximum(s.dihedral_hist, 0.5), edges, label=label, color=color, fill=False)
+    ax1.set_yscale("log")
+    ax1.set_ylim(bottom=0.8)  # empty bins are drawn at 0.5 and hidden: log(0) is undefined
+    ax1.set_xlim(0, 180)
+    ax1.set_xlabel("dihedral angle (degrees)")
+    ax1.set_ylabel("number of angles (log)")
+    ax1.set_title(
+        f"dihedral angles: {before.min_dihedral:.1f}-{before.max_dihedral:.1f} -> "
+        f"{after.min_dihedral:.1f}-{after.max_dihedral:.1f}"
+    )
+    ax1.legend()
+    qedges = np.linspace(-1.0, 1.0, len(before.quality_hist[measure]) + 1)
+    for s, label, color in ((before, "before", "tab:red"), (after, "after", "tab:blue")):
+        h = np.maximum(s.quality_hist[measure], 0.5)
+        ax2.stairs(h, qedges, label=label, color=color, fill=False)
+    ax2.set_yscale("log")
+    ax2.set_ylim(bottom=0.8)
+    lo = min(0.0, before.quality_min[measure])
+    ax2.set_xlim(max(-1.0, lo), 1.0)
+    ax2.set_xlabel(f"{measure} (1 = regular tet)")
+    ax2.set_ylabel("number of tets (log)")
+    ax2.set_title(
+        f"{measure}: worst {before.quality_min[measure]:.3f} -> {after.quality_min[measure]:.3f}"
+    )
+    ax2.legend()
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    try:
+        fig.savefig(tmp, dpi=110)
+        os.replace(tmp, path)
+    except (OSError, ValueError) as e:
+        if tmp.exists():
+            tmp.unlink()
+        raise MeshFileError(f"{path}: cannot write plot ({e})") from None
+    finally:
+        plt.close(fig)

@@ -1,0 +1,187 @@
+"""The ``jtet`` command: ``jtet improve``, ``jtet stats``, ``jtet demo``.
+
+Exit codes: 0 success; 2 bad input or options (one line on stderr says why);
+130 interrupted before any output could be written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+import time
+from pathlib import Path
+
+from ._errors import JtetError
+from ._options import OPS, Options
+from ._quality import MEASURES
+
+DEFAULTS = Options()
+
+
+def _ops(text: str) -> tuple[str, ...]:
+    ops = tuple(o.strip() for o in text.replace("+", ",").split(",") if o.strip())
+    bad = [o for o in ops if o not in OPS]
+    if bad or not ops:
+        raise argparse.ArgumentTypeError(f"unknown operation(s) {bad}; choose from {','.join(OPS)}")
+    return ops
+
+
+def _add_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--ops", type=_ops, default=DEFAULTS.ops, help="comma-separated operations (default: edge,face,smooth)")
+    p.add_argument("--quality", choices=sorted(MEASURES), default=DEFAULTS.quality, help="quality measure to maximize")
+    p.add_argument("--max-ring", type=int, default=DEFAULTS.max_ring, help="largest ring tried by edge removal (3..16)")
+    p.add_argument("--max-faces", type=int, default=DEFAULTS.max_faces, help="capacity of a multi-face removal tree")
+    p.add_argument("--boundary", choices=("fixed", "slide"), default=DEFAULTS.boundary, help="boundary vertices stay fixed or slide in flat facets / straight segments")
+    p.add_argument("--feature-angle", type=float, default=DEFAULTS.feature_angle, help="degrees; subfacets bent more than this are features (default 0: exactly flat only)")
+    p.add_argument("--max-passes", type=int, default=DEFAULTS.max_passes)
+    p.add_argument("--patience", type=int, default=DEFAULTS.patience, help="stop after this many passes in a row without progress")
+    p.add_argument("--time-limit", type=float, default=None, metavar="S", help="stop after S seconds, keeping the best mesh so far")
+    p.add_argument("--seed", type=int, default=DEFAULTS.seed)
+    p.add_argument("--check", action="store_true", help="verify invariants after every operation")
+
+
+def _options_from(args) -> Options:
+    names = {f.name for f in dataclasses.fields(Options)}
+    kw = {k: v for k, v in vars(args).items() if k in names}
+    return Options(**kw)
+
+
+class _Progress:
+    """A one-line progress bar on stderr (plain lines when stderr is not a terminal)."""
+
+    def __init__(self, max_passes: int, quiet: bool):
+        self.max_passes = max(max_passes, 1)
+        self.quiet = quiet
+        self.tty = sys.stderr.isatty()
+        self.t0 = time.perf_counter()
+
+    def __call__(self, e: dict) -> None:
+        if self.quiet:
+            return
+        frac = min((e["pass"] + 1) / self.max_passes, 1.0)
+        bar = "#" * int(20 * frac) + "." * (20 - int(20 * frac))
+        msg = (
+            f"[{bar}] pass {e['pass'] + 1} {e['op']:6s} {e['successes']:6d}/{e['attempts']:<7d} "
+            f"min/max dihedral {e['min_dihedral']:6.2f}/{e['max_dihedral']:6.2f}  "
+            f"{time.perf_counter() - self.t0:6.1f}s"
+        )
+        if self.tty:
+            print("\r" + msg, end="", file=sys.stderr, flush=True)
+        else:
+            print(msg, file=sys.stderr, flush=True)
+
+    def done(self) -> None:
+        if self.tty and not self.quiet:
+            print(file=sys.stderr)
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.exists() and b.exists() and os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def _run_improve(mesh, out: Path, args, source: str) -> int:
+    from ._driver import improve
+    from ._io import save
+    from ._report import plot_histograms, quality_cell_data, write_report
+
+    opts = _options_from(args)
+    progress = _Progress(opts.max_passes, args.quiet)
+    result = improve(mesh, opts, callback=progress)
+    progress.done()
+    save(result.mesh, out, cell_data=quality_cell_data(result.mesh))
+    if args.report:
+        write_report(result, args.report)
+    if args.plot:
+        plot_histograms(result, args.plot)
+    if not args.quiet:
+        print(f"jtet: {source} -> {out}  ({result.status}, {result.seconds:.1f} s)")
+        print(result.summary())
+        for extra in (args.report, args.plot):
+            if extra:
+                print(f"wrote {extra}")
+    return 0
+
+
+def cmd_improve(args) -> int:
+    from ._io import load
+
+    src, out = Path(args.input), Path(args.output)
+    if (src.resolve() == out.resolve() or _same_file(src, out)) and not args.overwrite:
+        raise JtetError(f"{out} is the input file; pass --overwrite to replace it")
+    mesh = load(src)
+    return _run_improve(mesh, out, args, str(src))
+
+
+def cmd_stats(args) -> int:
+    import json
+
+    from ._io import load
+    from ._stats import format_table, mesh_stats
+
+    mesh = load(args.mesh)
+    s = mesh_stats(mesh)
+    if args.json:
+        print(json.dumps(s.as_dict()))
+    else:
+        print(f"{args.mesh}: {mesh}")
+        print(format_table(s, labels=("value", "")))
+        report = mesh.is_valid()
+        print("valid" if report.ok else f"problems:\n{report}")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    from ._io import demo_mesh
+
+    outdir = Path(args.out)
+    outdir.mkdir(parents=True, exist_ok=True)
+    args.report = str(outdir / "demo_report.json")
+    args.plot = str(outdir / "demo_histograms.png")
+    mesh = demo_mesh()
+    return _run_improve(mesh, outdir / "demo_improved.vtu", args, "embedded demo mesh")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="jtet", description="Improve the quality of tetrahedral meshes (optimal edge removal, multi-face removal, smoothing).")
+    sub = p.add_subparsers(dest="command", required=True)
+    pi = sub.add_parser("improve", help="improve a mesh file and write the result")
+    pi.add_argument("input", help="input mesh (.vtu .vtk .msh .mesh .node/.ele)")
+    pi.add_argument("output", help="output mesh (format from the extension); carries per-tet quality arrays")
+    _add_options(pi)
+    pi.add_argument("--report", metavar="R.json", help="write a JSON report (options, stats, history)")
+    pi.add_argument("--plot", metavar="H.png", help="write before/after histograms")
+    pi.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
+    pi.add_argument("-q", "--quiet", action="store_true")
+    pi.set_defaults(func=cmd_improve)
+    ps = sub.add_parser("stats", help="print quality statistics and validity of a mesh")
+    ps.add_argument("mesh")
+    ps.add_argument("--json", action="store_true", help="machine-readable output")
+    ps.set_defaults(func=cmd_stats)
+    pd = sub.add_parser("demo", help="improve the embedded demo mesh and write its outputs")
+    pd.add_argument("--out", default="jtet-demo-out", help="output directory (default: ./jtet-demo-out)")
+    _add_options(pd)
+    pd.add_argument("-q", "--quiet", action="store_true")
+    pd.set_defaults(func=cmd_demo)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except JtetError as e:
+        print(f"jtet: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("jtet: interrupted; no output written", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
