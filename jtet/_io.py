@@ -1,0 +1,643 @@
+"""Mesh input and output: pyvista grids, mesh files, and the demo meshes shipped with jtet.
+
+Readers: ``.vtu`` / ``.vtk`` through VTK's own readers; ``.msh`` (Gmsh 2.2 and 4.1),
+``.mesh`` / ``.meshb`` (Medit) and ``.node`` / ``.ele`` (TetGen) through meshio. Every failure
+is a ``MeshFileError`` (the file) or a ``MeshInputError`` (its contents) with the path and a
+one-line reason; VTK's and meshio's console chatter is captured, never printed.
+
+Region labels come from the first cell array found among ``REGION_ARRAYS``. Cells of lower
+dimension (the boundary triangles, lines and vertices Gmsh writes along the tets) are
+ignored; any other 3-D cell type is an error.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import io
+import os
+import re
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import MeshFileError, MeshInputError
+from ._mesh import TetMesh
+
+#: Cell arrays read as region labels, in order of preference. ``region`` is jtet's own;
+#: meshio names the others after the format (Gmsh physical tags, Medit references, TetGen
+#: region attributes); Gmsh's own VTK export writes its elementary tags as ``CellEntityIds``.
+REGION_ARRAYS = ("region", "gmsh:physical", "medit:ref", "CellEntityIds", "tetgen:ref")
+
+#: Field-data arrays in which ``mesh_to_grid`` stores the protected faces / edges.
+PROTECTED_FACES_ARRAY = "jtet:protected_faces"
+PROTECTED_EDGES_ARRAY = "jtet:protected_edges"
+
+_VTK_TETRA = 10
+# Quadratic and higher-order tetrahedra: VTK_QUADRATIC_TETRA, VTK_HIGHER_ORDER_TETRAHEDRON,
+# VTK_LAGRANGE_TETRAHEDRON, VTK_BEZIER_TETRAHEDRON.
+_VTK_HIGH_ORDER_TETS = (24, 64, 71, 78)
+
+_READ_FORMATS = {
+    ".vtu": "vtu",
+    ".vtk": "vtk",
+    ".msh": "gmsh",
+    ".mesh": "medit",
+    ".meshb": "medit",
+    ".node": "tetgen",
+    ".ele": "tetgen",
+}
+_FORMAT_NAMES = {
+    "vtu": "VTK XML unstructured grid",
+    "vtk": "legacy VTK",
+    "gmsh": "Gmsh",
+    "medit": "Medit",
+    "tetgen": "TetGen",
+}
+_KNOWN_EXTENSIONS = ", ".join(_READ_FORMATS)
+
+
+# ---------------------------------------------------------------------------------------
+# pyvista bridge
+
+
+def _vtk_cell_dimension(cell_type: int) -> int:
+    """Topological dimension of a VTK cell type (3 when VTK cannot tell: be strict)."""
+    try:
+        from vtkmodules.vtkCommonDataModel import vtkCellTypeUtilities as _ctu
+    except ImportError:  # VTK < 9.6
+        from vtkmodules.vtkCommonDataModel import vtkCellTypes as _ctu
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            d = int(_ctu.GetDimension(int(cell_type)))
+    except Exception:
+        return 3
+    return d if 0 <= d <= 3 else 3
+
+
+def _vtk_cell_name(cell_type: int) -> str:
+    import pyvista as pv
+
+    try:
+        return f"VTK_{pv.CellType(int(cell_type)).name}"
+    except ValueError:
+        return f"VTK cell type {int(cell_type)}"
+
+
+def _non_tet_message(source: str, names: list[str], counts: list[int], high_order: bool) -> str:
+    total = sum(counts)
+    listing = ", ".join(f"{n} x {c}" for n, c in zip(names, counts, strict=True))
+    msg = f"{source}: {total} cells are not tetrahedra ({listing}); jtet needs a pure tet mesh"
+    if high_order:
+        msg += (
+            " (quadratic / higher-order tetrahedra are not supported: keep only their 4 corner"
+            " vertices to get a linear tet mesh)"
+        )
+    return msg
+
+
+def _labels(values, name: str, source: str) -> np.ndarray:
+    """Integer region labels from a cell array (integral floats are accepted)."""
+    a = np.asarray(values)
+    if a.ndim == 2 and a.shape[1] == 1:
+        a = a[:, 0]
+    if a.ndim != 1:
+        raise MeshInputError(
+            f"{source}: cell array {name!r} has shape {a.shape}, not one label per cell"
+        )
+    if np.issubdtype(a.dtype, np.integer) or a.dtype == bool:
+        return a.astype(np.int64)
+    if np.issubdtype(a.dtype, np.floating) and np.isfinite(a).all() and (a == np.round(a)).all():
+        return a.astype(np.int64)
+    raise MeshInputError(f"{source}: cell array {name!r} does not hold integer region labels")
+
+
+def _pick_region(arrays: dict, n_cells: int, keep: np.ndarray, source: str) -> np.ndarray | None:
+    """Region labels of the kept cells from the first of ``REGION_ARRAYS`` in ``arrays``."""
+    for name in REGION_ARRAYS:
+        if name in arrays:
+            labels = _labels(arrays[name], name, source)
+            if len(labels) != n_cells:
+                raise MeshInputError(
+                    f"{source}: cell array {name!r} has {len(labels)} values for {n_cells} cells"
+                )
+            return labels[keep]
+    return None
+
+
+def _field_entities(grid, name: str, k: int) -> np.ndarray | None:
+    if name not in grid.field_data:
+        return None
+    return np.asarray(grid.field_data[name]).reshape(-1, k).astype(np.int64)
+
+
+def grid_to_arrays(grid, source: str = "pyvista grid"):
+    """Arrays of a tet mesh from a ``pyvista.UnstructuredGrid``.
+
+    Accepts anything ``pyvista.wrap`` turns into a dataset (a VTK object, a ``meshio.Mesh``,
+    ...). Cells of dimension 0-2 are ignored; every 3-D cell must be a linear tetrahedron
+    (``VTK_TETRA``), otherwise ``MeshInputError`` names the offending types and counts.
+
+    Returns:
+        ``(points (n, 3) float64, tets (m, 4) int64, region (m,) int64 or None,
+        protected_faces (k, 3) or None, protected_edges (k, 2) or None)``: the arguments of
+        ``TetMesh.from_arrays``. Region labels come from the first of ``REGION_ARRAYS``;
+        protected entities from the field data written by ``mesh_to_grid``.
+    """
+    import pyvista as pv
+
+    if not isinstance(grid, pv.UnstructuredGrid):
+        try:
+            wrapped = pv.wrap(grid)
+        except Exception:
+            wrapped = None
+        if wrapped is None or isinstance(wrapped, pv.MultiBlock):
+            what = "a pyvista MultiBlock (combine() it first)" if wrapped is not None else ""
+            raise MeshInputError(
+                f"{source}: cannot read a tet mesh from {what or type(grid).__name__}; "
+                "pass a pyvista.UnstructuredGrid of tetra cells"
+            )
+        grid = (
+            wrapped
+            if isinstance(wrapped, pv.UnstructuredGrid)
+            else wrapped.cast_to_unstructured_grid()
+        )
+
+    n_cells = grid.n_cells
+    if n_cells == 0:
+        raise MeshInputError(f"{source}: the mesh is empty: it has no cells")
+    celltypes = np.asarray(grid.celltypes).astype(np.int64)
+    is_tet = celltypes == _VTK_TETRA
+    kinds, counts = np.unique(celltypes[~is_tet], return_counts=True)
+    dims = np.array([_vtk_cell_dimension(t) for t in kinds], dtype=np.int64)
+    bad = dims == 3
+    if bad.any():
+        raise MeshInputError(
+            _non_tet_message(
+                source,
+                [_vtk_cell_name(t) for t in kinds[bad]],
+                counts[bad].tolist(),
+                bool(np.isin(kinds[bad], _VTK_HIGH_ORDER_TETS).any()),
+            )
+        )
+    if not is_tet.any():
+        only = ", ".join(f"{_vtk_cell_name(t)} x {c}" for t, c in zip(kinds, counts, strict=True))
+        raise MeshInputError(f"{source}: the mesh has no tetrahedra (only {only})")
+
+    # ``cell_offsets`` (pyvista >= 0.46) was called ``offset`` before.
+    offsets = getattr(grid, "cell_offsets", None)
+    offsets = np.asarray(grid.offset if offsets is None else offsets, dtype=np.int64)
+    conn = np.asarray(grid.cell_connectivity, dtype=np.int64)
+    tets = conn[offsets[:-1][is_tet][:, None] + np.arange(4)]
+    points = np.asarray(grid.points, dtype=np.float64)
+    region = _pick_region(dict(grid.cell_data), n_cells, is_tet, source)
+    pf = _field_entities(grid, PROTECTED_FACES_ARRAY, 3)
+    pe = _field_entities(grid, PROTECTED_EDGES_ARRAY, 2)
+    return points, tets, region, pf, pe
+
+
+def _check_cell_data(mesh: TetMesh, cell_data: dict | None) -> dict:
+    out = {}
+    for name, values in (cell_data or {}).items():
+        if not isinstance(name, str) or not name:
+            raise MeshInputError(f"cell_data keys must be non-empty strings, got {name!r}")
+        if name == "region":
+            raise MeshInputError(
+                "cell_data may not hold 'region' (it is the mesh's own region array; "
+                "use mesh.replace(region=...))"
+            )
+        a = np.asarray(values)
+        if a.ndim == 0 or len(a) != mesh.n_tets:
+            raise MeshInputError(
+                f"cell_data[{name!r}] has shape {a.shape}; "
+                f"it needs one value per tet ({mesh.n_tets})"
+            )
+        out[name] = a
+    return out
+
+
+def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
+    """A ``pyvista.UnstructuredGrid`` of ``mesh``: tetra cells, a ``region`` cell array,
+    the arrays of ``cell_data`` (name -> (m, ...) array), and the protected faces / edges
+    (when any) as field data ``jtet:protected_faces`` / ``jtet:protected_edges``."""
+    import pyvista as pv
+
+    extra = _check_cell_data(mesh, cell_data)
+    m = mesh.n_tets
+    cells = np.concatenate([np.full((m, 1), 4, np.int64), mesh.tets], axis=1).ravel()
+    celltypes = np.full(m, _VTK_TETRA, np.uint8)
+    grid = pv.UnstructuredGrid(cells, celltypes, np.array(mesh.points, dtype=np.float64))
+    grid.cell_data["region"] = np.array(mesh.region, dtype=np.int64)
+    for name, a in extra.items():
+        grid.cell_data[name] = np.array(a)
+    if len(mesh.protected_faces):
+        grid.field_data[PROTECTED_FACES_ARRAY] = np.array(mesh.protected_faces)
+    if len(mesh.protected_edges):
+        grid.field_data[PROTECTED_EDGES_ARRAY] = np.array(mesh.protected_edges)
+    return grid
+
+
+# ---------------------------------------------------------------------------------------
+# VTK readers and writers (errors captured instead of printed)
+
+
+@contextlib.contextmanager
+def _vtk_capture():
+    """Route VTK's error output into a string; yields a function returning the errors."""
+    from vtkmodules.vtkCommonCore import vtkLogger, vtkOutputWindow, vtkStringOutputWindow
+
+    window = vtkStringOutputWindow()
+    old_window = vtkOutputWindow.GetInstance()
+    old_verbosity = vtkLogger.GetCurrentVerbosityCutoff()
+    vtkOutputWindow.SetInstance(window)
+    # VTK >= 9 also logs every error to stderr through vtkLogger: silence it while we read.
+    vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_OFF)
+
+    def errors() -> list[str]:
+        text = window.GetOutput()
+        if isinstance(text, bytes):
+            text = text.decode("utf-8", "replace")
+        found = []
+        # Blocks look like "ERROR: In file.cxx, line N\nvtkClass (0x...): message". Some
+        # readers report a truncated file only as a warning ("Error reading binary data!").
+        parts = re.split(r"(ERROR|Warning): In [^\n]*\n", text)
+        for kind, block in zip(parts[1::2], parts[2::2], strict=True):
+            lines = [ln.strip() for ln in block.splitlines() if ln.strip()]
+            if not lines:
+                continue
+            first = lines[0]
+            msg = first.split("): ", 1)[1] if "): " in first else first
+            if "InformationKey" in msg:
+                # Cached metadata (e.g. an array's L2_NORM_RANGE holding "inf"), not data:
+                # let the finiteness check on the points report the real problem.
+                continue
+            if kind == "ERROR" or "error" in msg.lower():
+                found.append(_clean(msg))
+        return found
+
+    try:
+        yield errors
+    finally:
+        vtkOutputWindow.SetInstance(old_window)
+        vtkLogger.SetStderrVerbosity(old_verbosity)
+
+
+def _read_vtk_file(path: Path, fmt: str):
+    import pyvista as pv
+
+    with _vtk_capture() as errors:
+        if fmt == "vtu":
+            from vtkmodules.vtkIOXML import vtkXMLUnstructuredGridReader
+
+            reader = vtkXMLUnstructuredGridReader()
+        else:
+            from vtkmodules.vtkIOLegacy import vtkDataSetReader
+
+            reader = vtkDataSetReader()
+            for flag in (
+                "ReadAllScalars",
+                "ReadAllVectors",
+                "ReadAllNormals",
+                "ReadAllTensors",
+                "ReadAllColorScalars",
+                "ReadAllTCoords",
+                "ReadAllFields",
+            ):
+                getattr(reader, flag + "On")()
+        reader.SetFileName(str(path))
+        reader.Update()
+        out = reader.GetOutput()
+        errs = errors()
+    if errs:
+        raise MeshFileError(f"{path}: not a readable {_FORMAT_NAMES[fmt]} file ({errs[0]})")
+    if out is None:
+        raise MeshFileError(f"{path}: not a readable {_FORMAT_NAMES[fmt]} file (no data)")
+    return pv.wrap(out)
+
+
+def _write_vtk_file(grid, path: Path, fmt: str) -> None:
+    with _vtk_capture() as errors:
+        if fmt == "vtu":
+            from vtkmodules.vtkIOXML import vtkXMLUnstructuredGridWriter
+
+            writer = vtkXMLUnstructuredGridWriter()
+            writer.SetDataModeToAppended()
+            writer.EncodeAppendedDataOff()  # raw binary, no base64
+            writer.SetCompressorTypeToZLib()
+        else:
+            from vtkmodules.vtkIOLegacy import vtkUnstructuredGridWriter
+
+            writer = vtkUnstructuredGridWriter()
+            writer.SetFileTypeToBinary()
+        writer.SetFileName(str(path))
+        writer.SetInputData(grid)
+        ok = writer.Write()
+        errs = errors()
+    if errs or ok != 1:
+        raise MeshFileError(
+            f"{path}: VTK could not write the file ({errs[0] if errs else 'failed'})"
+        )
+
+
+# ---------------------------------------------------------------------------------------
+# meshio readers and writers
+
+
+@contextlib.contextmanager
+def _quiet_meshio():
+    """meshio prints warnings and errors to stdout/stderr through rich; capture them."""
+    buf = io.StringIO()
+    with (
+        contextlib.redirect_stdout(buf),
+        contextlib.redirect_stderr(buf),
+        warnings.catch_warnings(),
+    ):
+        warnings.simplefilter("ignore")
+        yield buf
+
+
+def _meshio_module(fmt: str):
+    import meshio
+
+    # The per-format modules, not meshio.read(): on a parse error meshio.read prints the
+    # error and calls sys.exit(1).
+    return {"gmsh": meshio.gmsh, "medit": meshio.medit, "tetgen": meshio.tetgen}[fmt]
+
+
+def _meshio_to_arrays(m, source: str):
+    """Like ``grid_to_arrays`` for a ``meshio.Mesh``: tets of every tetra block, region."""
+    keep_blocks, bad = [], {}
+    for i, block in enumerate(m.cells):
+        dim = getattr(block, "dim", 3)
+        if block.type == "tetra":
+            keep_blocks.append(i)
+        elif dim == 3:
+            bad[block.type] = bad.get(block.type, 0) + len(block.data)
+    if bad:
+        raise MeshInputError(
+            _non_tet_message(
+                source,
+                list(bad),
+                list(bad.values()),
+                any(t.startswith("tetra") for t in bad),
+            )
+        )
+    if not keep_blocks:
+        only = ", ".join(f"{b.type} x {len(b.data)}" for b in m.cells) or "no cells"
+        raise MeshInputError(f"{source}: the mesh has no tetrahedra (only {only})")
+    tets = np.concatenate(
+        [np.asarray(m.cells[i].data, np.int64).reshape(-1, 4) for i in keep_blocks]
+    )
+    region = None
+    for name in REGION_ARRAYS:
+        if name in m.cell_data:
+            region = np.concatenate(
+                [_labels(m.cell_data[name][i], name, source) for i in keep_blocks]
+            )
+            if len(region) != len(tets):
+                raise MeshInputError(f"{source}: cell array {name!r} does not match the tets")
+            break
+    points = np.asarray(m.points, dtype=np.float64)
+    if points.ndim == 2 and points.shape[1] == 2:
+        raise MeshInputError(f"{source}: the points are 2-D; jtet needs a 3-D tet mesh")
+    return points, tets, region, None, None
+
+
+def _meshio_mesh(mesh: TetMesh, fmt: str, cell_data: dict):
+    import meshio
+
+    region = np.array(mesh.region, dtype=np.int64)
+    if fmt == "gmsh":
+        data = {"gmsh:physical": [region], "gmsh:geometrical": [region]}
+        data.update({k: [np.asarray(v)] for k, v in cell_data.items()})
+    elif fmt == "medit":
+        data = {"medit:ref": [region]}
+    else:
+        data = {"tetgen:ref": [region]}
+    return meshio.Mesh(
+        np.array(mesh.points, dtype=np.float64),
+        [meshio.CellBlock("tetra", np.array(mesh.tets, dtype=np.int64))],
+        cell_data=data,
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# load / save
+
+
+def _clean(text: str, limit: int = 160) -> str:
+    """One printable line: binary garbage from a corrupt file must not reach the terminal."""
+    text = "".join(c if c.isascii() and c.isprintable() else "?" for c in " ".join(text.split()))
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _reason(e: BaseException, captured: str = "") -> str:
+    msg = str(e).strip().splitlines()
+    text = msg[0] if msg else ""
+    if not text and captured.strip():
+        text = captured.strip().splitlines()[-1].strip()
+    text = _clean(text)
+    return f"{type(e).__name__}: {text}" if text else type(e).__name__
+
+
+def load(path: str | os.PathLike) -> TetMesh:
+    """Read a tetrahedral mesh file.
+
+    Formats by extension: ``.vtu``, ``.vtk`` (VTK), ``.msh`` (Gmsh 2.2 / 4.1; physical
+    tags -> region), ``.mesh`` / ``.meshb`` (Medit; references -> region), ``.node`` /
+    ``.ele`` (TetGen, both files next to each other; first element attribute -> region).
+    Lower-dimensional cells (boundary triangles, lines, vertices) are ignored. A globally
+    reversed orientation is fixed with a warning (see ``TetMesh.from_arrays``).
+
+    Raises:
+        MeshFileError: the file is missing, a directory, of unknown extension, or unreadable.
+        MeshInputError: the file was read but does not hold a valid pure tet mesh.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise MeshFileError(f"{p}: no such file")
+    if p.is_dir():
+        raise MeshFileError(f"{p}: is a directory, not a mesh file")
+    ext = p.suffix.lower()
+    fmt = _READ_FORMATS.get(ext)
+    if fmt is None:
+        raise MeshFileError(
+            f"{p}: unknown mesh file extension {ext or '(none)'!r}; jtet reads {_KNOWN_EXTENSIONS}"
+        )
+    if p.stat().st_size == 0:
+        raise MeshFileError(f"{p}: the file is empty")
+    if fmt == "tetgen":
+        other = p.with_suffix(".ele" if ext == ".node" else ".node")
+        if not other.is_file():
+            raise MeshFileError(f"{p}: the TetGen companion file {other.name} is missing")
+    source = str(p)
+    if fmt in ("vtu", "vtk"):
+        try:
+            grid = _read_vtk_file(p, fmt)
+        except MeshFileError:
+            raise
+        except Exception as e:
+            raise MeshFileError(
+                f"{p}: not a readable {_FORMAT_NAMES[fmt]} file ({_reason(e)})"
+            ) from None
+        arrays = grid_to_arrays(grid, source)
+    else:
+        captured = ""
+        try:
+            with _quiet_meshio() as buf:
+                m = _meshio_module(fmt).read(str(p))
+        except Exception as e:
+            captured = buf.getvalue()
+            raise MeshFileError(
+                f"{p}: not a readable {_FORMAT_NAMES[fmt]} file ({_reason(e, captured)})"
+            ) from None
+        arrays = _meshio_to_arrays(m, source)
+    return TetMesh.from_arrays(*arrays, source=source)
+
+
+def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict) -> None:
+    if fmt in ("vtu", "vtk"):
+        _write_vtk_file(mesh_to_grid(mesh, cell_data), tmp, fmt)
+        return
+    with _quiet_meshio():
+        m = _meshio_mesh(mesh, fmt, cell_data)
+        if fmt == "gmsh":
+            # Gmsh 2.2 binary: meshio 5.3's 4.1 writer drops physical tags (no $Entities)
+            # and its ASCII writers print NumPy 2 scalars as "np.float64(...)".
+            _meshio_module(fmt).write(str(tmp), m, fmt_version="2.2", binary=True)
+        else:
+            _meshio_module(fmt).write(str(tmp), m)
+
+
+def _new_file_mode() -> int:
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+def save(
+    mesh: TetMesh,
+    path: str | os.PathLike,
+    *,
+    cell_data: dict | None = None,
+    overwrite: bool = True,
+) -> Path:
+    """Write ``mesh`` to ``path``, atomically; the format follows the extension.
+
+    ``.vtu`` (zlib-compressed binary XML) and ``.vtk`` (binary legacy) store the region as a
+    ``region`` cell array plus every array of ``cell_data`` (name -> one value per tet) and
+    the protected faces / edges as field data. ``.msh`` (Gmsh 2.2 binary, which every
+    Gmsh-aware tool reads) stores the region as physical and elementary tags, plus
+    ``cell_data`` as element data. ``.mesh`` /
+    ``.meshb`` (Medit; region -> references) and ``.node`` / ``.ele`` (TetGen, both files are
+    written; region -> element attribute) store only the region: other cell data and the
+    protected entities are dropped with a warning.
+
+    The file is written to a temporary file in the same directory and moved into place, so
+    ``path`` is either the complete new file or left untouched.
+
+    Returns the path written (for TetGen, the ``.node`` file).
+
+    Raises:
+        MeshFileError: unknown extension, missing directory, existing file with
+            ``overwrite=False``, or any failure while writing.
+        MeshInputError: ``cell_data`` does not have one value per tet.
+    """
+    p = Path(path)
+    ext = p.suffix.lower()
+    fmt = _READ_FORMATS.get(ext)
+    if fmt is None:
+        raise MeshFileError(
+            f"{p}: unknown mesh file extension {ext or '(none)'!r}; jtet writes {_KNOWN_EXTENSIONS}"
+        )
+    cell_data = _check_cell_data(mesh, cell_data)
+    if fmt in ("medit", "tetgen"):
+        dropped = list(cell_data)
+        if len(mesh.protected_faces) or len(mesh.protected_edges):
+            dropped.append("protected faces/edges")
+        if dropped:
+            warnings.warn(
+                f"{p}: the {_FORMAT_NAMES[fmt]} format stores only the region labels; "
+                f"not saved: {', '.join(dropped)}",
+                stacklevel=2,
+            )
+    elif fmt == "gmsh" and (len(mesh.protected_faces) or len(mesh.protected_edges)):
+        warnings.warn(
+            f"{p}: protected faces/edges are not saved in Gmsh files (use .vtu)", stacklevel=2
+        )
+    targets = [p]
+    if fmt == "tetgen":
+        targets = [p.with_suffix(".node"), p.with_suffix(".ele")]
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise MeshFileError(f"{p}: {parent} is not an existing directory")
+    for t in targets:
+        if t.is_dir():
+            raise MeshFileError(f"{t}: is a directory")
+        if t.exists() and not overwrite:
+            raise MeshFileError(f"{t}: the file exists (pass overwrite=True to replace it)")
+
+    temps: list[Path] = []
+    try:
+        try:
+            fd, name = tempfile.mkstemp(
+                prefix=f".{p.stem}.tmp-", suffix=targets[0].suffix, dir=parent
+            )
+        except OSError as e:
+            raise MeshFileError(f"{p}: cannot create a file in {parent} ({_reason(e)})") from None
+        os.close(fd)
+        temps = [Path(name)]
+        if fmt == "tetgen":
+            # meshio writes the .ele next to the .node, with the same stem.
+            temps.append(temps[0].with_suffix(".ele"))
+        try:
+            _write(mesh, temps[0], fmt, cell_data)
+            for tmp, target in zip(temps, targets, strict=True):
+                if not tmp.is_file():
+                    raise MeshFileError(f"{target}: the writer produced no file")
+                mode = target.stat().st_mode & 0o7777 if target.exists() else _new_file_mode()
+                os.chmod(tmp, mode)
+            for tmp, target in zip(temps, targets, strict=True):
+                os.replace(tmp, target)
+        except MeshFileError:
+            raise
+        except Exception as e:
+            raise MeshFileError(
+                f"{p}: could not write {_FORMAT_NAMES[fmt]} file ({_reason(e)})"
+            ) from None
+    finally:
+        for tmp in temps:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+    return targets[0]
+
+
+# ---------------------------------------------------------------------------------------
+# demo meshes
+
+_DEMO_FILES = {"demo": "demo.vtu", "two_regions": "demo_two_regions.vtu"}
+
+
+def demo_mesh(name: str = "demo") -> TetMesh:
+    """A small tet mesh shipped with jtet (generated by ``experiments/make_demo_mesh.py``).
+
+    ``"demo"``: an unoptimized Gmsh Delaunay mesh of a 2 x 1 x 1 box with a spherical hole,
+    6209 tets, one region (label 0), with slivers (worst dihedral angle 1.14 degrees).
+    ``"two_regions"``: a unit box split by the plane z = 0.45 into regions 1 (below) and 2
+    (above), 1928 tets, for interface tests. The result is cached (meshes are immutable).
+    """
+    if name not in _DEMO_FILES:
+        raise MeshInputError(f"unknown demo mesh {name!r}; choose one of {sorted(_DEMO_FILES)}")
+    return _load_demo(name)
+
+
+@functools.cache
+def _load_demo(name: str) -> TetMesh:
+    from importlib import resources
+
+    ref = resources.files("jtet") / "data" / _DEMO_FILES[name]
+    with resources.as_file(ref) as p:
+        return load(p)

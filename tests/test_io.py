@@ -1,0 +1,575 @@
+"""Mesh I/O: format round trips, region labels, bad inputs, atomic saves, demo meshes."""
+
+import os
+import warnings
+
+import meshio
+import numpy as np
+import pytest
+import pyvista as pv
+from helpers import delaunay_mesh
+
+import jtet
+from jtet import _io
+from jtet._errors import MeshFileError, MeshInputError
+from jtet._quality import tet_dihedrals
+
+FORMATS = ["vtu", "vtk", "msh", "mesh", "meshb", "node", "ele"]
+
+# Two positively oriented tets sharing the face (1, 2, 3), written by hand below in
+# every file format (0-based here; files are 1-based).
+PTS5 = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]], dtype=np.float64)
+TETS2 = np.array([[0, 1, 2, 3], [1, 2, 3, 4]])
+
+
+def _vol6(points, tets):
+    p = points[tets]
+    return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
+
+
+@pytest.fixture(scope="module")
+def labelled():
+    """A small Delaunay mesh with 3 regions (by x), protected faces and edges."""
+    m = delaunay_mesh(60, seed=3)
+    centroid_x = m.points[m.tets].mean(axis=1)[:, 0]
+    region = np.digitize(centroid_x, [0.33, 0.66]) + 1
+    return m.replace(
+        region=region, protected_faces=m.tets[:5, :3], protected_edges=m.tets[:4, [0, 3]]
+    )
+
+
+def _quiet_save(*args, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return jtet._io.save(*args, **kw)
+
+
+# ---------------------------------------------------------------------------------------
+# round trips
+
+
+@pytest.mark.parametrize("ext", FORMATS)
+def test_round_trip(tmp_path, labelled, ext):
+    path = tmp_path / f"mesh.{ext}"
+    out = _quiet_save(labelled, str(path))
+    back = _io.load(str(path))
+    np.testing.assert_array_equal(back.points, labelled.points)  # bit-exact float64
+    np.testing.assert_array_equal(back.tets, labelled.tets)
+    np.testing.assert_array_equal(back.region, labelled.region)
+    assert back.points.dtype == np.float64 and back.tets.dtype == np.int64
+    assert (back.volumes > 0).all()
+    expected = {"mesh.node", "mesh.ele"} if ext in ("node", "ele") else {path.name}
+    assert {p.name for p in tmp_path.iterdir()} == expected  # no temp files left behind
+    assert out.name in expected
+
+
+@pytest.mark.parametrize("ext", ["vtu", "vtk"])
+def test_vtk_keeps_cell_data_and_protection(tmp_path, labelled, ext):
+    q = labelled.quality()
+    vec = np.arange(3 * labelled.n_tets, dtype=np.float64).reshape(-1, 3)
+    path = tmp_path / f"m.{ext}"
+    _io.save(labelled, path, cell_data={"quality": q, "vec": vec})
+    back = _io.load(path)
+    np.testing.assert_array_equal(back.protected_faces, labelled.protected_faces)
+    np.testing.assert_array_equal(back.protected_edges, labelled.protected_edges)
+    grid = pv.read(path)
+    np.testing.assert_array_equal(grid.cell_data["quality"], q)
+    np.testing.assert_array_equal(grid.cell_data["vec"], vec)
+    np.testing.assert_array_equal(grid.cell_data["region"], labelled.region)
+
+
+def test_msh_keeps_cell_data_and_physical_tags(tmp_path, labelled):
+    q = labelled.quality()
+    path = tmp_path / "m.msh"
+    with pytest.warns(UserWarning, match="protected"):
+        _io.save(labelled, path, cell_data={"quality": q})
+    m = meshio.gmsh.read(path)
+    np.testing.assert_array_equal(m.cell_data["quality"][0], q)
+    np.testing.assert_array_equal(m.cell_data["gmsh:physical"][0], labelled.region)
+
+
+@pytest.mark.parametrize("ext", ["mesh", "node"])
+def test_region_only_formats_warn_about_dropped_data(tmp_path, labelled, ext):
+    with pytest.warns(UserWarning, match="stores only the region"):
+        _io.save(labelled, tmp_path / f"m.{ext}", cell_data={"q": labelled.quality()})
+
+
+def test_grid_round_trip(labelled):
+    q = labelled.quality()
+    grid = labelled.to_pyvista(cell_data={"q": q})
+    assert isinstance(grid, pv.UnstructuredGrid)
+    assert (np.asarray(grid.celltypes) == pv.CellType.TETRA).all()
+    np.testing.assert_array_equal(grid.cell_data["region"], labelled.region)
+    np.testing.assert_array_equal(grid.cell_data["q"], q)
+    back = jtet.TetMesh.from_pyvista(grid)
+    np.testing.assert_array_equal(back.points, labelled.points)
+    np.testing.assert_array_equal(back.tets, labelled.tets)
+    np.testing.assert_array_equal(back.region, labelled.region)
+    np.testing.assert_array_equal(back.protected_faces, labelled.protected_faces)
+
+
+def test_mesh_to_grid_rejects_bad_cell_data(labelled):
+    with pytest.raises(MeshInputError, match="one value per tet"):
+        _io.mesh_to_grid(labelled, {"q": np.zeros(labelled.n_tets + 1)})
+    with pytest.raises(MeshInputError, match="region"):
+        _io.mesh_to_grid(labelled, {"region": labelled.region})
+
+
+def test_from_pyvista_wraps_vtk_and_meshio_objects():
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: TETS2}, PTS5)
+    grid.cell_data["gmsh:physical"] = np.array([4.0, 5.0])  # integral floats are accepted
+    for obj in (grid, pv.UnstructuredGrid(grid).copy(), meshio.Mesh(PTS5, [("tetra", TETS2)])):
+        m = jtet.TetMesh.from_pyvista(obj)
+        np.testing.assert_array_equal(m.tets, TETS2)
+    vtk_obj = grid.copy()
+    m = jtet.TetMesh.from_pyvista(vtk_obj)
+    np.testing.assert_array_equal(m.region, [4, 5])
+
+
+def test_region_array_preference_and_bad_labels():
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: TETS2}, PTS5)
+    grid.cell_data["CellEntityIds"] = np.array([1, 2])
+    grid.cell_data["medit:ref"] = np.array([3, 4])
+    assert jtet.TetMesh.from_pyvista(grid).region.tolist() == [3, 4]
+    grid.cell_data["region"] = np.array([5, 6])
+    assert jtet.TetMesh.from_pyvista(grid).region.tolist() == [5, 6]
+    grid.cell_data["region"] = np.array([0.5, 1.0])
+    with pytest.raises(MeshInputError, match="integer region labels"):
+        jtet.TetMesh.from_pyvista(grid)
+
+
+# ---------------------------------------------------------------------------------------
+# region labels from hand-written files of other tools
+
+MSH22 = """$MeshFormat
+2.2 0 8
+$EndMeshFormat
+$PhysicalNames
+3
+2 3 "skin"
+3 7 "lower"
+3 9 "upper"
+$EndPhysicalNames
+$Nodes
+5
+1 0 0 0
+2 1 0 0
+3 0 1 0
+4 0 0 1
+5 1 1 1
+$EndNodes
+$Elements
+5
+1 15 2 0 1 1
+2 1 2 0 1 1 2
+3 2 2 3 1 1 2 3
+4 4 2 7 1 1 2 3 4
+5 4 2 9 2 2 3 4 5
+$EndElements
+"""
+
+MSH41 = """$MeshFormat
+4.1 0 8
+$EndMeshFormat
+$PhysicalNames
+3
+2 3 "skin"
+3 7 "lower"
+3 9 "upper"
+$EndPhysicalNames
+$Entities
+0 0 1 2
+1 0 0 0 1 1 0 1 3 0
+1 0 0 0 1 1 1 1 7 0
+2 0 0 0 1 1 1 1 9 0
+$EndEntities
+$Nodes
+2 5 1 5
+3 1 0 4
+1
+2
+3
+4
+0 0 0
+1 0 0
+0 1 0
+0 0 1
+3 2 0 1
+5
+1 1 1
+$EndNodes
+$Elements
+3 3 1 3
+2 1 2 1
+1 1 2 3
+3 1 4 1
+2 1 2 3 4
+3 2 4 1
+3 2 3 4 5
+$EndElements
+"""
+
+MEDIT = """MeshVersionFormatted 2
+Dimension 3
+Vertices
+5
+0 0 0 1
+1 0 0 1
+0 1 0 1
+0 0 1 1
+1 1 1 1
+Triangles
+1
+1 2 3 10
+Tetrahedra
+2
+1 2 3 4 4
+2 3 4 5 6
+End
+"""
+
+TETGEN_NODE = """# TetGen nodes, 1-based, with a boundary marker column
+5 3 0 1
+1 0 0 0 1
+2 1 0 0 1
+3 0 1 0 1
+4 0 0 1 1
+5 1 1 1 1
+"""
+
+TETGEN_ELE = """# one region attribute per tet
+2 4 1
+1 1 2 3 4 -1
+2 2 3 4 5 3
+"""
+
+
+@pytest.mark.parametrize(("name", "text"), [("v22.msh", MSH22), ("v41.msh", MSH41)])
+def test_gmsh_physical_volumes_become_regions(tmp_path, name, text):
+    path = tmp_path / name
+    path.write_text(text)
+    m = _io.load(path)  # the triangle, line and vertex elements are ignored
+    np.testing.assert_array_equal(m.points, PTS5)
+    np.testing.assert_array_equal(m.tets, TETS2)
+    assert m.region.tolist() == [7, 9]
+    # pyvista reads the same file as a mixed grid; from_pyvista ignores the 0-2-D cells.
+    g = pv.read(path)
+    assert g.n_cells > 2
+    assert jtet.TetMesh.from_pyvista(g).region.tolist() == [7, 9]
+
+
+def test_medit_refs_become_regions(tmp_path):
+    path = tmp_path / "m.mesh"
+    path.write_text(MEDIT)
+    m = _io.load(path)
+    np.testing.assert_array_equal(m.tets, TETS2)
+    assert m.region.tolist() == [4, 6]
+
+
+def test_tetgen_region_attribute_becomes_region(tmp_path):
+    (tmp_path / "m.node").write_text(TETGEN_NODE)
+    (tmp_path / "m.ele").write_text(TETGEN_ELE)
+    for name in ("m.node", "m.ele"):
+        m = _io.load(tmp_path / name)
+        np.testing.assert_array_equal(m.points, PTS5)
+        np.testing.assert_array_equal(m.tets, TETS2)
+        assert m.region.tolist() == [-1, 3]
+
+
+def test_tetgen_without_attributes_has_region_zero(tmp_path):
+    (tmp_path / "m.node").write_text(TETGEN_NODE)
+    (tmp_path / "m.ele").write_text("2 4 0\n1 1 2 3 4\n2 2 3 4 5\n")
+    assert _io.load(tmp_path / "m.ele").region.tolist() == [0, 0]
+
+
+# ---------------------------------------------------------------------------------------
+# bad inputs: the specific jtet exception, with the path and a useful reason
+
+
+def _one_line(e: pytest.ExceptionInfo) -> str:
+    msg = str(e.value)
+    assert "\n" not in msg and "Traceback" not in msg
+    assert e.value.__cause__ is None  # no chained raw VTK / meshio traceback
+    return msg
+
+
+def test_missing_file_directory_extension_empty(tmp_path):
+    with pytest.raises(MeshFileError, match="no such file") as e:
+        _io.load(tmp_path / "nope.vtu")
+    assert "nope.vtu" in _one_line(e)
+    with pytest.raises(MeshFileError, match="is a directory"):
+        _io.load(tmp_path)
+    (tmp_path / "m.stl").write_text("solid x\nendsolid x\n")
+    with pytest.raises(MeshFileError, match=r"unknown mesh file extension '\.stl'"):
+        _io.load(tmp_path / "m.stl")
+    (tmp_path / "e.msh").write_bytes(b"")
+    with pytest.raises(MeshFileError, match="empty"):
+        _io.load(tmp_path / "e.msh")
+    (tmp_path / "lonely.node").write_text(TETGEN_NODE)
+    with pytest.raises(MeshFileError, match=r"companion file lonely\.ele"):
+        _io.load(tmp_path / "lonely.node")
+
+
+@pytest.mark.parametrize("ext", ["vtu", "vtk", "msh", "mesh", "meshb", "node"])
+def test_random_bytes_are_a_file_error_and_print_nothing(tmp_path, capfd, ext):
+    rng = np.random.default_rng(7)
+    path = tmp_path / f"junk.{ext}"
+    path.write_bytes(rng.bytes(4000))
+    if ext == "node":
+        (tmp_path / "junk.ele").write_bytes(rng.bytes(4000))
+    with pytest.raises(MeshFileError, match="not a readable") as e:
+        _io.load(path)
+    assert str(path) in _one_line(e)
+    assert _one_line(e).isascii()
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""  # VTK / meshio chatter is captured, not printed
+
+
+@pytest.mark.parametrize("ext", ["msh", "vtu", "vtk", "mesh"])
+@pytest.mark.parametrize("frac", [0.3, 0.8, 0.99])
+def test_truncated_files_are_a_file_error(tmp_path, capfd, labelled, ext, frac):
+    full = tmp_path / f"full.{ext}"
+    _quiet_save(labelled, full, cell_data={"q": labelled.quality()} if ext != "mesh" else None)
+    data = full.read_bytes()
+    cut = tmp_path / f"cut.{ext}"
+    cut.write_bytes(data[: int(len(data) * frac)])
+    with pytest.raises(MeshFileError, match="not a readable") as e:
+        _io.load(cut)
+    _one_line(e)
+    assert capfd.readouterr() == ("", "")
+
+
+@pytest.mark.parametrize(("name", "text"), [("v22.msh", MSH22), ("v41.msh", MSH41)])
+def test_truncated_handwritten_msh(tmp_path, name, text):
+    path = tmp_path / name
+    path.write_text(text[: int(len(text) * 0.7)])
+    with pytest.raises(MeshFileError, match="not a readable Gmsh file"):
+        _io.load(path)
+
+
+def _grid_file(tmp_path, points, cells: dict, name="bad.vtu"):
+    grid = pv.UnstructuredGrid(cells, np.asarray(points, dtype=np.float64))
+    path = tmp_path / name
+    grid.save(path)
+    return path
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_coordinates(tmp_path, bad):
+    pts = PTS5.copy()
+    pts[4, 1] = bad
+    path = _grid_file(tmp_path, pts, {pv.CellType.TETRA: TETS2})
+    with pytest.raises(MeshInputError, match="NaN or infinite"):
+        _io.load(path)
+    with pytest.raises(MeshInputError, match="point 4"):
+        jtet.TetMesh.from_arrays(pts, TETS2)
+
+
+def test_index_out_of_range(tmp_path):
+    (tmp_path / "m.mesh").write_text(MEDIT.replace("2 3 4 5 6", "2 3 4 9 6"))
+    with pytest.raises(MeshInputError, match="out of range"):
+        _io.load(tmp_path / "m.mesh")
+    with pytest.raises(MeshInputError, match="out of range"):
+        jtet.TetMesh.from_arrays(PTS5, [[0, 1, 2, -1]])
+
+
+def test_repeated_vertex(tmp_path):
+    (tmp_path / "m.node").write_text(TETGEN_NODE)
+    (tmp_path / "m.ele").write_text(TETGEN_ELE.replace("2 2 3 4 5 3", "2 2 3 3 5 3"))
+    with pytest.raises(MeshInputError, match="repeats a vertex"):
+        _io.load(tmp_path / "m.ele")
+
+
+def test_empty_mesh(tmp_path):
+    path = _grid_file(tmp_path, PTS5, {pv.CellType.TETRA: np.zeros((0, 4), np.int64)})
+    with pytest.raises(MeshInputError, match="empty"):
+        _io.load(path)
+    with pytest.raises(MeshInputError, match="empty"):
+        jtet.TetMesh.from_pyvista(pv.UnstructuredGrid())
+    with pytest.raises(MeshInputError, match="empty"):
+        jtet.TetMesh.from_arrays(PTS5, np.zeros((0, 4), np.int64))
+
+
+def test_non_tet_cells(tmp_path):
+    hexes = pv.ImageData(dimensions=(3, 3, 3)).cast_to_unstructured_grid()
+    path = tmp_path / "input.vtu"
+    pv.UnstructuredGrid(
+        {pv.CellType.HEXAHEDRON: hexes.cells_dict[pv.CellType.VOXEL][:, [0, 1, 3, 2, 4, 5, 7, 6]]},
+        hexes.points,
+    ).save(path)
+    with pytest.raises(MeshInputError) as e:
+        _io.load(path)
+    msg = _one_line(e)
+    assert "8 cells are not tetrahedra (VTK_HEXAHEDRON x 8)" in msg and "input.vtu" in msg
+    # voxels straight from pyvista, through from_pyvista (cast to an unstructured grid)
+    with pytest.raises(MeshInputError, match="VTK_VOXEL x 8"):
+        jtet.TetMesh.from_pyvista(pv.ImageData(dimensions=(3, 3, 3)))
+    # tets mixed with a pyramid: the pyramid is reported, not dropped
+    mixed = pv.UnstructuredGrid(
+        {pv.CellType.TETRA: TETS2, pv.CellType.PYRAMID: np.array([[0, 1, 4, 2, 3]])}, PTS5
+    )
+    with pytest.raises(MeshInputError, match=r"1 cells are not tetrahedra \(VTK_PYRAMID x 1\)"):
+        jtet.TetMesh.from_pyvista(mixed)
+    # a surface mesh has no tets at all
+    with pytest.raises(MeshInputError, match="no tetrahedra"):
+        jtet.TetMesh.from_pyvista(pv.Sphere())
+
+
+def test_quadratic_tets_are_refused_with_a_hint(tmp_path):
+    pts = np.vstack([PTS5[:4], (PTS5[[0, 1, 2, 0, 0, 1]] + PTS5[[1, 2, 0, 3, 3, 3]]) / 2])
+    quad = pv.UnstructuredGrid({pv.CellType.QUADRATIC_TETRA: np.arange(10)[None]}, pts)
+    with pytest.raises(MeshInputError, match="VTK_QUADRATIC_TETRA x 1.*quadratic"):
+        jtet.TetMesh.from_pyvista(quad)
+    path = tmp_path / "q.msh"
+    meshio.gmsh.write(path, meshio.Mesh(pts, [("tetra10", np.arange(10)[None])]), "2.2")
+    with pytest.raises(MeshInputError, match="tetra10 x 1.*quadratic"):
+        _io.load(path)
+
+
+def test_lower_dimensional_cells_are_ignored():
+    grid = pv.UnstructuredGrid(
+        {
+            pv.CellType.TETRA: TETS2,
+            pv.CellType.TRIANGLE: np.array([[0, 1, 2]]),
+            pv.CellType.LINE: np.array([[0, 1]]),
+            pv.CellType.VERTEX: np.array([[4]]),
+        },
+        PTS5,
+    )
+    grid.cell_data["region"] = np.arange(grid.n_cells)
+    m = jtet.TetMesh.from_pyvista(grid)
+    np.testing.assert_array_equal(m.tets, TETS2)
+    tet_cells = np.flatnonzero(np.asarray(grid.celltypes) == pv.CellType.TETRA)
+    np.testing.assert_array_equal(m.region, tet_cells)
+
+
+def test_all_negative_orientation_is_fixed_with_a_warning(tmp_path, labelled):
+    flipped = labelled.replace(tets=labelled.tets[:, [0, 2, 1, 3]])
+    assert (flipped.volumes < 0).all()
+    path = tmp_path / "neg.vtu"
+    _io.save(flipped, path)
+    with pytest.warns(UserWarning, match=r"neg\.vtu: all .* negatively oriented"):
+        m = _io.load(path)
+    assert (m.volumes > 0).all()
+    np.testing.assert_array_equal(np.sort(m.tets, axis=1), np.sort(labelled.tets, axis=1))
+    np.testing.assert_array_equal(m.region, labelled.region)
+
+
+def test_mixed_orientation_is_kept_with_a_warning(tmp_path, labelled):
+    tets = labelled.tets.copy()
+    tets[:3] = tets[:3, [1, 0, 2, 3]]
+    path = tmp_path / "mixed.msh"
+    _quiet_save(labelled.replace(tets=tets), path)
+    with pytest.warns(UserWarning, match="3 of .* tets are inverted"):
+        m = _io.load(path)
+    np.testing.assert_array_equal(m.tets, tets)
+
+
+# ---------------------------------------------------------------------------------------
+# atomic saves
+
+
+def _listing(d):
+    return sorted(p.name for p in d.iterdir())
+
+
+def test_save_to_missing_directory_or_unknown_extension(tmp_path, labelled):
+    with pytest.raises(MeshFileError, match="not an existing directory"):
+        _io.save(labelled, tmp_path / "no" / "such" / "m.vtu")
+    (tmp_path / "f").write_text("")
+    with pytest.raises(MeshFileError, match="not an existing directory"):
+        _io.save(labelled, tmp_path / "f" / "m.vtu")
+    with pytest.raises(MeshFileError, match="unknown mesh file extension"):
+        _io.save(labelled, tmp_path / "m.stl")
+    with pytest.raises(MeshFileError, match="unknown mesh file extension"):
+        _io.save(labelled, tmp_path / "m")
+    (tmp_path / "d.vtu").mkdir()
+    with pytest.raises(MeshFileError, match="is a directory"):
+        _io.save(labelled, tmp_path / "d.vtu")
+    with pytest.raises(MeshInputError, match="one value per tet"):
+        _io.save(labelled, tmp_path / "m.vtu", cell_data={"q": [1.0, 2.0]})
+    assert _listing(tmp_path) == ["d.vtu", "f"]
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root can write into read-only directories")
+def test_save_to_unwritable_directory(tmp_path, labelled):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        with pytest.raises(MeshFileError, match="cannot create"):
+            _io.save(labelled, ro / "m.vtu")
+        assert _listing(ro) == []
+    finally:
+        ro.chmod(0o700)
+
+
+@pytest.mark.parametrize("ext", ["vtu", "msh", "node"])
+def test_failed_write_leaves_no_temp_and_keeps_the_old_file(tmp_path, labelled, monkeypatch, ext):
+    path = tmp_path / f"keep.{ext}"
+    _quiet_save(labelled, path)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+
+    def half_written(mesh, tmp, fmt, cell_data):
+        tmp.write_bytes(b"partial")
+        if fmt == "tetgen":
+            tmp.with_suffix(".ele").write_bytes(b"partial")
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(_io, "_write", half_written)
+    with pytest.raises(MeshFileError, match="disk full") as e:
+        _quiet_save(labelled.replace(region=labelled.region + 1), path)
+    assert str(path) in _one_line(e)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_overwrite_false_and_file_mode(tmp_path, labelled):
+    path = tmp_path / "m.vtu"
+    _io.save(labelled, path)
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask  # not mkstemp's 0600
+    data = path.read_bytes()
+    with pytest.raises(MeshFileError, match="exists"):
+        _io.save(labelled.replace(region=labelled.region * 2), path, overwrite=False)
+    assert path.read_bytes() == data
+    _io.save(labelled.replace(region=labelled.region * 2), path)  # overwrite=True (default)
+    np.testing.assert_array_equal(_io.load(path).region, labelled.region * 2)
+    assert _listing(tmp_path) == ["m.vtu"]
+
+
+# ---------------------------------------------------------------------------------------
+# demo meshes
+
+
+def test_demo_mesh():
+    m = _io.demo_mesh()
+    assert m is _io.demo_mesh("demo")  # cached
+    assert 4000 <= m.n_tets <= 8000
+    assert m.points.dtype == np.float64
+    assert (m.volumes > 0).all()
+    assert np.unique(m.region).tolist() == [0]
+    _, lo, hi = tet_dihedrals(m.points, m.tets)
+    assert lo.min() < 5.0  # unoptimized Delaunay: slivers left for jtet to remove
+    assert hi.max() > 170.0
+    # box [0,2]x[0,1]x[0,1] minus a ball of radius 0.3: the inscribed polyhedral hole is
+    # a little smaller than the ball (94 % at this resolution)
+    ball = 4 / 3 * np.pi * 0.3**3
+    assert 2.0 - ball < m.volumes.sum() < 2.0 - 0.85 * ball
+
+
+def test_demo_two_regions():
+    m = _io.demo_mesh("two_regions")
+    assert 1000 <= m.n_tets <= 3000
+    assert (m.volumes > 0).all()
+    assert np.unique(m.region).tolist() == [1, 2]
+    z = m.points[m.tets][:, :, 2]
+    lower = m.region == 1
+    assert (z[lower] <= 0.45 + 1e-12).all() and (z[~lower] >= 0.45 - 1e-12).all()
+    np.testing.assert_allclose(m.volumes[lower].sum(), 0.45, rtol=1e-12)
+    np.testing.assert_allclose(m.volumes.sum(), 1.0, rtol=1e-12)
+
+
+def test_unknown_demo_mesh():
+    with pytest.raises(MeshInputError, match="unknown demo mesh"):
+        _io.demo_mesh("nope")
