@@ -556,6 +556,8 @@ def save(
     cell_data = _check_cell_data(mesh, cell_data)
     if fmt in ("medit", "tetgen"):
         dropped = list(cell_data)
+        if len(dropped) > 4:
+            dropped = [f"{len(dropped)} cell arrays ({', '.join(dropped[:3])}, ...)"]
         if len(mesh.protected_faces) or len(mesh.protected_edges):
             dropped.append("protected faces/edges")
         if dropped:
@@ -568,6 +570,13 @@ def save(
         warnings.warn(
             f"{p}: protected faces/edges are not saved in Gmsh files (use .vtu)", stacklevel=2
         )
+    if fmt in ("gmsh", "medit") and len(mesh.region):
+        lo, hi = int(mesh.region.min()), int(mesh.region.max())
+        if lo < -(2**31) or hi >= 2**31:
+            raise MeshFileError(
+                f"{p}: region labels [{lo}, {hi}] do not fit the 32-bit tags of the "
+                f"{_FORMAT_NAMES[fmt]} format"
+            )
     targets = [p]
     if fmt == "tetgen":
         targets = [p.with_suffix(".node"), p.with_suffix(".ele")]

@@ -523,6 +523,16 @@ def test_failed_write_leaves_no_temp_and_keeps_the_old_file(tmp_path, labelled, 
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
 
 
+def test_region_labels_must_fit_32_bit_tags(tmp_path, labelled):
+    big = labelled.replace(region=labelled.region + 2**40)
+    for ext in ("msh", "mesh"):
+        with pytest.raises(MeshFileError, match="32-bit"):
+            _quiet_save(big, tmp_path / f"m.{ext}")
+    _io.save(big, tmp_path / "m.vtu")  # int64 in VTK files
+    np.testing.assert_array_equal(_io.load(tmp_path / "m.vtu").region, big.region)
+    assert _listing(tmp_path) == ["m.vtu"]
+
+
 def test_overwrite_false_and_file_mode(tmp_path, labelled):
     path = tmp_path / "m.vtu"
     _io.save(labelled, path)
