@@ -33,6 +33,7 @@ class PassStats:
     attempts: int = 0
     successes: int = 0
     by_size: dict = field(default_factory=dict)  # ring / tree size -> successes
+    by_kind: dict = field(default_factory=dict)  # e.g. interior / boundary / surface -> successes
     overflow: int = 0  # candidates skipped because they exceed the configured capacity
 
     def as_dict(self) -> dict:
@@ -41,6 +42,7 @@ class PassStats:
             "attempts": self.attempts,
             "successes": self.successes,
             "by_size": {str(k): v for k, v in sorted(self.by_size.items())},
+            "by_kind": dict(self.by_kind),
             "overflow": self.overflow,
         }
 
@@ -216,7 +218,15 @@ def edge_removal_pass(
     sizes = np.diff(T.edge_tets_ptr)[edges[winners]]
     stats.successes = int(winners.sum())
     stats.by_size = {int(s): int(c) for s, c in zip(*np.unique(sizes, return_counts=True))}
-    old_p, new_p = _protected_updates(mesh, edges[winners])
+    we = edges[winners]
+    kind = np.where(T.edge_boundary[we], 0, np.where(T.edge_n_subfacets[we] == 2, 2, 1))
+    counts = np.bincount(kind, minlength=3)
+    stats.by_kind = {
+        "boundary": int(counts[0]),
+        "interior": int(counts[1]),
+        "surface": int(counts[2]),
+    }
+    old_p, new_p = _protected_updates(mesh, we)
     out, _ = replace_tets(
         mesh, remove, np.concatenate(new_tets), np.concatenate(new_region), old_p, new_p
     )

@@ -13,7 +13,9 @@ from ._errors import MeshInputError
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:
-    a = np.ascontiguousarray(a)
+    """A read-only array that shares no memory with the caller's (never freeze user data)."""
+    if a.flags.writeable or a.base is not None:
+        a = np.array(a, order="C", copy=True)
     a.flags.writeable = False
     return a
 
@@ -95,7 +97,9 @@ class TetMesh:
             else np.asarray(self.region).astype(np.int64).reshape(-1)
         )
         if region.shape != (len(tets),):
-            raise MeshInputError(f"region must have one label per tet ({len(tets)}), got {region.shape}")
+            raise MeshInputError(
+                f"region must have one label per tet ({len(tets)}), got {region.shape}"
+            )
         pf = self._entity_array(self.protected_faces, 3, "protected_faces", len(points))
         pe = self._entity_array(self.protected_edges, 2, "protected_edges", len(points))
         object.__setattr__(self, "points", _readonly(points))
@@ -112,7 +116,9 @@ class TetMesh:
         if a.size == 0:
             return np.zeros((0, k), np.int64)
         if a.ndim != 2 or a.shape[1] != k or not np.issubdtype(a.dtype, np.integer):
-            raise MeshInputError(f"{name} must be an integer array of shape (n, {k}), got {a.shape}")
+            raise MeshInputError(
+                f"{name} must be an integer array of shape (n, {k}), got {a.shape}"
+            )
         if ((a < 0) | (a >= n_points)).any():
             raise MeshInputError(f"{name} holds vertex indices out of range [0, {n_points})")
         return np.unique(np.sort(a.astype(np.int64), axis=1), axis=0)

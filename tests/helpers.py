@@ -5,9 +5,7 @@ from scipy.spatial import Delaunay
 
 import jtet
 
-REGULAR_TET = np.array(
-    [[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]]
-)
+REGULAR_TET = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]])
 
 
 def orient_positive(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -20,11 +18,13 @@ def orient_positive(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return tets
 
 
-def delaunay_mesh(n_points: int = 200, seed: int = 0, clustered: bool = False) -> "jtet.TetMesh":
+def delaunay_mesh(
+    n_points: int = 200, seed: int = 0, clustered: bool = False, surface_points: int = 0
+) -> "jtet.TetMesh":
     """Delaunay tetrahedralization of seeded random points in the unit cube (scipy).
 
-    Cube corners are included so the boundary is the cube; nearly flat hull slivers are
-    dropped by qhull's 'Qbb Qc Qz Q12' defaults plus removal of zero-volume tets.
+    Cube corners are included so the boundary is the cube; ``surface_points`` more lie
+    exactly on its faces. Zero-volume tets qhull leaves on the flat faces are dropped.
     """
     rng = np.random.default_rng(seed)
     pts = rng.random((n_points, 3))
@@ -32,7 +32,11 @@ def delaunay_mesh(n_points: int = 200, seed: int = 0, clustered: bool = False) -
         pts = 0.5 + 0.15 * rng.standard_normal((n_points, 3))
         pts = np.clip(pts, 0.01, 0.99)
     corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], float)
-    pts = np.vstack([corners, pts])
+    # points exactly on the cube's faces: flat boundary facets with removable edges
+    surf = rng.random((surface_points, 3))
+    axis = rng.integers(0, 3, surface_points)
+    surf[np.arange(surface_points), axis] = rng.integers(0, 2, surface_points)
+    pts = np.vstack([corners, surf, pts])
     tri = Delaunay(pts)
     tets = orient_positive(pts, tri.simplices.astype(np.int64))
     p = pts[tets]
@@ -41,19 +45,45 @@ def delaunay_mesh(n_points: int = 200, seed: int = 0, clustered: bool = False) -
     return jtet.TetMesh(pts, tets)
 
 
-def grid_mesh(n: int = 3, perturb: float = 0.0, seed: int = 0) -> "jtet.TetMesh":
-    """Structured n^3 cube grid, each cube cut into 6 tets (Kuhn/Freudenthal), perturbed."""
+def grid_mesh(
+    n: int = 3, perturb: float = 0.0, seed: int = 0, two_regions: bool = False
+) -> "jtet.TetMesh":
+    """Structured n^3 cube grid, each cube cut into 6 tets (Kuhn/Freudenthal), perturbed.
+
+    ``two_regions`` (n even): tets with centroid x > 0.5 get region 1, the rest 0; points on
+    the interface plane x = 0.5 move only within it, so the interface stays flat.
+    """
     ax = np.linspace(0.0, 1.0, n + 1)
     X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
     pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
     idx = np.arange((n + 1) ** 3).reshape(n + 1, n + 1, n + 1)
-    c = [idx[i : i + n, j : j + n, k : k + n].ravel() for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+    c = [
+        idx[i : i + n, j : j + n, k : k + n].ravel() for i in (0, 1) for j in (0, 1) for k in (0, 1)
+    ]
     # corners: c[0]=000 c[1]=001 c[2]=010 c[3]=011 c[4]=100 c[5]=101 c[6]=110 c[7]=111
     paths = [(4, 6), (4, 5), (2, 6), (2, 3), (1, 5), (1, 3)]
     tets = np.concatenate([np.stack([c[0], c[a], c[b], c[7]], axis=1) for a, b in paths])
+    tets = orient_positive(pts, tets)
     if perturb:
+        # interior points move by up to perturb * h; halve the move until no tet inverts,
+        # so the mesh stays a valid (conforming, positively oriented) tetrahedralization
         rng = np.random.default_rng(seed)
         interior = ((pts > 0) & (pts < 1)).all(axis=1)
-        pts = pts.copy()
-        pts[interior] += perturb / n * rng.uniform(-1, 1, (interior.sum(), 3))
-    return jtet.TetMesh(pts, orient_positive(pts, tets))
+        step = rng.uniform(-1, 1, (interior.sum(), 3)) * perturb / n
+        if two_regions:
+            step[np.isclose(pts[interior, 0], 0.5), 0] = 0.0
+        for _ in range(30):
+            moved = pts.copy()
+            moved[interior] += step
+            p = moved[tets]
+            vol = np.einsum(
+                "ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])
+            )
+            if (vol > 0).all():
+                pts = moved
+                break
+            step = step / 2
+    region = None
+    if two_regions:
+        region = (pts[tets].mean(axis=1)[:, 0] > 0.5).astype(np.int64)
+    return jtet.TetMesh(pts, tets, region)
