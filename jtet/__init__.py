@@ -15,8 +15,11 @@ from ._options import Options as Options
 from ._quality import MEASURES as MEASURES
 from ._stats import MeshStats as MeshStats
 from ._stats import format_table as format_table
-from ._stats import mesh_stats as stats
+from ._stats import mesh_stats as mesh_stats
 from ._validity import ValidityReport as ValidityReport
+
+
+stats = mesh_stats  # ``jtet.stats(mesh)``: statistics of a mesh
 
 
 def quality(mesh: TetMesh, measure: str = "min_sine"):

@@ -29,15 +29,56 @@ def _ops(text: str) -> tuple[str, ...]:
 
 
 def _add_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--ops", type=_ops, default=DEFAULTS.ops, help="comma-separated operations (default: edge,face,smooth)")
-    p.add_argument("--quality", choices=sorted(MEASURES), default=DEFAULTS.quality, help="quality measure to maximize")
-    p.add_argument("--max-ring", type=int, default=DEFAULTS.max_ring, help="largest ring tried by edge removal (3..16)")
-    p.add_argument("--max-faces", type=int, default=DEFAULTS.max_faces, help="capacity of a multi-face removal tree")
-    p.add_argument("--boundary", choices=("fixed", "slide"), default=DEFAULTS.boundary, help="boundary vertices stay fixed or slide in flat facets / straight segments")
-    p.add_argument("--feature-angle", type=float, default=DEFAULTS.feature_angle, help="degrees; subfacets bent more than this are features (default 0: exactly flat only)")
+    p.add_argument(
+        "--ops",
+        type=_ops,
+        default=DEFAULTS.ops,
+        help="comma-separated operations (default: edge,face,smooth)",
+    )
+    p.add_argument(
+        "--quality",
+        choices=sorted(MEASURES),
+        default=DEFAULTS.quality,
+        help="quality measure to maximize",
+    )
+    p.add_argument(
+        "--max-ring",
+        type=int,
+        default=DEFAULTS.max_ring,
+        help="largest ring tried by edge removal (3..16)",
+    )
+    p.add_argument(
+        "--max-faces",
+        type=int,
+        default=DEFAULTS.max_faces,
+        help="capacity of a multi-face removal tree",
+    )
+    p.add_argument(
+        "--boundary",
+        choices=("fixed", "slide"),
+        default=DEFAULTS.boundary,
+        help="boundary vertices stay fixed or slide in flat facets / straight segments",
+    )
+    p.add_argument(
+        "--feature-angle",
+        type=float,
+        default=DEFAULTS.feature_angle,
+        help="degrees; subfacets bent more than this are features (default 0: exactly flat only)",
+    )
     p.add_argument("--max-passes", type=int, default=DEFAULTS.max_passes)
-    p.add_argument("--patience", type=int, default=DEFAULTS.patience, help="stop after this many passes in a row without progress")
-    p.add_argument("--time-limit", type=float, default=None, metavar="S", help="stop after S seconds, keeping the best mesh so far")
+    p.add_argument(
+        "--patience",
+        type=int,
+        default=DEFAULTS.patience,
+        help="stop after this many passes in a row without progress",
+    )
+    p.add_argument(
+        "--time-limit",
+        type=float,
+        default=None,
+        metavar="S",
+        help="stop after S seconds, keeping the best mesh so far",
+    )
     p.add_argument("--seed", type=int, default=DEFAULTS.seed)
     p.add_argument("--check", action="store_true", help="verify invariants after every operation")
 
@@ -147,13 +188,20 @@ def cmd_demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="jtet", description="Improve the quality of tetrahedral meshes (optimal edge removal, multi-face removal, smoothing).")
+    p = argparse.ArgumentParser(
+        prog="jtet",
+        description="Improve the quality of tetrahedral meshes (optimal edge removal, multi-face removal, smoothing).",
+    )
     sub = p.add_subparsers(dest="command", required=True)
     pi = sub.add_parser("improve", help="improve a mesh file and write the result")
     pi.add_argument("input", help="input mesh (.vtu .vtk .msh .mesh .node/.ele)")
-    pi.add_argument("output", help="output mesh (format from the extension); carries per-tet quality arrays")
+    pi.add_argument(
+        "output", help="output mesh (format from the extension); carries per-tet quality arrays"
+    )
     _add_options(pi)
-    pi.add_argument("--report", metavar="R.json", help="write a JSON report (options, stats, history)")
+    pi.add_argument(
+        "--report", metavar="R.json", help="write a JSON report (options, stats, history)"
+    )
     pi.add_argument("--plot", metavar="H.png", help="write before/after histograms")
     pi.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
     pi.add_argument("-q", "--quiet", action="store_true")
@@ -163,7 +211,9 @@ def build_parser() -> argparse.ArgumentParser:
     ps.add_argument("--json", action="store_true", help="machine-readable output")
     ps.set_defaults(func=cmd_stats)
     pd = sub.add_parser("demo", help="improve the embedded demo mesh and write its outputs")
-    pd.add_argument("--out", default="jtet-demo-out", help="output directory (default: ./jtet-demo-out)")
+    pd.add_argument(
+        "--out", default="jtet-demo-out", help="output directory (default: ./jtet-demo-out)"
+    )
     _add_options(pd)
     pd.add_argument("-q", "--quiet", action="store_true")
     pd.set_defaults(func=cmd_demo)

@@ -15,7 +15,9 @@ def _volume6(p):
 def _pytetwild_mesh():
     pv = pytest.importorskip("pyvista")
     pytetwild = pytest.importorskip("pytetwild")
-    grid = pytetwild.tetrahedralize_pv(pv.Sphere(theta_resolution=12, phi_resolution=12), edge_length_fac=0.2)
+    grid = pytetwild.tetrahedralize_pv(
+        pv.Sphere(theta_resolution=12, phi_resolution=12), edge_length_fac=0.2
+    )
     return jtet.TetMesh.from_pyvista(grid)
 
 
