@@ -18,7 +18,6 @@ from ._stats import format_table as format_table
 from ._stats import mesh_stats as mesh_stats
 from ._validity import ValidityReport as ValidityReport
 
-
 stats = mesh_stats  # ``jtet.stats(mesh)``: statistics of a mesh
 
 

@@ -192,7 +192,14 @@ class Topology:
         # inside one region form surfaces of their own kind.
         rmin, rmax = np.minimum(r0, r1), np.maximum(r0, r1)
         _, surface_code = np.unique(
-            np.stack([np.where(boundary_face, -1, rmin), rmax, protected & ~interface_face & ~boundary_face], 1),
+            np.stack(
+                [
+                    np.where(boundary_face, -1, rmin),
+                    rmax,
+                    protected & ~interface_face & ~boundary_face,
+                ],
+                1,
+            ),
             axis=0,
             return_inverse=True,
         )
