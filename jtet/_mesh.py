@@ -55,8 +55,10 @@ class TetMesh:
         tets = np.asarray(self.tets)
         if points.ndim != 2 or points.shape[1] != 3:
             raise MeshInputError(f"points must have shape (n, 3), got {points.shape}")
-        if not np.issubdtype(points.dtype, np.number):
-            raise MeshInputError(f"points must be numeric, got dtype {points.dtype}")
+        if not (
+            np.issubdtype(points.dtype, np.floating) or np.issubdtype(points.dtype, np.integer)
+        ):
+            raise MeshInputError(f"points must be real numbers, got dtype {points.dtype}")
         points = points.astype(np.float64, copy=False)
         if tets.size == 0:
             tets = tets.reshape(0, 4)
@@ -91,11 +93,7 @@ class TetMesh:
             raise MeshInputError(
                 f"tet {t} repeats a vertex: {tets[t].tolist()} ({int(rep.sum())} such tet(s))"
             )
-        region = (
-            np.zeros(len(tets), np.int64)
-            if self.region is None
-            else np.asarray(self.region).astype(np.int64).reshape(-1)
-        )
+        region = self._labels(self.region, len(tets))
         if region.shape != (len(tets),):
             raise MeshInputError(
                 f"region must have one label per tet ({len(tets)}), got {region.shape}"
@@ -107,6 +105,21 @@ class TetMesh:
         object.__setattr__(self, "region", _readonly(region))
         object.__setattr__(self, "protected_faces", _readonly(pf))
         object.__setattr__(self, "protected_edges", _readonly(pe))
+
+    @staticmethod
+    def _labels(region, m: int) -> np.ndarray:
+        if region is None:
+            return np.zeros(m, np.int64)
+        r = np.asarray(region).reshape(-1)
+        if np.issubdtype(r.dtype, np.integer) or np.issubdtype(r.dtype, np.bool_):
+            return r.astype(np.int64)
+        if np.issubdtype(r.dtype, np.floating):
+            whole = np.isfinite(r) & (r == np.round(r))
+            if not whole.all():
+                t = int(np.flatnonzero(~whole)[0])
+                raise MeshInputError(f"region labels must be integers; tet {t} has {r[t]!r}")
+            return r.astype(np.int64)
+        raise MeshInputError(f"region labels must be integers, got dtype {r.dtype}")
 
     @staticmethod
     def _entity_array(a, k: int, name: str, n_points: int) -> np.ndarray:
@@ -121,7 +134,11 @@ class TetMesh:
             )
         if ((a < 0) | (a >= n_points)).any():
             raise MeshInputError(f"{name} holds vertex indices out of range [0, {n_points})")
-        return np.unique(np.sort(a.astype(np.int64), axis=1), axis=0)
+        a = np.sort(a.astype(np.int64), axis=1)
+        rep = (a[:, 1:] == a[:, :-1]).any(axis=1)
+        if rep.any():
+            raise MeshInputError(f"{name} entry {a[rep][0].tolist()} repeats a vertex")
+        return np.unique(a, axis=0)
 
     # ------------------------------------------------------------------ constructors
     @classmethod
