@@ -1,0 +1,151 @@
+"""Mesh quality statistics: ``mesh_stats(mesh) -> MeshStats`` and a before/after table.
+
+Angles are in degrees, volumes in the mesh's length unit cubed. Dihedral angles come from
+``jtet._quality.tet_dihedrals`` and the quality measures from ``jtet._quality.tet_quality``
+(one jitted SoA pass each over the whole mesh); orientation signs come from the robust
+predicate used by the validity check.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._quality import MEASURES, get_measure, tet_dihedrals, tet_quality
+from ._validity import orientation_signs
+
+SMALL_ANGLES = (5, 10, 20, 30)  # count tets whose smallest dihedral angle is below these
+LARGE_ANGLES = (150, 160, 170)  # count tets whose largest dihedral angle is above these
+DIHEDRAL_BINS = 180  # 1-degree bins over [0, 180]
+QUALITY_BINS = 100  # bins over [-1, 1]
+
+
+@dataclass(frozen=True, eq=False)
+class MeshStats:
+    """Summary statistics of a mesh's quality.
+
+    Attributes:
+        n_points, n_tets: sizes.
+        min_dihedral, max_dihedral: extreme dihedral angles over all tets (degrees).
+        small_dihedral: {threshold: number of tets whose min dihedral < threshold}, for
+            thresholds ``SMALL_ANGLES`` (degrees).
+        large_dihedral: {threshold: number of tets whose max dihedral > threshold}, for
+            thresholds ``LARGE_ANGLES``.
+        quality_min, quality_mean: {measure name: worst / mean quality over the tets}.
+        volume: total signed volume.
+        n_inverted, n_degenerate: tets with negative / zero volume (robust orientation).
+        dihedral_hist: (180,) int64 counts of all 6 m dihedral angles in 1-degree bins
+            [k, k+1), the last bin closed.
+        quality_hist: {measure name: (100,) int64 counts of the quality clipped to [-1, 1]
+            in bins of width 0.02}.
+    """
+
+    n_points: int
+    n_tets: int
+    min_dihedral: float
+    max_dihedral: float
+    small_dihedral: dict
+    large_dihedral: dict
+    quality_min: dict
+    quality_mean: dict
+    volume: float
+    n_inverted: int
+    n_degenerate: int
+    dihedral_hist: np.ndarray
+    quality_hist: dict
+
+    def as_dict(self) -> dict:
+        """JSON-friendly dict (string keys, lists instead of arrays, Python scalars)."""
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        d["small_dihedral"] = {str(k): int(v) for k, v in self.small_dihedral.items()}
+        d["large_dihedral"] = {str(k): int(v) for k, v in self.large_dihedral.items()}
+        d["quality_min"] = {k: float(v) for k, v in self.quality_min.items()}
+        d["quality_mean"] = {k: float(v) for k, v in self.quality_mean.items()}
+        d["dihedral_hist"] = [int(v) for v in self.dihedral_hist]
+        d["quality_hist"] = {k: [int(x) for x in v] for k, v in self.quality_hist.items()}
+        return d
+
+
+def mesh_stats(mesh, measures: Iterable[str] | None = None) -> MeshStats:
+    """Statistics of ``mesh`` (a ``TetMesh``) for the quality ``measures`` (default: all)."""
+    names = list(MEASURES) if measures is None else list(measures)
+    for name in names:
+        get_measure(name)  # unknown names fail here, with the list of valid ones
+    points, tets = mesh.points, mesh.tets
+    angles, lo, hi = tet_dihedrals(points, tets)
+    qmin, qmean, qhist = {}, {}, {}
+    for name in names:
+        q = tet_quality(points, tets, name)
+        qmin[name] = float(q.min())
+        qmean[name] = float(q.mean())
+        qhist[name] = np.histogram(np.clip(q, -1.0, 1.0), QUALITY_BINS, (-1.0, 1.0))[0]
+    sign, _ = orientation_signs(points, tets)
+    return MeshStats(
+        n_points=len(points),
+        n_tets=len(tets),
+        min_dihedral=float(lo.min()),
+        max_dihedral=float(hi.max()),
+        small_dihedral={a: int((lo < a).sum()) for a in SMALL_ANGLES},
+        large_dihedral={a: int((hi > a).sum()) for a in LARGE_ANGLES},
+        quality_min=qmin,
+        quality_mean=qmean,
+        volume=float(np.sum(mesh.volumes)),
+        n_inverted=int((sign < 0).sum()),
+        n_degenerate=int((sign == 0).sum()),
+        dihedral_hist=np.histogram(angles.reshape(-1), DIHEDRAL_BINS, (0.0, 180.0))[0],
+        quality_hist=qhist,
+    )
+
+
+def _fmt_q(q: float) -> str:
+    # worst qualities of bad meshes are tiny: keep their significant digits visible
+    return f"{q:.4f}" if q == 0 or abs(q) >= 1e-3 else f"{q:.2e}"
+
+
+def _rows(s: MeshStats) -> list[tuple[str, str]]:
+    rows = [
+        ("tets", f"{s.n_tets}"),
+        ("points", f"{s.n_points}"),
+        ("volume", f"{s.volume:.6g}"),
+        ("min dihedral (deg)", f"{s.min_dihedral:.3f}"),
+        ("max dihedral (deg)", f"{s.max_dihedral:.3f}"),
+    ]
+    rows += [(f"tets with min dihedral < {a}", f"{n}") for a, n in s.small_dihedral.items()]
+    rows += [(f"tets with max dihedral > {a}", f"{n}") for a, n in s.large_dihedral.items()]
+    for name in s.quality_min:
+        rows.append((f"worst {name}", _fmt_q(s.quality_min[name])))
+        rows.append((f"mean {name}", _fmt_q(s.quality_mean[name])))
+    rows += [("inverted tets", f"{s.n_inverted}"), ("degenerate tets", f"{s.n_degenerate}")]
+    return rows
+
+
+def format_table(
+    before: MeshStats,
+    after: MeshStats | None = None,
+    *,
+    time_s: float | None = None,
+    labels: tuple[str, str] = ("before", "after"),
+) -> str:
+    """A plain-text table of ``before`` (and ``after``, side by side) statistics.
+
+    ``time_s``, when given, adds a row with the time the improvement took (seconds).
+    Rows present in only one of the two stats (different measures) show "-".
+    """
+    cols = [dict(_rows(before))] + ([dict(_rows(after))] if after is not None else [])
+    keys = list(dict.fromkeys(k for c in cols for k in c))
+    body = [[k] + [c.get(k, "-") for c in cols] for k in keys]
+    if time_s is not None:
+        body.append(["time (s)"] + [""] * (len(cols) - 1) + [f"{time_s:.3f}"])
+    head = ["", *labels[: len(cols)]]
+    widths = [max(len(r[i]) for r in [head, *body]) for i in range(len(head))]
+
+    def line(r):
+        return "  ".join(
+            r[0].ljust(widths[0]) if i == 0 else r[i].rjust(widths[i]) for i in range(len(r))
+        ).rstrip()
+
+    sep = "  ".join("-" * w for w in widths)
+    return "\n".join([line(head), sep, *(line(r) for r in body)])

@@ -1,0 +1,420 @@
+"""Independent validity check of a tetrahedral mesh: ``check_validity(mesh) -> ValidityReport``.
+
+Deliberately computed from the raw ``points`` / ``tets`` / ``region`` arrays without
+``jtet._topology``: the optimizer's own adjacency is what this check is meant to audit, so
+it must not share code with it. Everything is vectorized NumPy (sorting, grouping, one
+sparse connected-components call); there is no Python loop over tets, faces or edges.
+
+What is checked (each problem is counted and up to ``MAX_EXAMPLES`` examples are kept):
+
+* tets repeating a vertex, duplicate tets (same vertex set);
+* conformity: every face lies in at most two tets, and two tets sharing a face induce
+  opposite orientations on it (otherwise they lie on the same side of it: they overlap);
+* the boundary surface (faces of exactly one tet) is a closed 2-manifold: every boundary
+  edge lies in exactly two boundary triangles, and the boundary triangles around every
+  boundary vertex form a single fan (its link is one cycle, no "pinched" vertex);
+* geometric orientation with a robust orient3d: inverted (negative volume) and degenerate
+  (zero volume) tets;
+* region interfaces (faces between tets of different regions) are closed or end on the
+  boundary: an interface edge not on the boundary lies in at least two interface faces;
+* protected faces and edges are still faces and edges of the mesh;
+* unreferenced points (reported, but not an error: the input may carry them).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.csgraph
+
+from ._errors import InvariantError
+
+MAX_EXAMPLES = 5
+
+# Faces of tet (v0, v1, v2, v3) as its boundary chain with signs absorbed:
+# d[0123] = [123] - [023] + [013] - [012] = [123] + [032] + [013] + [021].
+# Every triple below is therefore oriented the same way relative to the tet (outward for a
+# positively oriented tet), and two tets that are consistently oriented induce opposite
+# orientations on a face they share.
+_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+_EDGES = np.array([[0, 1], [1, 2], [2, 0]])  # edges of an oriented triangle
+
+
+def orientation_signs(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Sign (+1 / 0 / -1, int8 (m,)) of every tet's volume, and whether it is exact.
+
+    Uses the robust ``jtet._predicates.orient3d_tets`` when available; otherwise a plain
+    float64 determinant (which can misclassify nearly degenerate tets).
+    """
+    try:
+        from ._predicates import orient3d_tets
+    except ImportError:  # TODO: drop once jtet._predicates is always present
+        p = points[tets]
+        d = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
+        return np.sign(d).astype(np.int8), False
+    return np.asarray(orient3d_tets(points, tets), dtype=np.int8), True
+
+
+def _group_rows(rows: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Group equal rows of a non-negative int array (k, c) with entries < n.
+
+    Returns (unique rows (u, c), inverse (k,) into them, counts (u,)).
+    """
+    k, c = rows.shape
+    if k == 0:
+        return rows.reshape(0, c), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    n = max(int(n), 1)
+    if float(n) ** c < 2.0**62:  # pack each row into one int64 key: a 1-D sort is fastest
+        key = rows[:, 0].astype(np.int64)
+        for j in range(1, c):
+            key = key * n + rows[:, j]
+        _, first, inverse, counts = np.unique(
+            key, return_index=True, return_inverse=True, return_counts=True
+        )
+        return rows[first], inverse.reshape(-1), counts
+    uniq, inverse, counts = np.unique(rows, axis=0, return_inverse=True, return_counts=True)
+    return uniq, inverse.reshape(-1), counts
+
+
+def _examples(a) -> tuple:
+    """Up to MAX_EXAMPLES rows of ``a`` as (nested) tuples of Python ints."""
+    a = np.asarray(a)[:MAX_EXAMPLES]
+    return tuple(tuple(int(v) for v in r) if a.ndim > 1 else int(r) for r in a)
+
+
+def _rows_present(rows: np.ndarray, table: np.ndarray, n: int) -> np.ndarray:
+    """(k,) bool: which (sorted) rows also occur in ``table`` (sorted rows, same width)."""
+    if len(rows) == 0:
+        return np.zeros(0, bool)
+    both = np.concatenate([table, rows])
+    _, inverse, _ = _group_rows(both, n)
+    return np.isin(inverse[len(table) :], inverse[: len(table)])
+
+
+@dataclass(frozen=True)
+class ValidityReport:
+    """Result of ``check_validity``: a count and examples for every kind of problem.
+
+    ``ok`` is True iff the mesh is conforming (no face in more than two tets, consistently
+    oriented), its boundary is a closed 2-manifold, it has no duplicate tets and no tets
+    with a repeated vertex, region interfaces are closed or end on the boundary, protected
+    faces and edges are present, **and no tet is inverted or degenerate**. Inverted and
+    degenerate tets are also counted separately (``n_inverted``, ``n_degenerate``) so a
+    caller whose input already had some can require "no new ones" instead
+    (``topologically_ok`` plus a comparison of the counts, or
+    ``raise_if_invalid(report, context, baseline=input_report)``). Unreferenced points do
+    not make a mesh invalid; they are only reported. ``bool(report) == report.ok``.
+
+    Example fields hold up to ``MAX_EXAMPLES`` items: tet indices, point indices, sorted
+    vertex triples (faces) or pairs (edges); ``misoriented_faces`` holds the pairs of tets
+    that induce the same orientation on their shared face, ``duplicate_tets`` pairs
+    (first tet, later copy).
+    """
+
+    n_points: int
+    n_tets: int
+    n_boundary_faces: int
+    n_interface_faces: int
+    n_repeated_vertex_tets: int = 0
+    repeated_vertex_tets: tuple = ()
+    n_duplicate_tets: int = 0
+    duplicate_tets: tuple = ()
+    n_overshared_faces: int = 0
+    overshared_faces: tuple = ()
+    n_misoriented_faces: int = 0
+    misoriented_faces: tuple = ()
+    n_nonmanifold_edges: int = 0
+    nonmanifold_edges: tuple = ()
+    n_nonmanifold_vertices: int = 0
+    nonmanifold_vertices: tuple = ()
+    n_open_interface_edges: int = 0
+    open_interface_edges: tuple = ()
+    n_missing_protected_faces: int = 0
+    missing_protected_faces: tuple = ()
+    n_missing_protected_edges: int = 0
+    missing_protected_edges: tuple = ()
+    n_inverted: int = 0
+    inverted_tets: tuple = ()
+    n_degenerate: int = 0
+    degenerate_tets: tuple = ()
+    n_unreferenced_points: int = 0
+    unreferenced_points: tuple = ()
+    orientation_exact: bool = True
+
+    # (count field, example field, description) in the order __str__ lists them
+    _PROBLEMS = (
+        ("n_repeated_vertex_tets", "repeated_vertex_tets", "tet(s) repeat a vertex"),
+        ("n_duplicate_tets", "duplicate_tets", "duplicate tet(s) (first, copy)"),
+        ("n_overshared_faces", "overshared_faces", "face(s) shared by more than 2 tets"),
+        (
+            "n_misoriented_faces",
+            "misoriented_faces",
+            "face(s) whose two tets induce the same orientation (tet pairs)",
+        ),
+        (
+            "n_nonmanifold_edges",
+            "nonmanifold_edges",
+            "boundary edge(s) not in exactly 2 boundary faces",
+        ),
+        (
+            "n_nonmanifold_vertices",
+            "nonmanifold_vertices",
+            "boundary vertex/vertices whose boundary faces form more than one fan",
+        ),
+        (
+            "n_open_interface_edges",
+            "open_interface_edges",
+            "region-interface edge(s) ending inside the mesh",
+        ),
+        (
+            "n_missing_protected_faces",
+            "missing_protected_faces",
+            "protected face(s) missing from the mesh",
+        ),
+        (
+            "n_missing_protected_edges",
+            "missing_protected_edges",
+            "protected edge(s) missing from the mesh",
+        ),
+        ("n_inverted", "inverted_tets", "inverted tet(s) (negative volume)"),
+        ("n_degenerate", "degenerate_tets", "degenerate tet(s) (zero volume)"),
+    )
+
+    @property
+    def conforming(self) -> bool:
+        """No tet repeats a vertex, no duplicates, faces in <= 2 tets, consistent orientation."""
+        return not (
+            self.n_repeated_vertex_tets
+            or self.n_duplicate_tets
+            or self.n_overshared_faces
+            or self.n_misoriented_faces
+        )
+
+    @property
+    def manifold(self) -> bool:
+        """The boundary surface is a closed 2-manifold (edges and vertex links)."""
+        return not (self.n_nonmanifold_edges or self.n_nonmanifold_vertices)
+
+    @property
+    def topologically_ok(self) -> bool:
+        """Everything of ``ok`` except the inverted / degenerate tet counts."""
+        return (
+            self.conforming
+            and self.manifold
+            and not (
+                self.n_open_interface_edges
+                or self.n_missing_protected_faces
+                or self.n_missing_protected_edges
+            )
+        )
+
+    @property
+    def ok(self) -> bool:
+        """Topologically ok and no inverted or degenerate tet."""
+        return self.topologically_ok and not (self.n_inverted or self.n_degenerate)
+
+    def __bool__(self) -> bool:
+        return self.ok
+
+    def problems(self) -> list[str]:
+        """One line per kind of problem present, with examples."""
+        out = []
+        for count, examples, what in self._PROBLEMS:
+            n = getattr(self, count)
+            if n:
+                ex = ", ".join(str(e) for e in getattr(self, examples))
+                more = ", ..." if n > len(getattr(self, examples)) else ""
+                out.append(f"{n} {what}: {ex}{more}")
+        return out
+
+    def __str__(self) -> str:
+        head = (
+            f"{'valid' if self.ok else 'INVALID'} mesh: {self.n_tets} tets, {self.n_points} "
+            f"points, {self.n_boundary_faces} boundary faces, "
+            f"{self.n_interface_faces} region-interface faces"
+        )
+        lines = [head] + [f"  - {p}" for p in self.problems()]
+        if self.n_unreferenced_points:
+            lines.append(
+                f"  (note: {self.n_unreferenced_points} unreferenced point(s), e.g. "
+                f"{', '.join(map(str, self.unreferenced_points))})"
+            )
+        if not self.orientation_exact:
+            lines.append("  (note: orientation decided by a non-robust float determinant)")
+        return "\n".join(lines)
+
+    def as_dict(self) -> dict:
+        """JSON-friendly dict of every field plus ``ok``."""
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
+        d["ok"] = self.ok
+        return d
+
+
+def check_validity(mesh) -> ValidityReport:
+    """Check ``mesh`` (a ``TetMesh``, or anything with ``points`` (n,3), ``tets`` (m,4),
+    optional ``region`` (m,), ``protected_faces`` (k,3), ``protected_edges`` (k,2)).
+
+    Cost: a few sorts of the 4m faces and 3 * (boundary faces) edges; O(m log m).
+    """
+    points = np.asarray(mesh.points, dtype=np.float64)
+    tets = np.asarray(mesh.tets, dtype=np.int64).reshape(-1, 4)
+    region = getattr(mesh, "region", None)
+    region = np.zeros(len(tets), np.int64) if region is None else np.asarray(region)
+    pfaces = getattr(mesh, "protected_faces", None)
+    pedges = getattr(mesh, "protected_edges", None)
+    n, m = len(points), len(tets)
+    r: dict = {}
+
+    # --- tets repeating a vertex: excluded from the face analysis (their "faces" are not
+    # triangles), reported on their own
+    st = np.sort(tets, axis=1)
+    rep = (st[:, 1:] == st[:, :-1]).any(axis=1)
+    r["n_repeated_vertex_tets"] = int(rep.sum())
+    r["repeated_vertex_tets"] = _examples(np.flatnonzero(rep))
+    proper = np.flatnonzero(~rep)
+
+    # --- duplicate tets (same vertex set, whatever the order)
+    _, inv, cnt = _group_rows(st[proper], n)
+    r["n_duplicate_tets"] = int((cnt - 1).sum())
+    if r["n_duplicate_tets"]:
+        order = np.argsort(inv, kind="stable")  # groups contiguous, tet order kept inside
+        starts = np.searchsorted(inv[order], np.arange(len(cnt)))
+        copies = np.ones(len(order), bool)
+        copies[starts] = False  # every member after its group's first tet is a copy
+        first = proper[order[starts[inv[order][copies]]]]
+        r["duplicate_tets"] = _examples(np.stack([first, proper[order][copies]], axis=1))
+
+    # --- faces: 4 per proper tet, oriented by the boundary chain of the tet
+    t = tets[proper]
+    f = t[:, _FACES].reshape(-1, 3)  # (4m', 3), row 4*i + j: face opposite vertex j of tet i
+    f_tet = np.repeat(proper, 4)
+    fs = np.sort(f, axis=1)
+    # orientation bit = parity of the permutation sorting the triple
+    parity = ((f[:, 0] > f[:, 1]) ^ (f[:, 0] > f[:, 2]) ^ (f[:, 1] > f[:, 2])).astype(np.int8)
+    faces, finv, fcnt = _group_rows(fs, n)
+    r["n_overshared_faces"] = int((fcnt > 2).sum())
+    r["overshared_faces"] = _examples(faces[fcnt > 2])
+
+    # faces in exactly two tets: the two incidences, in group order
+    order = np.argsort(finv, kind="stable")
+    g_sorted = finv[order]
+    starts = np.searchsorted(g_sorted, np.arange(len(fcnt)))
+    two = np.flatnonzero(fcnt == 2)
+    ia, ib = order[starts[two]], order[starts[two] + 1]
+    mis = parity[ia] == parity[ib]
+    r["n_misoriented_faces"] = int(mis.sum())
+    r["misoriented_faces"] = _examples(np.stack([f_tet[ia][mis], f_tet[ib][mis]], axis=1))
+
+    # region interfaces: faces between two tets of different regions
+    iface = region[f_tet[ia]] != region[f_tet[ib]]
+    iface_faces = faces[two[iface]]
+    r["n_interface_faces"] = len(iface_faces)
+
+    # --- boundary surface: faces in exactly one tet, with the tet's orientation
+    one = np.flatnonzero(fcnt == 1)
+    bfaces = f[order[starts[one]]]  # oriented (outward for a positive tet)
+    r["n_boundary_faces"] = len(bfaces)
+    nb = len(bfaces)
+    he = bfaces[:, _EDGES].reshape(-1, 2)  # half-edge (f, j): bfaces[f, j] -> bfaces[f, j+1]
+    bedges, einv, ecnt = _group_rows(np.sort(he, axis=1), n)
+    bad_edge = ecnt != 2
+    r["n_nonmanifold_edges"] = int(bad_edge.sum())
+    r["nonmanifold_edges"] = _examples(bedges[bad_edge])
+
+    # vertex links: corners (face, vertex) of boundary faces are nodes; across every
+    # manifold boundary edge, join the two corners at each of its endpoints. The corners
+    # at a vertex form one component per fan of boundary faces around it; a vertex with
+    # more than one fan is pinched. Vertices of non-manifold edges are reported above and
+    # left out here.
+    if nb:
+        eorder = np.argsort(einv, kind="stable")
+        estarts = np.searchsorted(einv[eorder], np.arange(len(ecnt)))
+        good = np.flatnonzero(~bad_edge)
+        h1, h2 = eorder[estarts[good]], eorder[estarts[good] + 1]  # half-edge ids 3f + j
+        f1, j1 = np.divmod(h1, 3)
+        f2, j2 = np.divmod(h2, 3)
+        u = bfaces[f1, j1]
+        # corner of u (and of w) in the second face
+        k2u = np.where(bfaces[f2, j2] == u, j2, (j2 + 1) % 3)
+        k2w = np.where(bfaces[f2, j2] == u, (j2 + 1) % 3, j2)
+        src = np.concatenate([3 * f1 + j1, 3 * f1 + (j1 + 1) % 3])
+        dst = np.concatenate([3 * f2 + k2u, 3 * f2 + k2w])
+        graph = scipy.sparse.coo_matrix(
+            (np.ones(len(src), np.int8), (src, dst)), shape=(3 * nb, 3 * nb)
+        )
+        _, comp = scipy.sparse.csgraph.connected_components(graph, directed=False)
+        cvert = bfaces.reshape(-1)
+        vc = np.unique(np.stack([cvert, comp], axis=1), axis=0)
+        nfans = np.bincount(vc[:, 0], minlength=n)
+        on_bad = np.zeros(n, bool)
+        on_bad[bedges[bad_edge].reshape(-1)] = True
+        pinched = np.flatnonzero((nfans > 1) & ~on_bad)
+        r["n_nonmanifold_vertices"] = len(pinched)
+        r["nonmanifold_vertices"] = _examples(pinched)
+
+    # --- region interfaces end on the boundary or close up: an interface edge that is not a
+    # boundary edge must lie in >= 2 interface faces (around an interior edge the region
+    # label cannot change exactly once).
+    if len(iface_faces):
+        ie = np.sort(iface_faces[:, _EDGES].reshape(-1, 2), axis=1)
+        iedges, _, icnt = _group_rows(ie, n)
+        lonely = iedges[icnt == 1]
+        on_boundary = _rows_present(lonely, bedges, n)
+        r["n_open_interface_edges"] = int((~on_boundary).sum())
+        r["open_interface_edges"] = _examples(lonely[~on_boundary])
+
+    # --- protected faces / edges must still be faces / edges of the mesh
+    if pfaces is not None and len(pfaces):
+        pf = np.sort(np.asarray(pfaces, np.int64).reshape(-1, 3), axis=1)
+        miss = ~_rows_present(pf, faces, n)
+        r["n_missing_protected_faces"] = int(miss.sum())
+        r["missing_protected_faces"] = _examples(pf[miss])
+    if pedges is not None and len(pedges):
+        pe = np.sort(np.asarray(pedges, np.int64).reshape(-1, 2), axis=1)
+        e6 = np.stack([t[:, [0, 0, 0, 1, 1, 2]], t[:, [1, 2, 3, 2, 3, 3]]], axis=-1)
+        all_edges = np.sort(e6.reshape(-1, 2), axis=1)
+        miss = ~_rows_present(pe, all_edges, n)
+        r["n_missing_protected_edges"] = int(miss.sum())
+        r["missing_protected_edges"] = _examples(pe[miss])
+
+    # --- geometric orientation (robust when jtet._predicates is available)
+    if len(proper):
+        sign, exact = orientation_signs(points, t)
+    else:
+        sign, exact = np.zeros(0, np.int8), True
+    r["n_inverted"] = int((sign < 0).sum())
+    r["inverted_tets"] = _examples(proper[sign < 0])
+    r["n_degenerate"] = int((sign == 0).sum())
+    r["degenerate_tets"] = _examples(proper[sign == 0])
+    r["orientation_exact"] = exact
+
+    # --- unreferenced points
+    used = np.bincount(tets.reshape(-1), minlength=n) > 0 if m else np.zeros(n, bool)
+    r["n_unreferenced_points"] = int((~used).sum())
+    r["unreferenced_points"] = _examples(np.flatnonzero(~used))
+
+    return ValidityReport(n_points=n, n_tets=m, **r)
+
+
+def raise_if_invalid(
+    report: ValidityReport, context: str, baseline: ValidityReport | None = None
+) -> None:
+    """Raise ``InvariantError`` (message: ``context`` + the report) if ``report`` is not ok.
+
+    With ``baseline`` (the report of the input mesh), inverted and degenerate tets are
+    tolerated up to the baseline's counts: only *new* ones are an error.
+    """
+    if baseline is None:
+        bad = not report.ok
+    else:
+        bad = (
+            not report.topologically_ok
+            or report.n_inverted > baseline.n_inverted
+            or report.n_degenerate > baseline.n_degenerate
+        )
+    if bad:
+        raise InvariantError(f"{context}: {report}")
