@@ -1,0 +1,117 @@
+"""mesh_stats / format_table on meshes with known angles and qualities."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from helpers import REGULAR_TET, delaunay_mesh, grid_mesh
+
+import jtet
+from jtet._stats import LARGE_ANGLES, SMALL_ANGLES, format_table, mesh_stats
+
+REG = REGULAR_TET[[1, 0, 2, 3]]  # positively oriented
+
+
+def test_single_regular_tet():
+    s = mesh_stats(jtet.TetMesh(REG, [[0, 1, 2, 3]]))
+    a = math.degrees(math.acos(1 / 3))
+    assert s.n_tets == 1 and s.n_points == 4
+    assert s.min_dihedral == pytest.approx(a, abs=1e-10)
+    assert s.max_dihedral == pytest.approx(a, abs=1e-10)
+    assert all(v == 0 for v in s.small_dihedral.values())
+    assert all(v == 0 for v in s.large_dihedral.values())
+    assert set(s.quality_min) == set(jtet.MEASURES)
+    for name in jtet.MEASURES:
+        assert s.quality_min[name] == pytest.approx(1.0, abs=1e-12)
+        assert s.quality_mean[name] == pytest.approx(1.0, abs=1e-12)
+        assert s.quality_hist[name].sum() == 1 and s.quality_hist[name][-1] == 1
+    # edge 2 sqrt 2: V = a^3 / (6 sqrt 2) = 8/3
+    assert s.volume == pytest.approx(8 / 3, rel=1e-14)
+    assert s.n_inverted == 0 and s.n_degenerate == 0
+    assert s.dihedral_hist.shape == (180,) and s.dihedral_hist[70] == 6
+    assert s.dihedral_hist.sum() == 6
+
+
+def test_kuhn_grid():
+    # every Kuhn/Freudenthal tet of a cube: dihedral angles 45, 45, 60, 90, 90, 90;
+    # edges 1, 1, 1, sqrt2, sqrt2, sqrt3; V = 1/6; faces 1/2, 1/2, sqrt2/2, sqrt2/2;
+    # circumradius sqrt3/2 (the cube's). All tets are congruent up to a reflection.
+    n = 3
+    mesh = grid_mesh(n)
+    m = 6 * n**3
+    s = mesh_stats(mesh)
+    assert s.n_tets == m and s.n_points == (n + 1) ** 3
+    assert s.min_dihedral == pytest.approx(45, abs=1e-9)
+    assert s.max_dihedral == pytest.approx(90, abs=1e-9)
+    assert s.small_dihedral == {a: 0 for a in SMALL_ANGLES}
+    assert s.large_dihedral == {a: 0 for a in LARGE_ANGLES}
+    h = s.dihedral_hist
+    # exact angles can land on either side of a bin edge through round-off
+    assert h[44:46].sum() == 2 * m and h[59:61].sum() == m and h[89:91].sum() == 3 * m
+    assert h.sum() == 6 * m
+    expected = {
+        "min_sine": math.sin(math.radians(45)) / (2 * math.sqrt(2) / 3),  # = 3/4
+        "radius_ratio": 3 * (0.5 / (1 + math.sqrt(2))) / (math.sqrt(3) / 2),
+        "vol_length": math.sqrt(2) / (10 / 6) ** 1.5,
+        "mean_ratio": 12 * 0.5 ** (2 / 3) / 10,
+    }
+    for name, q in expected.items():
+        assert s.quality_min[name] == pytest.approx(q, rel=1e-12), name
+        assert s.quality_mean[name] == pytest.approx(q, rel=1e-12), name
+    assert s.volume == pytest.approx(1.0, rel=1e-13)
+    assert s.n_inverted == 0 and s.n_degenerate == 0
+
+
+def test_counts_match_numpy(rng):
+    mesh = delaunay_mesh(300, seed=4)
+    s = mesh_stats(mesh, measures=["vol_length"])
+    angles, lo, hi = jtet._quality.tet_dihedrals(mesh.points, mesh.tets)
+    for a in SMALL_ANGLES:
+        assert s.small_dihedral[a] == int((lo < a).sum())
+    for a in LARGE_ANGLES:
+        assert s.large_dihedral[a] == int((hi > a).sum())
+    assert s.small_dihedral[5] > 0  # random Delaunay meshes have slivers
+    q = mesh.quality("vol_length")
+    assert s.quality_min == {"vol_length": q.min()}
+    assert s.quality_mean["vol_length"] == pytest.approx(q.mean(), rel=1e-14)
+    assert s.quality_hist["vol_length"].sum() == mesh.n_tets
+    assert s.dihedral_hist.sum() == 6 * mesh.n_tets
+    assert s.volume == pytest.approx(1.0, rel=1e-12)
+
+
+def test_inverted_and_degenerate_counts():
+    mesh = grid_mesh(2)
+    tets = mesh.tets.copy()
+    tets[[3, 7]] = tets[[3, 7]][:, [1, 0, 2, 3]]
+    s = mesh_stats(jtet.TetMesh(mesh.points, tets))
+    assert s.n_inverted == 2 and s.n_degenerate == 0
+    assert all(v < 0 for v in s.quality_min.values())
+    pts = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1]])
+    s = mesh_stats(jtet.TetMesh(pts, [[0, 1, 2, 3], [0, 1, 2, 4]]))
+    assert s.n_degenerate == 1 and s.quality_min["min_sine"] == 0.0
+
+
+def test_unknown_measure():
+    with pytest.raises(jtet.JtetError, match="unknown quality measure"):
+        mesh_stats(grid_mesh(1), measures=["nope"])
+
+
+def test_as_dict_and_table():
+    before = mesh_stats(delaunay_mesh(100, seed=5))
+    after = mesh_stats(grid_mesh(2))
+    d = json.loads(json.dumps(before.as_dict()))
+    assert d["n_tets"] == before.n_tets and len(d["dihedral_hist"]) == 180
+    assert d["small_dihedral"]["10"] == before.small_dihedral[10]
+    assert len(d["quality_hist"]["min_sine"]) == 100
+    table = format_table(before, after, time_s=1.5)
+    lines = table.splitlines()
+    assert "before" in lines[0] and "after" in lines[0]
+    for row in ("tets", "min dihedral", "max dihedral", "< 10", "> 170", "worst min_sine",
+                "mean mean_ratio", "inverted", "time (s)"):  # fmt: skip
+        assert any(row in line for line in lines), row
+    tets_row = next(line for line in lines if line.startswith("tets "))
+    assert tets_row.split()[1:] == [str(before.n_tets), str(after.n_tets)]
+    assert "1.500" in lines[-1]
+    single = format_table(before)
+    assert "after" not in single and "time" not in single
