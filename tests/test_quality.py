@@ -30,6 +30,7 @@ import jtet  # noqa: F401  (float64)
 from jtet._predicates import orient3d_tets
 from jtet._quality import (
     MEASURES,
+    _atan2_nonneg,
     _cbrt_nonneg,
     dihedral_angles,
     get_measure,
@@ -277,6 +278,18 @@ def test_cbrt_nonneg(rng):
     r = np.cbrt(x)
     np.testing.assert_allclose(y, r, rtol=4 * EPS, atol=0)
     assert y[-4] == 0.0
+
+
+def test_atan2_nonneg(rng):
+    n = 100000
+    y = np.abs(rng.standard_normal(n)) * 10.0 ** rng.uniform(-30, 30, n)
+    x = rng.standard_normal(n) * 10.0 ** rng.uniform(-30, 30, n)
+    y[:3], x[:3] = 0.0, [0.0, 1.0, -1.0]  # 0, 0, pi
+    x[3:6], y[3:6] = 0.0, [1.0, 2.0, 1e-300]  # pi/2
+    x[6:9], y[6:9] = [1.0, -1.0, 2.0], [1.0, 1.0, 2.0]  # pi/4, 3pi/4, pi/4 (the t = 1 edge)
+    got = np.asarray(jax.jit(_atan2_nonneg)(jnp.asarray(y), jnp.asarray(x)))
+    np.testing.assert_allclose(got, np.arctan2(y, x), rtol=0, atol=2 * EPS * np.pi)
+    assert got[0] == 0.0 and got[1] == 0.0 and got[2] == np.pi
 
 
 # ------------------------------------------------------------------ vmap / jit / host helpers
