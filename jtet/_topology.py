@@ -74,6 +74,26 @@ def match_rows(table: np.ndarray, queries: np.ndarray, n: int) -> np.ndarray:
     return np.where(found, order[pos], -1)
 
 
+def _group(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Group equal keys with ONE sort: (perm, ptr, inverse).
+
+    ``perm`` lists entries grouped by key (groups in increasing key order, entries in
+    their original order inside a group), ``ptr`` (G+1,) delimits the groups in ``perm``
+    and ``inverse`` (N,) is each entry's group id. np.unique with return_index and
+    return_inverse would sort twice.
+    """
+    perm = np.argsort(keys, kind="stable")
+    sk = keys[perm]
+    new = np.empty(len(sk), bool)
+    new[:1] = True
+    np.not_equal(sk[1:], sk[:-1], out=new[1:])
+    gid_sorted = np.cumsum(new) - 1
+    inverse = np.empty(len(keys), np.int64)
+    inverse[perm] = gid_sorted
+    ptr = np.append(np.flatnonzero(new), len(keys)).astype(np.int64)
+    return perm, ptr, inverse
+
+
 def _csr(groups: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray]:
     """(ptr, order): entries sorted by group id, and CSR pointers per group."""
     order = np.argsort(groups, kind="stable")
@@ -142,34 +162,28 @@ class Topology:
 
         # ---------------------------------------------------------------- faces
         tf = np.sort(tets[:, TET_FACES], axis=2).reshape(-1, 3)  # (4m, 3)
-        fkeys = row_keys(tf, n)
-        ukeys, first, inv, counts = np.unique(
-            fkeys, return_index=True, return_inverse=True, return_counts=True
-        )
+        fperm, fptr, inv = _group(row_keys(tf, n))
+        counts = np.diff(fptr)
         if (counts > 2).any():
             f = int(np.flatnonzero(counts > 2)[0])
-            bad = tf[first[f]].tolist()
+            bad = tf[fperm[fptr[f]]].tolist()
             raise MeshInputError(
                 f"non-conforming mesh: face {bad} is shared by {int(counts[f])} tets "
                 f"({int((counts > 2).sum())} such faces)"
             )
-        faces = tf[first]
+        s0 = fperm[fptr[:-1]]  # first slot (tet * 4 + local vertex) of every face
+        faces = tf[s0]
         F = len(faces)
         tet_faces = inv.reshape(m, 4)
-        slot_tet = np.repeat(np.arange(m), 4)
-        slot_local = np.tile(np.arange(4), m)
-        order = np.argsort(inv, kind="stable")
-        ptr = np.zeros(F + 1, np.int64)
-        np.cumsum(counts, out=ptr[1:])
         face_tets = np.full((F, 2), -1, np.int64)
         face_apex = np.full((F, 2), -1, np.int64)
-        s0 = order[ptr[:-1]]
-        face_tets[:, 0] = slot_tet[s0]
-        face_apex[:, 0] = tets[slot_tet[s0], slot_local[s0]]
+        flat = tets.reshape(-1)
+        face_tets[:, 0] = s0 // 4
+        face_apex[:, 0] = flat[s0]
         two = counts == 2
-        s1 = order[ptr[:-1][two] + 1]
-        face_tets[two, 1] = slot_tet[s1]
-        face_apex[two, 1] = tets[slot_tet[s1], slot_local[s1]]
+        s1 = fperm[fptr[:-1][two] + 1]
+        face_tets[two, 1] = s1 // 4
+        face_apex[two, 1] = flat[s1]
         other = np.where(
             face_tets[tet_faces, 0] == np.arange(m)[:, None],
             face_tets[tet_faces, 1],
@@ -190,26 +204,27 @@ class Topology:
         subfacet = boundary_face | interface_face | protected
         # Surface identity: the (region, region) pair it separates; user-protected faces
         # inside one region form surfaces of their own kind.
-        rmin, rmax = np.minimum(r0, r1), np.maximum(r0, r1)
+        sub = np.flatnonzero(subfacet)
+        rmin, rmax = np.minimum(r0[sub], r1[sub]), np.maximum(r0[sub], r1[sub])
         _, surface_code = np.unique(
             np.stack(
                 [
-                    np.where(boundary_face, -1, rmin),
+                    np.where(boundary_face[sub], -1, rmin),
                     rmax,
-                    protected & ~interface_face & ~boundary_face,
+                    protected[sub] & ~interface_face[sub] & ~boundary_face[sub],
                 ],
                 1,
             ),
             axis=0,
             return_inverse=True,
         )
-        surface_id = np.where(subfacet, surface_code.reshape(-1), -1)
+        surface_id = np.full(F, -1, np.int64)
+        surface_id[sub] = surface_code.reshape(-1)
 
         # ---------------------------------------------------------------- edges
         te = np.sort(tets[:, TET_EDGES], axis=2).reshape(-1, 2)  # (6m, 2)
-        ekeys = te[:, 0] * np.int64(n) + te[:, 1]
-        _, efirst, einv = np.unique(ekeys, return_index=True, return_inverse=True)
-        edges = te[efirst]
+        eperm, eptr, einv = _group(te[:, 0] * np.int64(n) + te[:, 1])
+        edges = te[eperm[eptr[:-1]]]
         E = len(edges)
         tet_edges = einv.reshape(m, 6)
 
@@ -221,23 +236,20 @@ class Topology:
         ck = tets[:, _EDGE_OTHERS[:, 0]]
         cl = tets[:, _EDGE_OTHERS[:, 1]]
         swap = lo > hi
-        c = np.where(swap, cl, ck).reshape(-1)
-        d = np.where(swap, ck, cl).reshape(-1)
-        entry_tet = np.repeat(np.arange(m), 6)
-        edge_of = einv.reshape(-1)
-        (edge_tets_ptr, edge_tets, edge_ring_ptr, edge_ring, edge_boundary, edge_manifold) = (
-            _order_rings(edge_of, c, d, entry_tet, E, n)
+        c = np.where(swap, cl, ck).reshape(-1)[eperm]
+        d = np.where(swap, ck, cl).reshape(-1)[eperm]
+        (edge_tets, edge_ring_ptr, edge_ring, edge_boundary, edge_manifold) = _order_rings(
+            eptr, c, d, eperm // 6
         )
+        edge_tets_ptr = eptr
 
         # ---------------------------------------------------------------- protection
         # subfacets containing each edge: every face has 3 edges
-        fe = np.stack([faces[:, [0, 1]], faces[:, [0, 2]], faces[:, [1, 2]]], 1).reshape(-1, 2)
-        fe_keys = fe[:, 0] * np.int64(n) + fe[:, 1]
-        ekeys_u = edges[:, 0] * np.int64(n) + edges[:, 1]
-        fe_edge = np.searchsorted(ekeys_u, fe_keys)
-        sf_slot = np.repeat(subfacet, 3)
-        sf_edge = fe_edge[sf_slot]
-        sf_face = np.repeat(np.arange(F), 3)[sf_slot]
+        sfaces = faces[sub]
+        fe = np.stack([sfaces[:, [0, 1]], sfaces[:, [0, 2]], sfaces[:, [1, 2]]], 1).reshape(-1, 2)
+        ekeys_u = edges[:, 0] * np.int64(n) + edges[:, 1]  # sorted: edges come from a sort
+        sf_edge = np.searchsorted(ekeys_u, fe[:, 0] * np.int64(n) + fe[:, 1])
+        sf_face = np.repeat(sub, 3)
         edge_n_subfacets = np.bincount(sf_edge, minlength=E)
         subsegment = (edge_n_subfacets != 0) & (edge_n_subfacets != 2)
         subsegment |= ~edge_manifold
@@ -294,72 +306,66 @@ class Topology:
         )
 
 
-def _order_rings(edge_of, c, d, entry_tet, E, n):
-    """Order the ring steps c -> d of every edge by list ranking.
+def _order_rings(ptr, c, d, entry_tet):
+    """Order the ring steps c -> d of every edge into its ring.
 
-    Each edge's steps form one cycle (interior edge) or one path (boundary edge) in a
-    manifold mesh. Returns CSR tets in ring order, CSR ring vertices (a chain gets its
+    Entries come grouped by edge (CSR ``ptr``). Each edge's steps form one cycle (interior
+    edge) or one path (boundary edge) in a manifold mesh. Edges are processed in buckets of
+    equal ring size k: within a bucket the successor of every step is found by comparing
+    the k steps with each other, (E_k, k, k) at a time, then the ring is walked in k
+    vectorized steps. Cache-friendly and O(sum E_k k^2) with k ~ 5 on average.
+
+    Returns the tets in ring order (CSR as ``ptr``), CSR ring vertices (a chain gets its
     final vertex appended), the boundary flag and a manifold flag per edge.
     """
-    N = len(c)
-    # index of the step leaving vertex x in edge e: key (e, x)
-    from_key = edge_of * np.int64(n) + c
-    to_key = edge_of * np.int64(n) + d
-    korder = np.argsort(from_key, kind="stable")
-    sk = from_key[korder]
-    dup = np.zeros(N, bool)
-    dup[korder[1:]] = sk[1:] == sk[:-1]  # two steps leave the same vertex: not a manifold ring
-    pos = np.minimum(np.searchsorted(sk, to_key), N - 1)
-    has_next = sk[pos] == to_key
-    nxt = np.where(has_next, korder[pos], -1)
-    has_pred = np.zeros(N, bool)
-    has_pred[nxt[has_next]] = True
-    is_start = ~has_pred
-    edge_counts = np.bincount(edge_of, minlength=E)
-    n_starts = np.bincount(edge_of[is_start], minlength=E)
-    bad_edge = np.bincount(edge_of[dup], minlength=E) > 0
-    edge_boundary = n_starts > 0
-    # cycles: cut them at their lowest entry so every ring becomes one path
-    ptr, eorder = _csr(edge_of, E)
-    head = np.full(E, -1, np.int64)
-    cyc = ~edge_boundary & (edge_counts > 0)
-    head[cyc] = eorder[ptr[:-1][cyc]]  # lowest entry index of each cycle (stable sort)
-    is_head = np.zeros(N, bool)
-    is_head[head[cyc]] = True
-    nxt = np.where(is_head[np.maximum(nxt, 0)] & (nxt >= 0), -1, nxt)
-    # pointer doubling: distance to the end of the path
-    dist = (nxt >= 0).astype(np.int64)
-    jump = nxt.copy()
-    while True:
-        live = jump >= 0
-        if not live.any():
-            break
-        dist[live] += dist[jump[live]]
-        jump[live] = jump[jump[live]]
-    # a manifold ring is one path covering all steps: its start has dist = count - 1
-    start_dist = np.full(E, -1, np.int64)
-    starts = np.flatnonzero(is_start | is_head)
-    np.maximum.at(start_dist, edge_of[starts], dist[starts])
-    edge_manifold = (
-        (start_dist == edge_counts - 1) & (n_starts <= 1) & ~bad_edge & (edge_counts > 0)
-    )
-    rank = edge_counts[edge_of] - 1 - dist
-    rank = np.where(edge_manifold[edge_of], rank, 0)
-    order = np.lexsort((rank, np.arange(N) * ~edge_manifold[edge_of], edge_of))
-    edge_tets = entry_tet[order]
-    edge_tets_ptr = ptr
+    E = len(ptr) - 1
+    counts = np.diff(ptr)
+    edge_tets = entry_tet.copy()
+    ring_c = c.copy()
+    edge_boundary = np.zeros(E, bool)
+    edge_manifold = np.zeros(E, bool)
+    chain_end = np.full(E, -1, np.int64)
+    for k in np.unique(counts):  # a loop over ring sizes, each bucket vectorized
+        es = np.flatnonzero(counts == k)
+        slots = ptr[es][:, None] + np.arange(k)  # (E_k, k)
+        cc, dd = c[slots], d[slots]
+        eq = dd[:, :, None] == cc[:, None, :]  # eq[e, i, j]: step j follows step i
+        n_next = eq.sum(axis=2)
+        n_prev = eq.sum(axis=1)
+        succ = np.where(n_next == 1, eq.argmax(axis=2), -1)
+        starts = n_prev == 0
+        n_starts = starts.sum(axis=1)
+        ok = (n_next <= 1).all(axis=1) & (n_prev <= 1).all(axis=1) & (n_starts <= 1)
+        start = np.where(n_starts == 1, starts.argmax(axis=1), 0)
+        rows = np.arange(len(es))
+        order = np.empty((len(es), k), np.int64)
+        pos = start
+        for step in range(k):
+            order[:, step] = pos
+            pos = np.where(pos >= 0, succ[rows, np.maximum(pos, 0)], -1)
+            ok &= (pos >= 0) | (step == k - 1)
+        # a visit of every step exactly once (cycles close on the start)
+        seen = np.zeros((len(es), k), np.int64)
+        np.add.at(seen, (rows[:, None], np.maximum(order, 0)), 1)
+        ok &= (seen == 1).all(axis=1)
+        order = np.where(ok[:, None], order, np.arange(k))
+        edge_tets[slots] = entry_tet[np.take_along_axis(slots, order, 1)]
+        ring_c[slots] = c[np.take_along_axis(slots, order, 1)]
+        bnd = ok & (n_starts == 1)
+        edge_boundary[es] = n_starts >= 1
+        edge_manifold[es] = ok
+        last = np.take_along_axis(slots, order[:, -1:], 1)[:, 0]
+        chain_end[es[bnd]] = d[last[bnd]]
     # ring vertices: c of each step; chains also get d of their last step
-    ring_len = edge_counts + edge_boundary.astype(np.int64)
+    ring_len = counts + edge_boundary
     edge_ring_ptr = np.zeros(E + 1, np.int64)
     np.cumsum(ring_len, out=edge_ring_ptr[1:])
     edge_ring = np.empty(edge_ring_ptr[-1], np.int64)
-    e_sorted = edge_of[order]
-    slot = edge_ring_ptr[e_sorted] + (np.arange(N) - ptr[e_sorted])
-    edge_ring[slot] = c[order]
+    owner = np.repeat(np.arange(E), counts)
+    edge_ring[edge_ring_ptr[owner] + (np.arange(len(c)) - ptr[owner])] = ring_c
     bnd = np.flatnonzero(edge_boundary)
-    last = order[ptr[bnd + 1] - 1]
-    edge_ring[edge_ring_ptr[bnd + 1] - 1] = d[last]
-    return edge_tets_ptr, edge_tets, edge_ring_ptr, edge_ring, edge_boundary, edge_manifold
+    edge_ring[edge_ring_ptr[bnd + 1] - 1] = chain_end[bnd]
+    return edge_tets, edge_ring_ptr, edge_ring, edge_boundary, edge_manifold
 
 
 def _bent(points, a, b, c, d, feature_angle: float) -> np.ndarray:
