@@ -82,8 +82,18 @@ def _group(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     and ``inverse`` (N,) is each entry's group id. np.unique with return_index and
     return_inverse would sort twice.
     """
-    perm = np.argsort(keys, kind="stable")
-    sk = keys[perm]
+    N = len(keys)
+    kbits = int(keys.max()).bit_length() if N else 0
+    ibits = max(N - 1, 1).bit_length()
+    if kbits + ibits <= 63:
+        # pack (key, index) into one int64 and sort VALUES: a SIMD value sort is ~10x
+        # faster than argsort, and the index in the low bits makes it stable
+        packed = np.sort((keys << ibits) | np.arange(N, dtype=np.int64))
+        perm = packed & ((1 << ibits) - 1)
+        sk = packed >> ibits
+    else:
+        perm = np.argsort(keys, kind="stable")
+        sk = keys[perm]
     new = np.empty(len(sk), bool)
     new[:1] = True
     np.not_equal(sk[1:], sk[:-1], out=new[1:])
