@@ -294,8 +294,20 @@ def _orient3d_staged(a, b, c, d) -> tuple[np.ndarray, tuple[int, int]]:
     return sign, (n_ld, int(todo.size))
 
 
+# Queries are processed in chunks: the filter makes ~30 passes over its temporaries, which
+# stay in cache at this size (2-3x faster than one pass over 1M queries, bounded memory).
+_CHUNK = 1 << 16
+
+
 def _orient3d_flat(a, b, c, d) -> np.ndarray:
-    return _orient3d_staged(a, b, c, d)[0]
+    n = a.shape[0]
+    if n <= _CHUNK:
+        return _orient3d_staged(a, b, c, d)[0]
+    out = np.empty(n, dtype=np.int8)
+    for s in range(0, n, _CHUNK):
+        e = s + _CHUNK
+        out[s:e] = _orient3d_staged(a[s:e], b[s:e], c[s:e], d[s:e])[0]
+    return out
 
 
 def orient3d(

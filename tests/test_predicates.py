@@ -229,6 +229,17 @@ def test_naive_determinant_is_wrong_where_orient3d_is_right():
     assert orient3d(a[i], b[i], c[i], d[i]) == exact_orient(a[i], b[i], c[i], d[i]) != naive[i]
 
 
+def test_chunking(monkeypatch):
+    rng = np.random.default_rng(4)
+    a, b, c = rng.uniform(-1, 1, (3, 1000, 3))
+    d = a + 0.3 * (b - a) + 0.6 * (c - a)  # near coplanar: all stages, in every chunk
+    d[::4] = rng.uniform(-1, 1, (250, 3))
+    whole = orient3d(a, b, c, d)
+    monkeypatch.setattr(P, "_CHUNK", 77)
+    np.testing.assert_array_equal(orient3d(a, b, c, d), whole)
+    np.testing.assert_array_equal(whole, exact_orients(a, b, c, d))
+
+
 def test_every_stage_is_exercised_and_exact():
     rng = np.random.default_rng(3)
     n = 4000
