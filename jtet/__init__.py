@@ -12,6 +12,9 @@ from ._io import load as load
 from ._io import save as save
 from ._mesh import TetMesh as TetMesh
 from ._options import Options as Options
+from ._predicates import orient3d as orient3d
+from ._predicates import orient3d_tets as orient3d_tets
+from ._predicates import segment_crosses_triangle as segment_crosses_triangle
 from ._quality import MEASURES as MEASURES
 from ._stats import MeshStats as MeshStats
 from ._stats import format_table as format_table

@@ -5,6 +5,7 @@ from scipy.spatial import Delaunay
 
 import jtet
 
+# A regular tet; as listed it is negatively oriented (VTK sign), swap rows 0 and 1 for +.
 REGULAR_TET = np.array([[1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0], [-1.0, -1.0, 1.0]])
 
 
