@@ -1,0 +1,164 @@
+"""Benchmark of the whole optimizer (issue 6 targets) on the reference Gmsh meshes.
+
+Prints one table row per mesh: worst / max dihedral before and after, tets below 30
+degrees, wall time, microseconds per input tet, status; and, with ``--compile``, the
+compile overhead of a first run (fresh compilation cache) against a second run (warm
+persistent cache), each in its own subprocess.
+
+    python experiments/bench_improve.py                       # the four reference meshes
+    python experiments/bench_improve.py --meshes gmsh_cube --ops edge,face
+    python experiments/bench_improve.py --compile             # compile-overhead table
+    python experiments/bench_improve.py --big 165000          # + a ~1M-tet Delaunay mesh
+
+Reference points (../shared/meshes/README.md, same kind of machine, one core): Stellar
+(flips + smoothing) 29-34 / 138-145 degrees at ~0.3 ms CPU per tet; Gmsh ~13 / 157;
+Gmsh Netgen 20-24 / 139-142; MMG3D -optim 14-21 / 143-159.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import jtet
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
+MESHES = ("gmsh_cube", "gmsh_sphere", "gmsh_torus", "gmsh_holeplate")
+
+
+def load_mesh(name: str) -> jtet.TetMesh:
+    if name == "demo":
+        return jtet.demo_mesh()
+    if name.startswith("delaunay"):
+        from scipy.spatial import Delaunay
+
+        n = int(name.split(":")[1])
+        rng = np.random.default_rng(0)
+        pts = np.vstack(
+            [np.array(np.meshgrid([0, 1], [0, 1], [0, 1])).reshape(3, -1).T, rng.random((n, 3))]
+        )
+        tets = Delaunay(pts).simplices.astype(np.int64)
+        mesh = jtet.TetMesh(pts, tets)
+        vol = mesh.volumes
+        tets = np.where((vol < 0)[:, None], tets[:, [1, 0, 2, 3]], tets)[np.abs(vol) > 1e-15]
+        return jtet.TetMesh(pts, tets)
+    return jtet.load(SHARED / f"{name}.vtu")
+
+
+def run_one(name: str, ops: tuple[str, ...], time_limit: float | None) -> dict:
+    mesh = load_mesh(name)
+    t0 = time.perf_counter()
+    r = jtet.improve(mesh, ops=ops, time_limit=time_limit)
+    wall = time.perf_counter() - t0
+    b, a = r.stats_before, r.stats_after
+    return {
+        "mesh": name,
+        "tets": mesh.n_tets,
+        "before": f"{b.min_dihedral:.2f} / {b.max_dihedral:.2f}",
+        "after": f"{a.min_dihedral:.2f} / {a.max_dihedral:.2f}",
+        "min_dihedral": a.min_dihedral,
+        "max_dihedral": a.max_dihedral,
+        "below30": a.small_dihedral[30],
+        "seconds": wall,
+        "us_per_tet": 1e6 * wall / mesh.n_tets,
+        "passes": 1 + max((h["pass"] for h in r.history), default=-1),
+        "status": r.status,
+    }
+
+
+def print_table(rows: list[dict], title: str) -> None:
+    print(f"\n{title}")
+    head = [
+        "mesh",
+        "tets",
+        "before (min/max)",
+        "after (min/max)",
+        "<30 after",
+        "wall s",
+        "us/tet",
+        "passes",
+        "status",
+    ]
+    body = [
+        [
+            r["mesh"],
+            str(r["tets"]),
+            r["before"],
+            r["after"],
+            str(r["below30"]),
+            f"{r['seconds']:.1f}",
+            f"{r['us_per_tet']:.0f}",
+            str(r["passes"]),
+            r["status"],
+        ]
+        for r in rows
+    ]
+    widths = [max(len(x) for x in col) for col in zip(head, *body)]
+    for line in [head, ["-" * w for w in widths], *body]:
+        print("  ".join(x.ljust(w) for x, w in zip(line, widths)))
+
+
+def compile_overhead(name: str, ops: str) -> None:
+    """First run with an empty compilation cache vs a second run with it warm."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, JTET_COMPILATION_CACHE=cache)
+        times = []
+        for _ in range(2):
+            out = subprocess.run(
+                [sys.executable, __file__, "--meshes", name, "--ops", ops, "--json"],
+                env=env,
+                capture_output=True,
+                text=True,
+                check=True,
+            )
+            times.append(json.loads(out.stdout.strip().splitlines()[-1])[0]["seconds"])
+    print(
+        f"\ncompile overhead on {name} ({ops}): first run {times[0]:.1f} s (cold cache), "
+        f"second run {times[1]:.1f} s (warm cache): overhead ~ {times[0] - times[1]:.1f} s"
+    )
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    p.add_argument("--meshes", default=",".join(MESHES))
+    p.add_argument("--ops", default="edge,face,smooth")
+    p.add_argument("--time-limit", type=float, default=None)
+    p.add_argument(
+        "--big", type=int, default=0, help="also run a Delaunay mesh of this many random points"
+    )
+    p.add_argument(
+        "--compile", action="store_true", help="measure compile overhead (cold vs warm cache)"
+    )
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args()
+    ops = tuple(args.ops.split(","))
+    names = [m for m in args.meshes.split(",") if m]
+    if args.big:
+        names.append(f"delaunay:{args.big}")
+    if args.compile:
+        compile_overhead(names[0], args.ops)
+        return
+    # warm up the kernels once on the smallest mesh so rows measure steady-state speed
+    if not args.json:
+        run_one("demo", ops, None)
+    rows = [run_one(n, ops, args.time_limit) for n in names]
+    if args.json:
+        print(json.dumps(rows))
+        return
+    print_table(
+        rows, f"jtet.improve(ops={ops}), boundary fixed, after warm-up (wall time, 2 cores)"
+    )
+
+
+if __name__ == "__main__":
+    main()
