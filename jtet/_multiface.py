@@ -1,0 +1,415 @@
+"""One batched pass of optimal multi-face removal (Shewchuk, Section 3).
+
+gather -> face trees (host BFS, vectorized across all trees) -> tree DP kernel (JAX, one
+compiled kernel per tree capacity) -> select -> apply.
+
+For a candidate face f with apexes a and b, MULTIFACEREMOVAL (Figure 13) roots the search at
+the first face g crossed by segment ab (a face sandwiched between a and b, i.e. whose two tets
+are ``(g, a)`` and ``(g, b)``), so the faces removed need not include f. From g the search
+visits the sandwiched faces reachable through edges of degree four (Figure 11, line 15: an
+interior edge in exactly four tets, on no bounding curve or surface), rejecting faces whose
+removal would create an inverted tet (lines 18-21: fewer than two of the three tets
+``(a, b, edge)`` positive, Figure 10). The visited faces form the tree ``G'``; the kernel
+(``jtet._kernels.multiface``) picks the optimal subtree ``G''``. Removing the k faces of
+``G''`` replaces its ``2k`` tets by the ``k + 2`` tets ``(a, b, v_{i+1}, v_i)`` around the
+new edge ab, for the ring ``v_1 .. v_{k+2}`` bounding ``G''`` (counterclockwise seen from a).
+
+Orientation: jtet's ``orient3d(a, b, c, d)`` is positive for a correctly oriented (VTK) tet
+and is the NEGATIVE of the paper's ORIENT3D. The paper's test ``j_uv = ORIENT3D(a, b, u, v)
+> 0`` (u, v counterclockwise seen from a) therefore reads ``orient3d(a, b, v, u) > 0`` here:
+exactly "the new tet (a, b, v, u) is positive".
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import _config
+from ._apply import replace_tets
+from ._edge_removal import PassStats, _segments
+from ._kernels.multiface import solve_trees
+from ._mesh import TetMesh
+from ._predicates import CROSS_INTERIOR, CROSS_NONE, orient3d, segment_crosses_triangle
+from ._select import select_conflict_free
+from ._topology import _perm_parity
+
+__all__ = ["Forest", "build_forest", "find_roots", "multiface_removal_pass", "solve_forest"]
+
+# Face opposite local vertex i of a positive tet, ordered (u, v, w) so that (u, v, w, p_i)
+# is an even permutation of (p0, p1, p2, p3): then u, v, w are counterclockwise seen from p_i.
+FACE_CCW = np.array([[1, 3, 2], [0, 2, 3], [0, 3, 1], [0, 1, 2]])
+assert (_perm_parity(np.concatenate([FACE_CCW, np.arange(4)[:, None]], axis=1)) == 0).all()
+# Local edge index (order 01 02 03 12 13 23 of Topology.tet_edges) of local vertices i, j.
+_LOCAL_EDGE = np.full((4, 4), -1)
+for _e, (_i, _j) in enumerate([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]):
+    _LOCAL_EDGE[_i, _j] = _LOCAL_EDGE[_j, _i] = _e
+
+# Tree capacities the kernel is compiled for (plus max_faces itself). Most trees hold 1-3
+# faces; the kernel's loops stop at the largest tree of the batch, so one capacity of 16
+# serves them all and the compile count stays low (each variant costs ~1 s to compile).
+_TREE_CAPS = (16, 64, 256)
+# Batches larger than this are solved in chunks of this size (one more compiled shape
+# instead of one per power of two).
+_CHUNK = 4096
+
+
+def _local(tets: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Local index (0..3) of vertex v[i] in tet t[i] (v must be a vertex of t)."""
+    return np.argmax(tets[t] == v[:, None], axis=1)
+
+
+def candidate_faces(mesh: TetMesh, quality: np.ndarray, dirty: np.ndarray | None) -> np.ndarray:
+    """Interior non-subfacet faces worth trying, worst tets first, one per apex pair.
+
+    A face touching a dirty tet (if ``dirty`` (m,) is given) is a candidate. Faces whose
+    apexes are the same pair {a, b} lead to the same search, so only the first (the one
+    next to the worst tet) is kept. Returns face ids (c,).
+    """
+    T = mesh.topology
+    ft = T.face_tets
+    ok = (ft[:, 1] >= 0) & ~T.subfacet
+    if dirty is not None:
+        ok &= dirty[ft[:, 0]] | dirty[np.maximum(ft[:, 1], 0)]
+    f = np.flatnonzero(ok)
+    if len(f) == 0:
+        return f
+    qf = np.minimum(quality[ft[f, 0]], quality[ft[f, 1]])
+    f = f[np.argsort(qf, kind="stable")]
+    a, b = T.face_apex[f, 0], T.face_apex[f, 1]
+    key = np.minimum(a, b) * np.int64(mesh.n_points) + np.maximum(a, b)
+    _, first = np.unique(key, return_index=True)
+    return f[np.sort(first)]
+
+
+def find_roots(mesh: TetMesh, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """MULTIFACEREMOVAL's root (Figure 13, lines 33-36) for every candidate face.
+
+    The root is the face opposite a of the tet around a that segment ab enters, where a, b
+    are the candidate's apexes (a the smaller id): the first face ab crosses. It must be
+    crossed in its relative interior (ab through a vertex or an edge: no root), sandwiched
+    between a and b, and not a subfacet. Decided with the exact predicates.
+
+    Returns ``(a, b, root)``, each (c,): root = -1 where there is none.
+    """
+    T = mesh.topology
+    P = mesh.points
+    fa = T.face_apex[faces]
+    a, b = fa.min(axis=1), fa.max(axis=1)
+    root = np.full(len(faces), -1, np.int64)
+    if len(faces) == 0:
+        return a, b, root
+    fv = T.faces[faces]
+    cross = segment_crosses_triangle(P[a], P[b], P[fv[:, 0]], P[fv[:, 1]], P[fv[:, 2]])
+    root[cross == CROSS_INTERIOR] = faces[cross == CROSS_INTERIOR]
+    # ab misses its own face: search the tets around a for the face ab leaves through
+    s = np.flatnonzero(cross == CROSS_NONE)
+    if len(s):
+        vp = T.vert_tets_ptr
+        own, off = _segments(vp, a[s])
+        t = T.vert_tets[vp[a[s]][own] + off]
+        la = _local(mesh.tets, t, a[s][own])
+        g = T.tet_faces[t, la]
+        gv = T.faces[g]
+        c = segment_crosses_triangle(
+            P[a[s][own]], P[b[s][own]], P[gv[:, 0]], P[gv[:, 1]], P[gv[:, 2]]
+        )
+        hit = c == CROSS_INTERIOR
+        n_hit = np.bincount(own[hit], minlength=len(s))
+        found = np.full(len(s), -1, np.int64)
+        found[own[hit]] = g[hit]
+        found[n_hit != 1] = -1
+        ok = found >= 0
+        fg = np.maximum(found, 0)
+        ga = T.face_apex[fg]
+        sandwiched = (np.minimum(ga[:, 0], ga[:, 1]) == a[s]) & (
+            np.maximum(ga[:, 0], ga[:, 1]) == b[s]
+        )
+        ok &= sandwiched & ~T.subfacet[fg] & (T.face_tets[fg, 1] >= 0)
+        root[s[ok]] = found[ok]
+    return a, b, root
+
+
+@dataclass
+class Forest:
+    """Padded face trees, one per candidate, in BFS order (node 0 = root).
+
+    Shapes: P trees, capacity N = max_faces. Node corners are counterclockwise seen from
+    a; slot s is the edge ``verts[s] -> verts[s+1 mod 3]``; slot 2 of a non-root node is
+    the edge shared with its parent.
+    """
+
+    a: np.ndarray  # (P,) apex a (the new edge is ab)
+    b: np.ndarray  # (P,)
+    face: np.ndarray  # (P, N) face id, -1 for padding
+    verts: np.ndarray  # (P, N, 3) corners
+    ta: np.ndarray  # (P, N) tet (face, a)
+    tb: np.ndarray  # (P, N) tet (face, b)
+    parent: np.ndarray  # (P, N) parent node, -1 for the root and padding
+    pslot: np.ndarray  # (P, N) slot of the parent holding this node
+    child: np.ndarray  # (P, N, 3) child node per slot, -1 if none
+    count: np.ndarray  # (P,) number of nodes
+    overflow: np.ndarray  # (P,) the search was cut at capacity N (a truncated tree)
+    bad: np.ndarray  # (P,) skip: an inverted / degenerate tet, or a cycle was met
+
+
+def build_forest(
+    mesh: TetMesh,
+    a: np.ndarray,
+    b: np.ndarray,
+    root: np.ndarray,
+    quality: np.ndarray,
+    max_faces: int,
+) -> Forest:
+    """The trees ``G'`` of faces sandwiched between a[i] and b[i], searched from root[i].
+
+    Breadth-first, one round per depth for ALL trees at once (NumPy over the frontier of
+    every tree; no loop over trees or faces). A neighbour across a slot edge uw is taken
+    when uw is in exactly four tets, none of its four faces is a subfacet, it is not a
+    subsegment, and at least two of the three tets ``(a, b, edge)`` of the neighbour are
+    positive (exact orient3d). A tree that would exceed ``max_faces`` nodes keeps the first
+    nodes found, stops growing and is flagged ``overflow``: it is still a valid (smaller)
+    candidate set, but its optimum is over the truncated tree only, not over all of ``G'``.
+    A tree reaching a tet of quality <= 0 (multi-face removal assumes none) or meeting a
+    face twice (a cycle; impossible in a valid mesh) is flagged ``bad``.
+    """
+    T = mesh.topology
+    tets, P = mesh.tets, mesh.points
+    nt, N, F = len(a), int(max_faces), len(T.faces)
+    face = np.full((nt, N), -1, np.int64)
+    verts = np.zeros((nt, N, 3), np.int64)
+    ta = np.zeros((nt, N), np.int64)
+    tb = np.zeros((nt, N), np.int64)
+    parent = np.full((nt, N), -1, np.int64)
+    pslot = np.zeros((nt, N), np.int64)
+    child = np.full((nt, N, 3), -1, np.int64)
+    count = np.ones(nt, np.int64)
+    overflow = np.zeros(nt, bool)
+    bad = np.zeros(nt, bool)
+    if nt == 0:
+        return Forest(a, b, face, verts, ta, tb, parent, pslot, child, count, overflow, bad)
+
+    # roots: orient the face counterclockwise seen from a, using the tet (face, a)
+    side = (T.face_apex[root, 0] != a).astype(np.int64)
+    t_a = T.face_tets[root, side]
+    t_b = T.face_tets[root, 1 - side]
+    la = _local(tets, t_a, a)
+    face[:, 0] = root
+    verts[:, 0] = np.take_along_axis(tets[t_a], FACE_CCW[la], axis=1)
+    ta[:, 0], tb[:, 0] = t_a, t_b
+    bad |= (quality[t_a] <= 0) | (quality[t_b] <= 0)
+    keys = np.arange(nt) * np.int64(F) + root  # (tree, face) of every node so far
+
+    # frontier rows: (tree, node, slot); the root expands all three slots
+    ft = np.repeat(np.arange(nt), 3)
+    fn = np.zeros(3 * nt, np.int64)
+    fs = np.tile(np.arange(3), nt)
+    keep = ~bad[ft]
+    ft, fn, fs = ft[keep], fn[keep], fs[keep]
+    while len(ft):
+        x = verts[ft, fn]  # (R, 3)
+        r = np.arange(len(ft))
+        p, q, o = x[r, fs], x[r, (fs + 1) % 3], x[r, (fs + 2) % 3]
+        A, B = a[ft], b[ft]
+        t_a, t_b = ta[ft, fn], tb[ft, fn]
+        lo_a, lo_b = _local(tets, t_a, o), _local(tets, t_b, o)
+        na = T.tet_neighbors[t_a, lo_a]
+        nb = T.tet_neighbors[t_b, lo_b]
+        ok = (na >= 0) & (nb >= 0)
+        na0, nb0 = np.maximum(na, 0), np.maximum(nb, 0)
+        va = tets[na0].sum(axis=1) - A - p - q
+        vb = tets[nb0].sum(axis=1) - B - p - q
+        ok &= va == vb  # the edge pq is in exactly four tets: (f,a) (f,b) (g,a) (g,b)
+        edge = T.tet_edges[t_a, _LOCAL_EDGE[_local(tets, t_a, p), _local(tets, t_a, q)]]
+        g = T.tet_faces[na0, _local(tets, na0, A)]
+        ok &= ~T.subfacet[T.tet_faces[t_a, lo_a]] & ~T.subfacet[T.tet_faces[t_b, lo_b]]
+        ok &= ~T.subsegment[edge] & ~T.subfacet[g]
+        # the child (p, v, q), counterclockwise seen from a; reflex test (lines 18-21)
+        sel = np.flatnonzero(ok)
+        v = va[sel]
+        Ps, Qs, As, Bs = P[p[sel]], P[q[sel]], P[A[sel]], P[B[sel]]
+        Vs = P[v]
+        npos = (
+            (orient3d(As, Bs, Vs, Ps) > 0).astype(np.int64)
+            + (orient3d(As, Bs, Qs, Vs) > 0)
+            + (orient3d(As, Bs, Ps, Qs) > 0)
+        )
+        sel = sel[npos >= 2]
+        ct, cn, cs, cg = ft[sel], fn[sel], fs[sel], g[sel]
+        # a face met twice (already in its tree, or twice this round): a cycle
+        ck = ct * np.int64(F) + cg
+        uk, uinv, ucnt = np.unique(ck, return_inverse=True, return_counts=True)
+        dup = np.isin(ck, keys) | (ucnt[uinv.reshape(-1)] > 1)
+        bad[ct[dup]] = True
+        inverted = (quality[na[sel]] <= 0) | (quality[nb[sel]] <= 0)
+        bad[ct[inverted]] = True
+        live = ~bad[ct]
+        sel, ct, cn, cs, cg = sel[live], ct[live], cn[live], cs[live], cg[live]
+        # capacity: rank of each new node within its tree (rows are grouped by tree)
+        order = np.argsort(ct, kind="stable")
+        sel, ct, cn, cs, cg = sel[order], ct[order], cn[order], cs[order], cg[order]
+        first = np.searchsorted(ct, ct, side="left")
+        idx = count[ct] + np.arange(len(ct)) - first
+        fits = idx < N
+        overflow[ct[~fits]] = True
+        sel, ct, cn, cs, cg, idx = sel[fits], ct[fits], cn[fits], cs[fits], cg[fits], idx[fits]
+        face[ct, idx] = cg
+        verts[ct, idx] = np.column_stack([p[sel], va[sel], q[sel]])
+        ta[ct, idx], tb[ct, idx] = na[sel], nb[sel]
+        parent[ct, idx], pslot[ct, idx] = cn, cs
+        child[ct, cn, cs] = idx
+        np.add.at(count, ct, 1)
+        keys = np.concatenate([keys, ct * np.int64(F) + cg])
+        # next round: the new nodes' slots 0 and 1, for trees still growing
+        grow = ~overflow[ct] & ~bad[ct]
+        ct, idx = ct[grow], idx[grow]
+        ft = np.repeat(ct, 2)
+        fn = np.repeat(idx, 2)
+        fs = np.tile(np.arange(2), len(ct))
+    return Forest(a, b, face, verts, ta, tb, parent, pslot, child, count, overflow, bad)
+
+
+def _tree_caps(max_faces: int) -> list[int]:
+    return sorted({c for c in _TREE_CAPS if c < max_faces} | {int(max_faces)})
+
+
+def solve_forest(
+    mesh: TetMesh, forest: Forest, quality: np.ndarray, measure: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run the tree DP on every tree: ``(q_old (P,), q_new (P,), chosen (P, N))``.
+
+    Trees are grouped by size into the capacities ``_tree_caps(N)``, cut into chunks of
+    ``_CHUNK`` and padded to ``_config.bucket_capacity`` trees, so the kernel compiles once
+    per (capacity, batch size, measure). Bad trees get ``q_new = -inf``.
+    """
+    nt, N = forest.face.shape
+    q_old = np.full(nt, np.inf)
+    q_new = np.full(nt, -np.inf)
+    chosen = np.zeros((nt, N), bool)
+    P = mesh.points
+    live = ~forest.bad
+    lo = 0
+    for cap in _tree_caps(N):
+        group = np.flatnonzero(live & (forest.count > lo) & (forest.count <= cap))
+        lo = cap
+        for start in range(0, len(group), _CHUNK):
+            sel = group[start : start + _CHUNK]
+            bcap = _config.bucket_capacity(len(sel))
+            pad = np.concatenate([sel, np.full(bcap - len(sel), sel[0])])
+            real = np.arange(bcap) < len(sel)
+            f = forest.face[pad, :cap]
+            valid = (f >= 0) & real[:, None]
+            xyz = P[forest.verts[pad, :cap]]  # (B, cap, 3 corners, 3 coords)
+            pa, pb = P[forest.a[pad]], P[forest.b[pad]]
+            qt = np.minimum(quality[forest.ta[pad, :cap]], quality[forest.tb[pad, :cap]])
+            child = np.where(valid[:, :, None], forest.child[pad, :cap], -1)
+            qo, qn, ch = solve_trees(
+                pa[:, 0], pa[:, 1], pa[:, 2], pb[:, 0], pb[:, 1], pb[:, 2],
+                xyz[..., 0], xyz[..., 1], xyz[..., 2],
+                np.maximum(forest.parent[pad, :cap], 0), forest.pslot[pad, :cap], child,
+                qt, valid, np.int32(forest.count[sel].max()), measure=measure,
+            )  # fmt: skip
+            n = len(sel)
+            q_old[sel] = np.asarray(qo)[:n]
+            q_new[sel] = np.asarray(qn)[:n]
+            chosen[sel, :cap] = np.asarray(ch)[:n]
+    return q_old, q_new, chosen
+
+
+def new_tets_of(forest: Forest, chosen: np.ndarray, trees: np.ndarray):
+    """The tets created by removing ``chosen`` faces of the given trees.
+
+    Returns ``(owner, tets)``: (W,) tree of each new tet and (W, 4) tets ``(a, b, x_{s+1},
+    x_s)`` for every slot edge ``x_s -> x_{s+1}`` on the boundary of the chosen set.
+    """
+    N = forest.face.shape[1]
+    ch = chosen[trees]  # (k, N)
+    c = forest.child[trees]  # (k, N, 3)
+    c_in = np.take_along_axis(ch, np.maximum(c, 0).reshape(len(trees), -1), axis=1)
+    c_in = c_in.reshape(c.shape) & (c >= 0)
+    is_root = (np.arange(N) == 0)[None, :, None]
+    slot_ok = (np.arange(3) < 2)[None, None, :] | is_root
+    boundary = ch[:, :, None] & slot_ok & ~c_in
+    w, i, s = np.nonzero(boundary)
+    x = forest.verts[trees[w], i]
+    r = np.arange(len(w))
+    out = np.column_stack([forest.a[trees[w]], forest.b[trees[w]], x[r, (s + 1) % 3], x[r, s]])
+    return trees[w], out
+
+
+def multiface_removal_pass(
+    mesh: TetMesh,
+    *,
+    measure: str = "min_sine",
+    max_faces: int = 16,
+    quality: np.ndarray | None = None,
+    dirty: np.ndarray | None = None,
+    min_improvement: float = 1e-9,
+) -> tuple[TetMesh, PassStats, np.ndarray | None]:
+    """One pass: try every candidate face at once, apply a conflict-free set of winners.
+
+    Args:
+        mesh: input mesh (multi-face removal assumes no inverted tets; candidates whose
+            trees reach a tet of quality <= 0 are skipped).
+        measure: quality measure name.
+        max_faces: tree capacity: the search stops growing a tree at this many faces
+            (counted in ``stats.overflow``); the truncated tree is still evaluated, and its
+            result is optimal over the truncated tree only.
+        quality: (m,) quality of ``mesh``'s tets under ``measure`` if already known.
+        dirty: (m,) bool; only faces touching a dirty tet are tried (None: all faces).
+        min_improvement: a winner must raise its worst tet by more than this.
+
+    Returns:
+        (new mesh, stats, keep): ``keep`` (m,) marks the old tets that survive, in order,
+        at the front of the new mesh; the new tets follow. ``keep`` is None (and the
+        mesh returned unchanged) when nothing improved. ``stats.by_size`` counts
+        successes by the number of faces removed.
+    """
+    stats = PassStats("face")
+    q = mesh.quality(measure) if quality is None else np.asarray(quality)
+    faces = candidate_faces(mesh, q, dirty)
+    a, b, root = find_roots(mesh, faces)
+    has = root >= 0
+    a, b, root = a[has], b[has], root[has]
+    if len(root) == 0:
+        return mesh, stats, None
+    forest = build_forest(mesh, a, b, root, q, max_faces)
+    stats.attempts = int((~forest.bad).sum())
+    stats.overflow = int((forest.overflow & ~forest.bad).sum())
+    q_old, q_new, chosen = solve_forest(mesh, forest, q, measure)
+    cand = np.flatnonzero(~forest.bad & (q_new > q_old + min_improvement))
+    if len(cand) == 0:
+        return mesh, stats, None
+    # new tets, checked with the exact predicate (float quality > 0 is not a proof)
+    owner, new = new_tets_of(forest, chosen, cand)
+    from ._predicates import orient3d_tets
+
+    flat = orient3d_tets(mesh.points, new) <= 0
+    dead = np.zeros(len(forest.a), bool)
+    dead[owner[flat]] = True
+    cand = cand[~dead[cand]]
+    # claims: the two tets of every chosen face
+    ci, ni = np.nonzero(chosen[cand])
+    claims = np.stack([forest.ta[cand[ci], ni], forest.tb[cand[ci], ni]], axis=1).reshape(-1)
+    k = chosen[cand].sum(axis=1)
+    claim_ptr = np.concatenate([[0], np.cumsum(2 * k)])
+    # worst removed tet first (as edge removal); among equals, the best created worst tet
+    rank = np.empty(len(cand), np.int64)
+    rank[np.lexsort((-q_new[cand], q_old[cand]))] = np.arange(len(cand))
+    win = select_conflict_free(claim_ptr, claims, rank, mesh.n_tets)
+    if not win.any():
+        return mesh, stats, None
+    winners = cand[win]
+    remove = np.zeros(mesh.n_tets, bool)
+    remove[claims[np.repeat(win, 2 * k)]] = True
+    is_w = np.zeros(len(forest.a), bool)
+    is_w[winners] = True
+    keep_new = is_w[owner]
+    new, owner = new[keep_new], owner[keep_new]
+    region = mesh.region[forest.ta[owner, 0]]
+    sizes = k[win]
+    stats.successes = int(len(winners))
+    stats.by_size = {int(s): int(c) for s, c in zip(*np.unique(sizes, return_counts=True))}
+    out, _ = replace_tets(mesh, remove, new, region)
+    return out, stats, ~remove
