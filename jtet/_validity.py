@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse
@@ -58,25 +59,53 @@ def orientation_signs(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray,
     return np.asarray(orient3d_tets(points, tets), dtype=np.int8), True
 
 
-def _group_rows(rows: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Group equal rows of a non-negative int array (k, c) with entries < n.
+class _Groups(NamedTuple):
+    """Equal rows of a (k, c) int array, by one sort.
 
-    Returns (unique rows (u, c), inverse (k,) into them, counts (u,)).
+    ``order`` sorts the rows (equal rows contiguous, in no particular order inside a group);
+    group g is ``order[starts[g] : starts[g] + counts[g]]``; ``first`` is a row index of
+    every group (its representative).
     """
+
+    order: np.ndarray
+    starts: np.ndarray
+    counts: np.ndarray
+
+    @property
+    def first(self) -> np.ndarray:
+        return self.order[self.starts]
+
+    def inverse(self) -> np.ndarray:
+        """(k,) group id of every row."""
+        gid = np.repeat(np.arange(len(self.starts)), self.counts)
+        inv = np.empty(len(self.order), np.int64)
+        inv[self.order] = gid
+        return inv
+
+
+def _group_rows(rows: np.ndarray, n: int) -> _Groups:
+    """Group equal rows of a non-negative int array (k, c) with entries < n."""
     k, c = rows.shape
     if k == 0:
-        return rows.reshape(0, c), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        e = np.zeros(0, np.int64)
+        return _Groups(e, e, e)
     n = max(int(n), 1)
     if float(n) ** c < 2.0**62:  # pack each row into one int64 key: a 1-D sort is fastest
         key = rows[:, 0].astype(np.int64)
         for j in range(1, c):
             key = key * n + rows[:, j]
-        _, first, inverse, counts = np.unique(
-            key, return_index=True, return_inverse=True, return_counts=True
-        )
-        return rows[first], inverse.reshape(-1), counts
-    uniq, inverse, counts = np.unique(rows, axis=0, return_inverse=True, return_counts=True)
-    return uniq, inverse.reshape(-1), counts
+        order = np.argsort(key)
+        ks = key[order]
+        new = np.empty(k, bool)
+        new[0] = True
+        np.not_equal(ks[1:], ks[:-1], out=new[1:])
+    else:
+        order = np.lexsort(rows.T[::-1])
+        srt = rows[order]
+        new = np.concatenate([[True], (srt[1:] != srt[:-1]).any(axis=1)])
+    starts = np.flatnonzero(new)
+    counts = np.diff(np.append(starts, k))
+    return _Groups(order, starts, counts)
 
 
 def _examples(a) -> tuple:
@@ -90,7 +119,7 @@ def _rows_present(rows: np.ndarray, table: np.ndarray, n: int) -> np.ndarray:
     if len(rows) == 0:
         return np.zeros(0, bool)
     both = np.concatenate([table, rows])
-    _, inverse, _ = _group_rows(both, n)
+    inverse = _group_rows(both, n).inverse()
     return np.isin(inverse[len(table) :], inverse[: len(table)])
 
 
@@ -278,15 +307,16 @@ def check_validity(mesh) -> ValidityReport:
     proper = np.flatnonzero(~rep)
 
     # --- duplicate tets (same vertex set, whatever the order)
-    _, inv, cnt = _group_rows(st[proper], n)
-    r["n_duplicate_tets"] = int((cnt - 1).sum())
+    g = _group_rows(st[proper], n)
+    r["n_duplicate_tets"] = int((g.counts - 1).sum())
     if r["n_duplicate_tets"]:
-        order = np.argsort(inv, kind="stable")  # groups contiguous, tet order kept inside
-        starts = np.searchsorted(inv[order], np.arange(len(cnt)))
-        copies = np.ones(len(order), bool)
-        copies[starts] = False  # every member after its group's first tet is a copy
-        first = proper[order[starts[inv[order][copies]]]]
-        r["duplicate_tets"] = _examples(np.stack([first, proper[order][copies]], axis=1))
+        # pair every later copy with the first (smallest index) tet of its group
+        members = proper[g.order]
+        first = np.minimum.reduceat(members, g.starts)
+        gid = np.repeat(np.arange(len(g.starts)), g.counts)
+        copies = members != first[gid]
+        pairs = np.stack([first[gid][copies], members[copies]], axis=1)
+        r["duplicate_tets"] = _examples(pairs[np.lexsort(pairs.T[::-1])])
 
     # --- faces: 4 per proper tet, oriented by the boundary chain of the tet
     t = tets[proper]
@@ -295,19 +325,19 @@ def check_validity(mesh) -> ValidityReport:
     fs = np.sort(f, axis=1)
     # orientation bit = parity of the permutation sorting the triple
     parity = ((f[:, 0] > f[:, 1]) ^ (f[:, 0] > f[:, 2]) ^ (f[:, 1] > f[:, 2])).astype(np.int8)
-    faces, finv, fcnt = _group_rows(fs, n)
+    fg = _group_rows(fs, n)
+    faces, fcnt, order, starts = fs[fg.first], fg.counts, fg.order, fg.starts
     r["n_overshared_faces"] = int((fcnt > 2).sum())
     r["overshared_faces"] = _examples(faces[fcnt > 2])
 
-    # faces in exactly two tets: the two incidences, in group order
-    order = np.argsort(finv, kind="stable")
-    g_sorted = finv[order]
-    starts = np.searchsorted(g_sorted, np.arange(len(fcnt)))
+    # faces in exactly two tets: the two incidences
     two = np.flatnonzero(fcnt == 2)
     ia, ib = order[starts[two]], order[starts[two] + 1]
     mis = parity[ia] == parity[ib]
     r["n_misoriented_faces"] = int(mis.sum())
-    r["misoriented_faces"] = _examples(np.stack([f_tet[ia][mis], f_tet[ib][mis]], axis=1))
+    r["misoriented_faces"] = _examples(
+        np.sort(np.stack([f_tet[ia][mis], f_tet[ib][mis]], axis=1), axis=1)
+    )
 
     # region interfaces: faces between two tets of different regions
     iface = region[f_tet[ia]] != region[f_tet[ib]]
@@ -320,7 +350,9 @@ def check_validity(mesh) -> ValidityReport:
     r["n_boundary_faces"] = len(bfaces)
     nb = len(bfaces)
     he = bfaces[:, _EDGES].reshape(-1, 2)  # half-edge (f, j): bfaces[f, j] -> bfaces[f, j+1]
-    bedges, einv, ecnt = _group_rows(np.sort(he, axis=1), n)
+    hes = np.sort(he, axis=1)
+    eg = _group_rows(hes, n)
+    bedges, ecnt = hes[eg.first], eg.counts
     bad_edge = ecnt != 2
     r["n_nonmanifold_edges"] = int(bad_edge.sum())
     r["nonmanifold_edges"] = _examples(bedges[bad_edge])
@@ -331,10 +363,8 @@ def check_validity(mesh) -> ValidityReport:
     # more than one fan is pinched. Vertices of non-manifold edges are reported above and
     # left out here.
     if nb:
-        eorder = np.argsort(einv, kind="stable")
-        estarts = np.searchsorted(einv[eorder], np.arange(len(ecnt)))
         good = np.flatnonzero(~bad_edge)
-        h1, h2 = eorder[estarts[good]], eorder[estarts[good] + 1]  # half-edge ids 3f + j
+        h1, h2 = eg.order[eg.starts[good]], eg.order[eg.starts[good] + 1]  # ids 3f + j
         f1, j1 = np.divmod(h1, 3)
         f2, j2 = np.divmod(h2, 3)
         u = bfaces[f1, j1]
@@ -346,10 +376,10 @@ def check_validity(mesh) -> ValidityReport:
         graph = scipy.sparse.coo_matrix(
             (np.ones(len(src), np.int8), (src, dst)), shape=(3 * nb, 3 * nb)
         )
-        _, comp = scipy.sparse.csgraph.connected_components(graph, directed=False)
-        cvert = bfaces.reshape(-1)
-        vc = np.unique(np.stack([cvert, comp], axis=1), axis=0)
-        nfans = np.bincount(vc[:, 0], minlength=n)
+        ncomp, comp = scipy.sparse.csgraph.connected_components(graph, directed=False)
+        # distinct (vertex, component) pairs, counted per vertex
+        vc = np.unique(bfaces.reshape(-1).astype(np.int64) * ncomp + comp)
+        nfans = np.bincount(vc // ncomp, minlength=n)
         on_bad = np.zeros(n, bool)
         on_bad[bedges[bad_edge].reshape(-1)] = True
         pinched = np.flatnonzero((nfans > 1) & ~on_bad)
@@ -361,8 +391,8 @@ def check_validity(mesh) -> ValidityReport:
     # label cannot change exactly once).
     if len(iface_faces):
         ie = np.sort(iface_faces[:, _EDGES].reshape(-1, 2), axis=1)
-        iedges, _, icnt = _group_rows(ie, n)
-        lonely = iedges[icnt == 1]
+        ig = _group_rows(ie, n)
+        lonely = ie[ig.first[ig.counts == 1]]
         on_boundary = _rows_present(lonely, bedges, n)
         r["n_open_interface_edges"] = int((~on_boundary).sum())
         r["open_interface_edges"] = _examples(lonely[~on_boundary])
