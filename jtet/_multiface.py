@@ -47,9 +47,9 @@ for _e, (_i, _j) in enumerate([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]):
     _LOCAL_EDGE[_i, _j] = _LOCAL_EDGE[_j, _i] = _e
 
 # Tree capacities the kernel is compiled for (plus max_faces itself). Most trees hold 1-3
-# faces; the kernel's loops stop at the largest tree of the batch, so one capacity of 16
-# serves them all and the compile count stays low (each variant costs ~1 s to compile).
-_TREE_CAPS = (16, 64, 256)
+# faces: measured, a batch of such trees costs 7-10x less at capacity 4 than at 16 (the
+# slot qualities and the padded arrays scale with the capacity), worth one more compile.
+_TREE_CAPS = (4, 16, 64, 256)
 # Batches larger than this are solved in chunks of this size (one more compiled shape
 # instead of one per power of two).
 _CHUNK = 4096
@@ -83,13 +83,96 @@ def candidate_faces(mesh: TetMesh, quality: np.ndarray, dirty: np.ndarray | None
     return f[np.sort(first)]
 
 
-def find_roots(mesh: TetMesh, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _sandwich_ok(mesh: TetMesh, g: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """g >= 0 is an interior non-subfacet face whose apexes are exactly {a, b}."""
+    T = mesh.topology
+    fg = np.maximum(g, 0)
+    ga = T.face_apex[fg]
+    lo, hi = np.minimum(ga[:, 0], ga[:, 1]), np.maximum(ga[:, 0], ga[:, 1])
+    return (g >= 0) & (lo == a) & (hi == b) & ~T.subfacet[fg] & (T.face_tets[fg, 1] >= 0)
+
+
+def _search_star(mesh: TetMesh, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Face opposite a, among ALL tets around a, crossed by ab in its interior (or -1).
+
+    Exact (``segment_crosses_triangle`` on every tet of the star); -1 also when the
+    crossed face is not unique (only possible in an invalid mesh).
+    """
+    T = mesh.topology
+    P = mesh.points
+    vp = T.vert_tets_ptr
+    own, off = _segments(vp, a)
+    t = T.vert_tets[vp[a][own] + off]
+    g = T.tet_faces[t, _local(mesh.tets, t, a[own])]
+    gv = T.faces[g]
+    c = segment_crosses_triangle(P[a[own]], P[b[own]], P[gv[:, 0]], P[gv[:, 1]], P[gv[:, 2]])
+    hit = c == CROSS_INTERIOR
+    found = np.full(len(a), -1, np.int64)
+    found[own[hit]] = g[hit]
+    found[np.bincount(own[hit], minlength=len(a)) != 1] = -1
+    return found
+
+
+def _walk_star(
+    mesh: TetMesh, a: np.ndarray, b: np.ndarray, start: np.ndarray, max_steps: int = 12
+) -> tuple[np.ndarray, np.ndarray]:
+    """Walk from tet ``start`` (around a) to the tet whose cone at a holds the ray a -> b.
+
+    All walks advance together, one round per step. In tet t with face (y0, y1, y2)
+    opposite a (counterclockwise seen from a) the exact signs ``orient3d(a, b, y_{k+1},
+    y_k)`` say on which side of each plane (a, y_k, y_{k+1}) the ray lies: all positive,
+    the ray is inside t's cone (found); one negative, step to the tet across that face
+    (a, y_k, y_{k+1}), which holds a too, so the walk stays in the star of a. The edge
+    tried first rotates with the step and the row, so that a walk cannot cycle forever
+    (a walk in a non-Delaunay star can). Returns ``(status, tet)``: status 1 found,
+    0 the ray runs along a face of the star (no face is crossed in its interior: no
+    root), -1 unresolved (the star's boundary was hit, or ``max_steps`` ran out).
+    """
+    T = mesh.topology
+    tets, P = mesh.tets, mesh.points
+    n = len(a)
+    status = np.full(n, -1, np.int8)
+    where = np.full(n, -1, np.int64)
+    act = np.arange(n)
+    cur = start.copy()
+    for step in range(max_steps):
+        if len(act) == 0:
+            break
+        t, A, B = cur[act], a[act], b[act]
+        y = np.take_along_axis(tets[t], FACE_CCW[_local(tets, t, A)], axis=1)
+        pa, pb = P[A], P[B]
+        s = np.stack([orient3d(pa, pb, P[y[:, (k + 1) % 3]], P[y[:, k]]) for k in range(3)], 1)
+        neg = s < 0
+        inside = (s > 0).all(axis=1)
+        status[act[inside]] = 1
+        where[act[inside]] = t[inside]
+        status[act[~inside & ~neg.any(axis=1)]] = 0
+        go = np.flatnonzero(neg.any(axis=1))
+        r = np.arange(len(go))
+        order = ((r + step + act[go])[:, None] + np.arange(3)) % 3
+        k = order[r, np.argmax(np.take_along_axis(neg[go], order, axis=1), axis=1)]
+        opp = y[go, (k + 2) % 3]
+        nb = T.tet_neighbors[t[go], _local(tets, t[go], opp)]
+        cont = nb >= 0
+        cur[act[go[cont]]] = nb[cont]
+        act = act[go[cont]]
+    return status, where
+
+
+def find_roots(
+    mesh: TetMesh, faces: np.ndarray, walk: bool = True
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """MULTIFACEREMOVAL's root (Figure 13, lines 33-36) for every candidate face.
 
     The root is the face opposite a of the tet around a that segment ab enters, where a, b
     are the candidate's apexes (a the smaller id): the first face ab crosses. It must be
     crossed in its relative interior (ab through a vertex or an edge: no root), sandwiched
     between a and b, and not a subfacet. Decided with the exact predicates.
+
+    When ab misses the candidate face itself, ``walk=True`` walks through the star of a
+    (``_walk_star``, ~3 orient3d per step, a few steps) and confirms the face found with
+    ``segment_crosses_triangle``; walks that do not resolve, and ``walk=False``, test every
+    tet around a (``_search_star``, 5 orient3d per tet of the star: ~10x more work).
 
     Returns ``(a, b, root)``, each (c,): root = -1 where there is none.
     """
@@ -103,31 +186,28 @@ def find_roots(mesh: TetMesh, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray
     fv = T.faces[faces]
     cross = segment_crosses_triangle(P[a], P[b], P[fv[:, 0]], P[fv[:, 1]], P[fv[:, 2]])
     root[cross == CROSS_INTERIOR] = faces[cross == CROSS_INTERIOR]
-    # ab misses its own face: search the tets around a for the face ab leaves through
+    # ab misses its own face: find the face ab leaves the star of a through
     s = np.flatnonzero(cross == CROSS_NONE)
-    if len(s):
-        vp = T.vert_tets_ptr
-        own, off = _segments(vp, a[s])
-        t = T.vert_tets[vp[a[s]][own] + off]
-        la = _local(mesh.tets, t, a[s][own])
-        g = T.tet_faces[t, la]
+    if len(s) == 0:
+        return a, b, root
+    found = np.full(len(s), -1, np.int64)
+    todo = np.arange(len(s))
+    if walk:
+        f = faces[s]
+        start = T.face_tets[f, (T.face_apex[f, 0] != a[s]).astype(np.int64)]
+        status, tet = _walk_star(mesh, a[s], b[s], start)
+        hit = np.flatnonzero(status == 1)
+        g = T.tet_faces[tet[hit], _local(mesh.tets, tet[hit], a[s][hit])]
         gv = T.faces[g]
         c = segment_crosses_triangle(
-            P[a[s][own]], P[b[s][own]], P[gv[:, 0]], P[gv[:, 1]], P[gv[:, 2]]
+            P[a[s][hit]], P[b[s][hit]], P[gv[:, 0]], P[gv[:, 1]], P[gv[:, 2]]
         )
-        hit = c == CROSS_INTERIOR
-        n_hit = np.bincount(own[hit], minlength=len(s))
-        found = np.full(len(s), -1, np.int64)
-        found[own[hit]] = g[hit]
-        found[n_hit != 1] = -1
-        ok = found >= 0
-        fg = np.maximum(found, 0)
-        ga = T.face_apex[fg]
-        sandwiched = (np.minimum(ga[:, 0], ga[:, 1]) == a[s]) & (
-            np.maximum(ga[:, 0], ga[:, 1]) == b[s]
-        )
-        ok &= sandwiched & ~T.subfacet[fg] & (T.face_tets[fg, 1] >= 0)
-        root[s[ok]] = found[ok]
+        found[hit] = np.where(c == CROSS_INTERIOR, g, -1)
+        todo = np.flatnonzero(status == -1)
+    if len(todo):
+        found[todo] = _search_star(mesh, a[s][todo], b[s][todo])
+    ok = _sandwich_ok(mesh, found, a[s], b[s])
+    root[s[ok]] = found[ok]
     return a, b, root
 
 

@@ -294,6 +294,15 @@ def test_delaunay_trees_against_brute_force(seed):
     assert checked > 100 and successes > 10
 
 
+def test_walk_finds_the_same_roots_as_the_full_star_search():
+    for mesh in (delaunay_mesh(150, seed=9, clustered=True), grid_mesh(4, perturb=0.8)):
+        faces = candidate_faces(mesh, mesh.quality(), None)
+        walked = find_roots(mesh, faces, walk=True)[2]
+        searched = find_roots(mesh, faces, walk=False)[2]
+        np.testing.assert_array_equal(walked, searched)
+        assert (walked >= 0).sum() > 0.3 * len(faces)
+
+
 # ---------------------------------------------------------------------------------------
 # Special cases
 

@@ -36,24 +36,26 @@ from .._quality import get_measure
 
 __all__ = ["slot_quality", "solve_trees", "tree_dp", "tree_kernel"]
 
-_NEXT = jnp.asarray([1, 2, 0])
-
 
 def slot_quality(
     a: tuple, b: tuple, vx: Array, vy: Array, vz: Array, *, measure: str
 ) -> Float[Array, "N 3"]:
     """Quality of the tet ``(a, b, x_{s+1}, x_s)`` of every slot of one tree: (N, 3).
 
-    ``a``, ``b``: SoA scalars ``(x, y, z)``; ``vx, vy, vz``: (N, 3) node corners. All
-    ``3N`` tets go through ONE elementwise SoA call of the measure.
+    ``a``, ``b``: SoA scalars ``(x, y, z)``; ``vx, vy, vz``: (N, 3) node corners. Only the
+    ``2N + 1`` slots that can bound a removal are evaluated (slot 2 of a non-root node is
+    its parent's edge; it gets +inf), in ONE elementwise SoA call of the measure.
     """
     q = get_measure(measure)
-    shape = vx.shape
-    p2 = (vx[:, _NEXT], vy[:, _NEXT], vz[:, _NEXT])
-    p3 = (vx, vy, vz)
-    pa = tuple(jnp.broadcast_to(c, shape) for c in a)
-    pb = tuple(jnp.broadcast_to(c, shape) for c in b)
-    return q(pa, pb, p2, p3)
+    n = vx.shape[0]
+    # slots 0 and 1 of every node, then slot 2 of the root: corners x_{s+1} and x_s
+    nxt = tuple(jnp.concatenate([v[:, 1:].reshape(-1), v[:1, 0]]) for v in (vx, vy, vz))
+    cur = tuple(jnp.concatenate([v[:, :2].reshape(-1), v[:1, 2]]) for v in (vx, vy, vz))
+    pa = tuple(jnp.broadcast_to(c, (2 * n + 1,)) for c in a)
+    pb = tuple(jnp.broadcast_to(c, (2 * n + 1,)) for c in b)
+    qs = q(pa, pb, nxt, cur)
+    inf = jnp.full((n, 1), jnp.inf, qs.dtype).at[0, 0].set(qs[-1])
+    return jnp.concatenate([qs[:-1].reshape(n, 2), inf], axis=1)
 
 
 def tree_kernel(
