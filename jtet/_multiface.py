@@ -31,7 +31,13 @@ from ._apply import replace_tets
 from ._edge_removal import PassStats, _segments
 from ._kernels.multiface import solve_trees
 from ._mesh import TetMesh
-from ._predicates import CROSS_INTERIOR, CROSS_NONE, orient3d, segment_crosses_triangle
+from ._predicates import (
+    CROSS_INTERIOR,
+    CROSS_NONE,
+    orient3d,
+    orient3d_tets,
+    segment_crosses_triangle,
+)
 from ._select import select_conflict_free
 from ._topology import _perm_parity
 
@@ -50,9 +56,10 @@ for _e, (_i, _j) in enumerate([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]):
 # faces: measured, a batch of such trees costs 7-10x less at capacity 4 than at 16 (the
 # slot qualities and the padded arrays scale with the capacity), worth one more compile.
 _TREE_CAPS = (4, 16, 64, 256)
-# Batches larger than this are solved in chunks of this size (one more compiled shape
-# instead of one per power of two).
-_CHUNK = 4096
+# Batches larger than this are solved in chunks of this size: at most three batch shapes
+# per tree capacity (256, 512, 1024) ever compile, instead of one per power of two. A
+# 1024-tree call takes ~1 ms at capacity 4, so the extra calls cost little.
+_CHUNK = 1024
 
 
 def _local(tets: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -463,8 +470,6 @@ def multiface_removal_pass(
         return mesh, stats, None
     # new tets, checked with the exact predicate (float quality > 0 is not a proof)
     owner, new = new_tets_of(forest, chosen, cand)
-    from ._predicates import orient3d_tets
-
     flat = orient3d_tets(mesh.points, new) <= 0
     dead = np.zeros(len(forest.a), bool)
     dead[owner[flat]] = True
