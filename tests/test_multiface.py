@@ -362,6 +362,19 @@ def test_overflow_truncates_and_stays_valid():
         InvariantChecker(mesh).check(new, 0, "face")
 
 
+def test_protected_edges_stop_the_search():
+    # a protected edge (subsegment) is never removed: with every edge protected, only
+    # single faces (2-3 flips, which remove no edge) may go
+    mesh = delaunay_mesh(120, seed=7)
+    _, stats, _ = multiface_removal_pass(mesh)
+    assert max(stats.by_size) > 1
+    locked = mesh.replace(protected_edges=mesh.topology.edges)
+    new, stats2, keep = multiface_removal_pass(locked)
+    assert stats2.successes > 0 and set(stats2.by_size) == {1}
+    edges = {tuple(e) for e in new.topology.edges}
+    assert {tuple(e) for e in mesh.topology.edges} <= edges
+
+
 def test_dirty_restricts_candidates_and_inverted_tets_are_skipped():
     mesh = delaunay_mesh(80, seed=3)
     none = np.zeros(mesh.n_tets, bool)
