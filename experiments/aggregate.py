@@ -125,7 +125,9 @@ def plot_histograms(df: pd.DataFrame, sweep: Path, path: Path) -> None:
             if not drawn_input:
                 ax.stairs(np.maximum(before, 0.5), edges, color="k", ls="--", label="input")
                 drawn_input = True
-            ax.stairs(np.maximum(after, 0.5), edges, label=r["label"])
+            # the panel names the mesh already
+            label = " ".join(w for w in r["label"].split() if not w.startswith("mesh="))
+            ax.stairs(np.maximum(after, 0.5), edges, label=label or "output")
         ax.set_yscale("log")
         ax.set_ylim(bottom=0.8)
         ax.set_xlim(0, 180)
@@ -162,8 +164,10 @@ def aggregate(sweep: Path, out: Path | None = None) -> pd.DataFrame:
         f"# Sweep {sweep.name}",
         "",
         f"{len(df)} runs ({n_err} failed); angles in degrees, time in seconds "
-        "(jtet.improve only, not mesh generation). Counts are tets whose smallest "
-        "dihedral angle is below the threshold, after improvement.",
+        "(jtet.improve only, not mesh generation; the first run in each worker process "
+        "also pays JIT compilation unless the persistent compilation cache is warm). "
+        "Counts are tets whose smallest dihedral angle is below the threshold, after "
+        "improvement.",
         "",
         markdown_table(df),
         "",

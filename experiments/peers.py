@@ -411,9 +411,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: {mesh.n_tets} tets", flush=True)
         rows.append(score(name, "input", mesh, Outcome(mesh, float("nan"))))
         for tool in chosen:
-            if tool == "jtet" and args.warmup:
-                jtet.improve(mesh, ops=ops, max_passes=1)  # JIT compilation, not timed
             try:
+                if tool == "jtet" and args.warmup:
+                    jtet.improve(mesh, ops=ops, max_passes=1)  # JIT compilation, not timed
                 out = table[tool](mesh)
             except Exception as e:  # a peer that crashes is a row, not the end of the table
                 out = Outcome(None, float("nan"), f"failed: {type(e).__name__}: {e}")

@@ -1,0 +1,453 @@
+"""The experiment harness: Hydra configs validated against jtet.Options, mesh generators,
+sweeps end to end (run.py + aggregate.py), and the peer-comparison helpers.
+
+Needs the ``experiments`` extra (hydra-core, hydra-joblib-launcher, pandas, gmsh); skips
+cleanly without it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+hydra = pytest.importorskip("hydra")
+pytest.importorskip("pandas")
+pytest.importorskip("gmsh")
+
+from hydra import compose, initialize_config_dir  # noqa: E402
+from hydra.errors import ConfigCompositionException, MissingConfigException  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+
+import jtet  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "configs"
+EXPERIMENTS = ROOT / "experiments"
+sys.path.insert(0, str(EXPERIMENTS))
+
+import config_schema  # noqa: E402
+import meshgen  # noqa: E402
+import peers  # noqa: E402
+
+config_schema.register()
+
+GROUPS = ("mesh", "optimizer", "quality", "smoothing", "experiment")
+# metrics that legitimately differ between two identical runs
+TIMING_KEYS = {"seconds", "mesh_seconds", "job", "overrides"}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _hydra():
+    """Hydra initialized once for the module (composing is then cheap)."""
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
+        yield
+
+
+def _compose(overrides=(), hydra_config: bool = False):
+    return compose("config", overrides=list(overrides), return_hydra_config=hydra_config)
+
+
+def _options(name: str) -> list[str]:
+    return sorted(p.stem for p in (CONFIGS / name).glob("*.yaml"))
+
+
+def _validate(cfg) -> jtet.Options:
+    opts = config_schema.to_options(cfg.optimizer)
+    params = OmegaConf.to_container(cfg.mesh.params, resolve=True)
+    meshgen.check(cfg.mesh.generator, params)
+    return opts
+
+
+# ---------------------------------------------------------------------------------------
+# configs
+
+
+def test_schema_is_jtet_options():
+    """The structured schema has exactly jtet.Options' fields, with the same defaults."""
+    fields = {f.name: f for f in dataclasses.fields(config_schema.OptimizerConfig)}
+    defaults = jtet.Options()
+    assert list(fields) == [f.name for f in dataclasses.fields(jtet.Options)]
+    schema_defaults = OmegaConf.to_container(OmegaConf.structured(config_schema.OptimizerConfig))
+    assert config_schema.to_options(schema_defaults) == defaults
+
+
+def test_default_config_is_jtet_defaults():
+    """configs/config.yaml with no override reproduces jtet's own defaults."""
+    cfg = _compose()
+    assert config_schema.to_options(cfg.optimizer) == jtet.Options()
+    assert cfg.mesh.name == "cube"
+
+
+@pytest.mark.parametrize("group", GROUPS)
+def test_every_group_option_composes_and_validates(group):
+    names = _options(group)
+    assert names, f"configs/{group}/ is empty"
+    for name in names:
+        extra = ["mesh.params.path=some_mesh.vtu"] if (group, name) == ("mesh", "file") else []
+        cfg = _compose([f"{group}={name}", *extra], hydra_config=True)
+        opts = _validate(cfg)
+        if group == "quality":
+            assert opts.quality == name
+        if group == "mesh":
+            assert cfg.mesh.name == name
+        # an experiment's sweep values are options of groups (each validated above)
+        for key, values in (cfg.hydra.sweeper.params or {}).items():
+            assert key in GROUPS, (name, key)
+            for value in str(values).split(","):
+                assert value in _options(key), (name, key, value)
+
+
+def test_experiments_are_global_deltas():
+    for path in (CONFIGS / "experiment").glob("*.yaml"):
+        assert path.read_text().startswith("# @package _global_"), path.name
+
+
+def test_smoke_experiment_is_2x2_tiny_edge_only():
+    cfg = _compose(["experiment=smoke"], hydra_config=True)
+    params = cfg.hydra.sweeper.params
+    assert params.mesh == "tiny_cube,tiny_two_regions"
+    assert params.quality == "min_sine,radius_ratio"
+    assert list(cfg.optimizer.ops) == ["edge"] and cfg.optimizer.max_passes <= 5
+
+
+def test_default_launcher_is_local_parallel():
+    cfg = _compose(hydra_config=True)
+    assert "joblib" in cfg.hydra.launcher._target_.lower()
+    assert cfg.hydra.launcher.n_jobs == 2
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        "optimizer.max_rng=5",  # typo of a jtet.Options field
+        "optimizer.max_ring=seven",  # wrong type
+        "optimizer.check=maybe",
+        "mesh.nme=cube",  # typo in the mesh schema
+        "sav_mesh=false",  # typo at the top level
+    ],
+)
+def test_typo_override_fails_at_composition(override):
+    with pytest.raises(ConfigCompositionException):
+        _compose([override])
+
+
+def test_unknown_group_option_fails():
+    with pytest.raises(MissingConfigException):
+        _compose(["quality=min_sin"])
+
+
+def test_forced_unknown_key_fails_at_conversion():
+    """``+key=value`` bypasses the closed schema; jtet.Options(**...) still refuses it."""
+    cfg = _compose(["+optimizer.max_rng=5"])
+    with pytest.raises(TypeError, match="max_rng"):
+        config_schema.to_options(cfg.optimizer)
+
+
+def test_bad_values_fail_at_conversion():
+    for override in ("optimizer.max_ring=99", "optimizer.ops=[edge,flip]"):
+        cfg = _compose([override])
+        with pytest.raises(jtet.JtetError):
+            config_schema.to_options(cfg.optimizer)
+
+
+def test_mesh_param_typo_fails():
+    with pytest.raises(ConfigCompositionException):
+        _compose(["mesh.params.hh=0.1"])
+    cfg = _compose(["+mesh.params.hh=0.1"])  # forced in: the generator's signature refuses it
+    with pytest.raises(ValueError, match="hh"):
+        meshgen.check(cfg.mesh.generator, dict(cfg.mesh.params))
+    with pytest.raises(ValueError, match="shape"):
+        meshgen.check("gmsh_shape", {"shape": "cuboid", "h": 0.1})
+    with pytest.raises(ValueError, match="generator"):
+        meshgen.check("gmsh", {})
+
+
+# ---------------------------------------------------------------------------------------
+# mesh generators
+
+
+def _boundary_points(mesh: jtet.TetMesh) -> np.ndarray:
+    faces, _, outside = peers.surface_faces(mesh)
+    return np.unique(faces[outside < 0])
+
+
+@pytest.mark.parametrize("shape", meshgen.SHAPES)
+def test_gmsh_shapes_are_valid_and_reproducible(shape):
+    a = meshgen.gmsh_shape(shape, h=0.4)
+    b = meshgen.gmsh_shape(shape, h=0.4)
+    assert np.array_equal(a.points, b.points) and np.array_equal(a.tets, b.tets)
+    assert (a.volumes > 0).all() and a.is_valid().ok
+
+
+def test_gmsh_cube_matches_reference_mesh():
+    ref = Path(__file__).resolve().parents[2] / "shared" / "meshes" / "gmsh_cube.vtu"
+    if not ref.exists():
+        pytest.skip("shared/meshes not next to the checkout")
+    mesh = meshgen.gmsh_shape("cube", h=0.08)
+    expected = jtet.load(ref)
+    assert np.array_equal(mesh.tets, expected.tets)
+    np.testing.assert_allclose(mesh.points, expected.points, rtol=0, atol=1e-14)
+
+
+def test_two_regions_has_a_closed_interface():
+    mesh = meshgen.gmsh_two_regions(h=0.25)
+    assert set(np.unique(mesh.region).tolist()) == {1, 2}
+    assert mesh.is_valid().ok
+    # the ball's volume: the inner region is a polyhedron inscribed in the sphere
+    inner = mesh.volumes[mesh.region == 2].sum()
+    assert 0.8 * (4 / 3) * np.pi * 0.3**3 < inner < (4 / 3) * np.pi * 0.3**3
+    np.testing.assert_allclose(mesh.volumes.sum(), 1.0, rtol=1e-12)
+
+
+def test_perturbed_moves_only_interior_points():
+    good = meshgen.gmsh_shape("cube", h=0.3, seed=3, optimize=True)  # same base mesh
+    bad = meshgen.perturbed("cube", h=0.3, amplitude=0.3, seed=3)
+    again = meshgen.perturbed("cube", h=0.3, amplitude=0.3, seed=3)
+    other = meshgen.perturbed("cube", h=0.3, amplitude=0.3, seed=4)
+    assert np.array_equal(bad.points, again.points)
+    assert not np.array_equal(bad.points, other.points)
+    assert np.array_equal(good.tets, bad.tets)
+    boundary = _boundary_points(good)
+    assert np.array_equal(good.points[boundary], bad.points[boundary])
+    assert not np.allclose(good.points, bad.points)
+    assert (bad.volumes > 0).all()
+    assert jtet.stats(bad).min_dihedral < jtet.stats(good).min_dihedral
+
+
+def test_tetwild_generator():
+    pytest.importorskip("pytetwild")
+    mesh = meshgen.tetwild("sphere", h=0.4, optimize=False)
+    assert mesh.is_valid().ok and (mesh.volumes > 0).all()
+    np.testing.assert_allclose(mesh.volumes.sum(), 4 / 3 * np.pi, rtol=0.1)
+
+
+def test_file_generator(tmp_path):
+    path = tmp_path / "m.vtu"
+    jtet.save(jtet.demo_mesh("two_regions"), path)
+    mesh = meshgen.generate("file", {"path": str(path)})
+    assert np.array_equal(mesh.tets, jtet.demo_mesh("two_regions").tets)
+
+
+# ---------------------------------------------------------------------------------------
+# sweeps end to end
+
+
+def _run(args: list[str], cwd: Path, timeout: float = 600) -> subprocess.CompletedProcess:
+    proc = subprocess.run(
+        [sys.executable, *args], cwd=cwd, capture_output=True, text=True, timeout=timeout
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc
+
+
+def _metrics(sweep: Path) -> dict[str, dict]:
+    out = {}
+    for path in sorted(sweep.rglob("metrics.json")):
+        row = json.loads(path.read_text())
+        out[f"{row['mesh']}/{row['quality']}"] = row
+    return out
+
+
+def _check_sweep(sweep: Path, n_runs: int) -> dict[str, dict]:
+    rows = _metrics(sweep)
+    assert len(rows) == n_runs, sorted(p.name for p in sweep.iterdir())
+    for key, row in rows.items():
+        assert row["status"] in ("converged", "max passes"), (key, row["status"])
+        assert row["valid"] is True
+        assert row["min_dihedral_after"] >= row["min_dihedral_before"]
+        assert row["worst_quality_after"] >= row["worst_quality_before"]
+        run_dir = sweep / str(row["job"])
+        for name in ("improved.vtu", "report.json", "history.csv", "metrics.json"):
+            assert (run_dir / name).is_file(), (run_dir, name)
+        assert (run_dir / ".hydra" / "config.yaml").is_file()
+        history = (run_dir / "history.csv").read_text().splitlines()
+        assert history[0].startswith("pass,") and len(history) >= 2
+    return rows
+
+
+def _aggregate(sweep: Path, n_runs: int) -> None:
+    import pandas as pd
+
+    _run([str(EXPERIMENTS / "aggregate.py"), str(sweep)], cwd=sweep)
+    table = pd.read_csv(sweep / "results.csv")
+    assert len(table) == n_runs
+    assert {"label", "min_dihedral_after", "seconds", "valid"} <= set(table.columns)
+    summary = (sweep / "summary.md").read_text()
+    assert summary.count("\n| mesh=") == n_runs
+    assert (sweep / "worst_vs_time.png").stat().st_size > 0
+    assert (sweep / "histograms.png").stat().st_size > 0
+
+
+def test_sweep_2x2_basic_launcher_and_reproducible(tmp_path):
+    """The smoke experiment (2 tiny meshes x 2 measures) in-process, then aggregate.py;
+    one configuration run again on its own gives the same metrics (seeds are configs)."""
+    sweep = tmp_path / "sweep"
+    _run(
+        [
+            str(EXPERIMENTS / "run.py"),
+            "-m",
+            "experiment=smoke",
+            "hydra/launcher=basic",
+            f"hydra.sweep.dir={sweep}",
+        ],
+        cwd=tmp_path,
+    )
+    rows = _check_sweep(sweep, 4)
+    assert {r["regions"] for r in rows.values()} == {1, 2}
+    _aggregate(sweep, 4)
+
+    single = tmp_path / "single"
+    _run(
+        [
+            str(EXPERIMENTS / "run.py"),
+            "experiment=smoke",
+            "mesh=tiny_two_regions",
+            "quality=radius_ratio",
+            "hydra/launcher=basic",
+            f"hydra.run.dir={single}",
+        ],
+        cwd=tmp_path,
+    )
+    again = json.loads((single / "metrics.json").read_text())
+    first = rows["tiny_two_regions/radius_ratio"]
+    same = {k: v for k, v in first.items() if k not in TIMING_KEYS}
+    assert {k: v for k, v in again.items() if k not in TIMING_KEYS} == same
+    assert again["job"] is None
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("launcher", ["joblib", "submitit_local"])
+def test_sweep_parallel_launchers(tmp_path, launcher):
+    """The same sweep through the parallel launchers (joblib: the default; submitit_local:
+    the local mode of the SLURM launcher)."""
+    if launcher == "submitit_local":
+        pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    sweep = tmp_path / "sweep"
+    _run(
+        [
+            str(EXPERIMENTS / "run.py"),
+            "-m",
+            "mesh=tiny_cube,tiny_two_regions",
+            "quality=min_sine,radius_ratio",
+            "optimizer=smoke",
+            "plot=false",
+            f"hydra/launcher={launcher}",
+            f"hydra.sweep.dir={sweep}",
+        ],
+        cwd=tmp_path,
+        timeout=1200,
+    )
+    _check_sweep(sweep, 4)
+    _aggregate(sweep, 4)
+
+
+def test_run_rejects_a_typo_before_working(tmp_path):
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(EXPERIMENTS / "run.py"),
+            "mesh=tiny_cube",
+            "optimizer.max_rng=5",
+            f"hydra.run.dir={tmp_path / 'run'}",
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode != 0
+    assert "max_rng" in proc.stderr
+    assert not (tmp_path / "run" / "metrics.json").exists()
+
+
+# ---------------------------------------------------------------------------------------
+# peers
+
+
+def test_surface_faces_of_two_regions():
+    mesh = jtet.demo_mesh("two_regions")
+    faces, inside, outside = peers.surface_faces(mesh)
+    # brute-force reference: count every sorted face; once = boundary, twice = interior
+    all_faces = np.sort(
+        np.concatenate([mesh.tets[:, [1, 2, 3]], mesh.tets[:, [0, 2, 3]],
+                        mesh.tets[:, [0, 1, 3]], mesh.tets[:, [0, 1, 2]]]),
+        axis=1,
+    )  # fmt: skip
+    keys, counts = np.unique(all_faces, axis=0, return_counts=True)
+    assert (outside < 0).sum() == (counts == 1).sum()
+    # the interface z = 0.45 between regions 1 and 2
+    iface = faces[outside >= 0]
+    assert np.allclose(mesh.points[iface][..., 2], 0.45)
+    assert set(zip(inside[outside >= 0].tolist(), outside[outside >= 0].tolist())) == {(1, 2)}
+    # outward orientation: the boundary faces' normals point away from the centroid
+    b = faces[outside < 0]
+    p = mesh.points[b]
+    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    assert (np.einsum("ij,ij->i", normal, p.mean(axis=1) - 0.5) > 0).all()
+
+
+def test_boundary_status():
+    mesh = jtet.demo_mesh("two_regions")
+    assert peers.boundary_status(mesh, mesh) == "same faces"
+    # renumbered points: still the same faces
+    perm = np.random.default_rng(0).permutation(mesh.n_points)
+    inv = np.argsort(perm)
+    renumbered = jtet.TetMesh(mesh.points[perm], inv[mesh.tets], mesh.region)
+    assert peers.boundary_status(mesh, renumbered) == "same faces"
+    # a boundary point moved: changed
+    moved = mesh.points.copy()
+    moved[_boundary_points(mesh)[0]] += 1e-3
+    assert peers.boundary_status(mesh, jtet.TetMesh(moved, mesh.tets, mesh.region)) == "changed"
+    # region labels swapped on one tet: region volumes change
+    region = mesh.region.copy()
+    region[0] = 3 - region[0]
+    assert peers.boundary_status(mesh, jtet.TetMesh(mesh.points, mesh.tets, region)) == "changed"
+
+
+def test_gmsh_peers_keep_the_boundary():
+    mesh = meshgen.gmsh_two_regions(h=0.25)
+    for method in ("", "Netgen"):
+        out = peers.run_gmsh(mesh, method)
+        assert out.mesh.is_valid().ok
+        assert peers.boundary_status(mesh, out.mesh) == "same faces"
+        assert jtet.stats(out.mesh).min_dihedral >= jtet.stats(mesh).min_dihedral
+
+
+def test_mmg3d_and_tetgen_peers():
+    mesh = meshgen.gmsh_shape("cube", h=0.25)
+    ran = 0
+    if peers.mmg3d_binary() is not None:
+        out = peers.run_mmg3d(mesh)
+        assert out.mesh is not None, out.note
+        assert out.mesh.is_valid().ok
+        assert peers.boundary_status(mesh, out.mesh) in ("same faces", "same surface")
+        ran += 1
+    try:
+        import tetgenpy  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        out = peers.run_tetgen(mesh)
+        assert out.mesh.is_valid().ok
+        assert peers.boundary_status(mesh, out.mesh) in ("same faces", "same surface")
+        ran += 1
+    if not ran:
+        pytest.skip("neither mmg3d (pymmg) nor tetgenpy is installed")
+
+
+def test_peer_table_markdown(tmp_path):
+    rows = [
+        {"mesh": "m", "tool": "input", "tets": 10, "min_dihedral": 1.0, "seconds": float("nan")},
+        {"mesh": "m", "tool": "x", "seconds": 1.5, "note": "x failed"},
+    ]
+    text = peers.markdown(rows, ["# title"])
+    lines = text.splitlines()
+    assert lines[0] == "# title"
+    assert "| m | input | 10 | 1.00 |" in text
+    assert text.strip().endswith("- m / x: x failed")
