@@ -13,6 +13,10 @@ from ._mesh import TetMesh
 VOLUME_RTOL = 1e-12
 
 
+# faces of tet (v0, v1, v2, v3) opposite v0..v3, outward for a positively oriented tet
+_OUT_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+
+
 def _surface_signature(mesh: TetMesh, which: str) -> tuple[np.ndarray, np.ndarray]:
     """Per surface label: (vertex ids, [area, vector area x3]) of boundary / interface faces.
 
@@ -21,14 +25,14 @@ def _surface_signature(mesh: TetMesh, which: str) -> tuple[np.ndarray, np.ndarra
     """
     T = mesh.topology
     mask = T.boundary_face if which == "boundary" else T.interface_face
-    faces = T.faces[mask]
     t0 = T.face_tets[mask, 0]
-    # orient every face outward from its first tet so vector areas do not cancel
-    apex = T.face_apex[mask, 0]
+    # orient every face as its first tet's vertex order induces it (outward for a positive
+    # tet): combinatorial, so well defined next to inverted and degenerate tets too, and
+    # kept by every flip (the new tets induce the same orientation on the cavity's faces)
+    local = np.argmax(mesh.tets[t0] == T.face_apex[mask, 0][:, None], axis=1)
+    faces = np.take_along_axis(mesh.tets[t0], _OUT_FACES[local], 1)
     p = mesh.points
     n = np.cross(p[faces[:, 1]] - p[faces[:, 0]], p[faces[:, 2]] - p[faces[:, 0]])
-    inward = np.einsum("ij,ij->i", n, p[apex] - p[faces[:, 0]]) > 0
-    n[inward] *= -1
     r0 = mesh.region[t0]
     t1 = T.face_tets[mask, 1]
     r1 = np.where(t1 >= 0, mesh.region[np.maximum(t1, 0)], -1)
