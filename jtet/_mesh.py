@@ -26,6 +26,33 @@ def _orient_volumes6(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", p1 - p0, np.cross(p2 - p0, p3 - p0))
 
 
+# faces of tet (v0, v1, v2, v3) opposite v0..v3, outward for a positively oriented tet
+_OUT_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+
+
+def face_conflicts(tets: np.ndarray, n_points: int) -> tuple[int, np.ndarray, np.ndarray]:
+    """Combinatorial conformity of a tet list (no geometry), by one sort of its 4m faces.
+
+    Returns ``(n_overshared, misoriented, duplicates)``: the number of faces in more than
+    two tets; (k, 2) pairs of tets that share a face and induce the same orientation on it
+    (their vertex orders disagree: one is listed "inside out" relative to the other); and
+    (d, 2) pairs of tets with the same four vertices. A conforming, consistently ordered
+    mesh has (0, empty, empty); its tets may still be geometrically inverted.
+    """
+    from ._topology import _group, row_keys
+
+    f = tets[:, _OUT_FACES].reshape(-1, 3)
+    par = ((f[:, 0] > f[:, 1]).astype(np.int8) + (f[:, 0] > f[:, 2]) + (f[:, 1] > f[:, 2])) % 2
+    perm, ptr, _ = _group(row_keys(np.sort(f, axis=1), n_points))
+    cnt = np.diff(ptr)
+    two = ptr[:-1][cnt == 2]
+    s0, s1 = perm[two], perm[two + 1]
+    pairs = np.column_stack([s0 // 4, s1 // 4])
+    dup = tets.reshape(-1)[s0] == tets.reshape(-1)[s1]  # same apex: same vertex set
+    mis = (par[s0] == par[s1]) & ~dup
+    return int((cnt > 2).sum()), pairs[mis], np.unique(pairs[dup], axis=0)
+
+
 @dataclass(frozen=True, eq=False, repr=False)
 class TetMesh:
     """An immutable tetrahedral mesh.
@@ -155,8 +182,12 @@ class TetMesh:
         """Build a mesh from user arrays, fixing a globally reversed orientation.
 
         If every non-degenerate tet is negatively oriented the whole mesh is reoriented
-        (with a warning); a mesh mixing both orientations is kept as it is, and its
-        inverted tets are reported by ``is_valid()``.
+        (with a warning). If both orientations occur and the tets' vertex orders are
+        inconsistent (two tets sharing a face induce the same orientation on it), but
+        reordering every negative tet makes them consistent, those tets were listed inside
+        out (e.g. raw ``scipy.spatial.Delaunay`` simplices) and are reordered, with a
+        warning. Otherwise a mesh mixing both orientations is kept as it is: its negative
+        tets are truly inverted (reported by ``is_valid()``; edge removal can repair some).
         """
         mesh = cls(points, tets, region, protected_faces, protected_edges)
         vol = _orient_volumes6(mesh.points, mesh.tets)
@@ -169,6 +200,35 @@ class TetMesh:
             )
             t = mesh.tets[:, [1, 0, 2, 3]]
             mesh = cls(mesh.points, t, mesh.region, mesh.protected_faces, mesh.protected_edges)
+        elif neg and len(face_conflicts(mesh.tets, mesh.n_points)[1]):
+            # Mixed orientation with inconsistent vertex orders (e.g. the simplices of
+            # scipy.spatial.Delaunay): if listing every negative tet the other way round
+            # makes the orders consistent, the tets were just listed inside out.
+            t = mesh.tets.copy()
+            t[vol < 0] = t[vol < 0][:, [1, 0, 2, 3]]
+            mis = face_conflicts(t, mesh.n_points)[1]
+            for _ in range(8):  # flat tets have no sign: follow their neighbours' order
+                flat = vol[mis] == 0
+                flip = np.unique(mis[flat & ~flat[:, ::-1]])
+                if len(mis) == 0 or len(flip) == 0:
+                    break
+                t[flip] = t[flip][:, [1, 0, 2, 3]]
+                mis = face_conflicts(t, mesh.n_points)[1]
+            if len(mis) == 0:
+                warnings.warn(
+                    f"{source}: {neg} of {len(vol)} tets were listed in the opposite vertex "
+                    "order to their neighbours (negative volume); reordered to jtet's (VTK) "
+                    "convention of positive volume",
+                    stacklevel=2,
+                )
+                mesh = cls(mesh.points, t, mesh.region, mesh.protected_faces, mesh.protected_edges)
+            else:
+                warnings.warn(
+                    f"{source}: the tets' vertex orders are inconsistent (tets sharing a face "
+                    "on the same side of it) and reordering the negative ones does not fix "
+                    "it; jtet.improve will refuse this mesh",
+                    stacklevel=2,
+                )
         elif neg:
             warnings.warn(
                 f"{source}: {neg} of {len(vol)} tets are inverted (negative volume); "

@@ -455,14 +455,16 @@ def test_all_negative_orientation_is_fixed_with_a_warning(tmp_path, labelled):
     np.testing.assert_array_equal(m.region, labelled.region)
 
 
-def test_mixed_orientation_is_kept_with_a_warning(tmp_path, labelled):
+def test_tets_listed_inside_out_are_reordered_with_a_warning(tmp_path, labelled):
+    # three tets listed in the opposite vertex order to their neighbours (not inverted:
+    # reordering them makes the mesh consistent), see TetMesh.from_arrays
     tets = labelled.tets.copy()
     tets[:3] = tets[:3, [1, 0, 2, 3]]
     path = tmp_path / "mixed.msh"
     _quiet_save(labelled.replace(tets=tets), path)
-    with pytest.warns(UserWarning, match="3 of .* tets are inverted"):
+    with pytest.warns(UserWarning, match="3 of .* tets were listed in the opposite vertex order"):
         m = _io.load(path)
-    np.testing.assert_array_equal(m.tets, tets)
+    np.testing.assert_array_equal(m.tets, labelled.tets)
 
 
 # ---------------------------------------------------------------------------------------
