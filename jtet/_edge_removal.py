@@ -199,8 +199,10 @@ def edge_removal_pass(
         return mesh, stats, None
     remove = np.zeros(mesh.n_tets, bool)
     remove[claims[win_local[own]]] = True
-    new_tets, new_region = [], []
-    for _k, (sel, ring_ids, tris) in tris_of.items():
+    new_tets, new_region, new_owner = [], [], []
+    hinge = []  # (owner, a, b, x, y, apex) of every open chain (boundary / surface flips)
+    e_open = T.edge_boundary | ((T.edge_n_subfacets == 2) & ~T.edge_boundary)
+    for k, (sel, ring_ids, tris) in tris_of.items():
         w = winners[ch.cand[sel]]
         if not w.any():
             continue
@@ -215,6 +217,46 @@ def edge_removal_pass(
         new_tets += [top, bot]
         reg = np.repeat(ch.region[sel][w], nper)
         new_region += [reg, reg]
+        owner = np.repeat(ch.cand[sel][w], nper)
+        new_owner += [owner, owner]
+        # the surface triangles (a, x, y), (b, x, y) replacing (a, b, x), (a, b, y) are
+        # those of the triangle on the chain's closing side (v_0, v_{k-1})
+        op = e_open[edges[ch.cand[sel][w]]]
+        if op.any():
+            root = (tris[w][op][:, :, 0] == 0) & (tris[w][op][:, :, 2] == k - 1)  # (W', k-2)
+            apex = rid[op][np.arange(op.sum()), tris[w][op][:, :, 1][root]]
+            hinge.append(
+                np.column_stack(
+                    [
+                        ch.cand[sel][w][op],
+                        a_all[sel][w][op],
+                        b_all[sel][w][op],
+                        rid[op][:, 0],
+                        rid[op][:, -1],
+                        apex,
+                    ]
+                )  # fmt: skip
+            )
+    new_tets = np.concatenate(new_tets)
+    new_region = np.concatenate(new_region)
+    new_owner = np.concatenate(new_owner)
+    # Guard for inverted / degenerate input: there a cavity need not be star-shaped, and
+    # an "improving" flip can still raise the number of non-positive tets or create a
+    # face that already exists elsewhere (a non-conforming mesh). Reject such winners.
+    reject = _worse_orientation(mesh, new_tets, new_owner, claims, cand[own], len(edges))
+    if hinge:
+        reject |= _changes_surface(mesh, np.concatenate(hinge), len(edges))
+    while True:
+        if reject.any():
+            remove[claims[reject[cand[own]] & winners[cand[own]]]] = False
+            winners &= ~reject
+            ok = ~reject[new_owner]
+            new_tets, new_region, new_owner = new_tets[ok], new_region[ok], new_owner[ok]
+        if not winners.any():
+            return mesh, stats, None
+        reject = _nonconforming(mesh, remove, new_tets, new_owner, len(edges))
+        if not reject.any():
+            break
     sizes = np.diff(T.edge_tets_ptr)[edges[winners]]
     stats.successes = int(winners.sum())
     stats.by_size = {int(s): int(c) for s, c in zip(*np.unique(sizes, return_counts=True))}
@@ -227,10 +269,103 @@ def edge_removal_pass(
         "surface": int(counts[2]),
     }
     old_p, new_p = _protected_updates(mesh, we)
-    out, _ = replace_tets(
-        mesh, remove, np.concatenate(new_tets), np.concatenate(new_region), old_p, new_p
-    )
+    out, _ = replace_tets(mesh, remove, new_tets, new_region, old_p, new_p)
     return out, stats, ~remove
+
+
+# Faces of tet (v0, v1, v2, v3) opposite v0..v3, oriented outward for a positive tet; two
+# consistently oriented tets sharing a face list it with opposite parities.
+_OUT_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+
+
+def _parity3(f: np.ndarray) -> np.ndarray:
+    """(k,) parity of the permutation sorting each (k, 3) row."""
+    return ((f[:, 0] > f[:, 1]).astype(np.int64) + (f[:, 0] > f[:, 2]) + (f[:, 1] > f[:, 2])) % 2
+
+
+def _worse_orientation(mesh, new_tets, new_owner, claims, claim_owner, n_cand) -> np.ndarray:
+    """(n_cand,) bool: winners creating more non-positive tets than they remove."""
+    from ._predicates import orient3d_tets
+
+    bad_new = np.bincount(new_owner, orient3d_tets(mesh.points, new_tets) <= 0, minlength=n_cand)
+    bad_old = np.bincount(
+        claim_owner, orient3d_tets(mesh.points, mesh.tets[claims]) <= 0, minlength=n_cand
+    )
+    return bad_new > bad_old
+
+
+def _changes_surface(mesh, hinge: np.ndarray, n_cand) -> np.ndarray:
+    """(n_cand,) bool: 2-2 / 4-4 flips whose quadrilateral a, x, b, y is not strictly convex.
+
+    ``hinge`` (h, 6): owner, a, b, x, y and the apex of the new tets on edge xy. Flipping
+    the coplanar triangles (a, b, x), (a, b, y) to (a, x, y), (b, x, y) covers the same
+    surface iff segments ab and xy cross: x, y strictly on both sides of the plane
+    through a, b and the (off-surface) apex, and a, b on both sides of the plane through
+    x, y and the apex. Positive new tets guarantee this; around inverted tets it must be
+    checked (exactly, with orient3d; an apex on the surface plane fails the test).
+    """
+    from ._predicates import orient3d_tets
+
+    o, a, b, x, y, v = hinge.T
+    p = mesh.points
+    s = orient3d_tets(
+        p,
+        np.column_stack(
+            [
+                np.concatenate([a, x]),
+                np.concatenate([b, y]),
+                np.concatenate([v, v]),
+                np.concatenate([x, a]),
+            ]
+        ),
+    )
+    t = orient3d_tets(
+        p,
+        np.column_stack(
+            [
+                np.concatenate([a, x]),
+                np.concatenate([b, y]),
+                np.concatenate([v, v]),
+                np.concatenate([y, b]),
+            ]
+        ),
+    )
+    h = len(o)
+    crossing = (s.astype(np.int64) * t < 0).reshape(2, h).all(axis=0)
+    reject = np.zeros(n_cand, bool)
+    reject[o[~crossing]] = True
+    return reject
+
+
+def _nonconforming(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarray:
+    """(n_cand,) bool: winners one of whose new faces would lie in more than two tets of
+    the new mesh, or in two tets on the same side (same orientation)."""
+    from ._topology import _group, row_keys
+
+    T = mesh.topology
+    n = mesh.n_points
+    nf = new_tets[:, _OUT_FACES].reshape(-1, 3)
+    n_par = _parity3(nf)
+    nf = np.sort(nf, axis=1)
+    # kept old tets on the faces the new tets touch
+    fid = match_rows(T.faces, nf, n)
+    hit = np.unique(fid[fid >= 0])
+    kt, ka = T.face_tets[hit].reshape(-1), T.face_apex[hit].reshape(-1)
+    ok = kt >= 0
+    ok[ok] = ~remove[kt[ok]]
+    kf, kt, ka = np.repeat(hit, 2)[ok], kt[ok], ka[ok]
+    local = np.argmax(mesh.tets[kt] == ka[:, None], axis=1)
+    k_par = _parity3(np.take_along_axis(mesh.tets[kt], _OUT_FACES[local], 1))
+    faces = np.concatenate([nf, T.faces[kf]])
+    par = np.concatenate([n_par, k_par])
+    owner = np.concatenate([np.repeat(new_owner, 4), np.full(len(kf), -1)])
+    perm, ptr, inv = _group(row_keys(faces, n))
+    cnt = np.diff(ptr)
+    odd = np.add.reduceat(par[perm], ptr[:-1])
+    bad = ((cnt > 2) | ((cnt == 2) & (odd != 1)))[inv] & (owner >= 0)
+    reject = np.zeros(n_cand, bool)
+    reject[owner[bad]] = True
+    return reject
 
 
 def _protected_updates(mesh: TetMesh, edges: np.ndarray):
