@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ._errors import InvariantError, MeshInputError
 from ._mesh import TetMesh
 from ._options import Options
 
@@ -103,7 +104,12 @@ def _objective(q: np.ndarray) -> np.ndarray:
 
 @dataclass
 class ImproveResult:
-    """Outcome of ``jtet.improve``."""
+    """Outcome of ``jtet.improve``.
+
+    ``status`` is "converged" (no progress for ``patience`` passes), "max passes",
+    "time limit", "interrupted" or "invariant violation: <message>" (``check=True`` only;
+    ``mesh`` is then the last mesh that passed the checks).
+    """
 
     mesh: TetMesh
     stats_before: object
@@ -136,8 +142,18 @@ def improve(
 
     ``improve(mesh, ops=("edge",), quality="min_sine", max_ring=7)`` and
     ``improve(mesh, Options(...))`` are equivalent. Returns an ``ImproveResult`` whose
-    ``.mesh`` is the improved mesh (the input is never modified). Ctrl-C and
-    ``time_limit`` stop the run between operations and return the best mesh so far.
+    ``.mesh`` is the improved mesh (the input is never modified). Ctrl-C (or a
+    ``KeyboardInterrupt`` raised by ``callback``) and ``time_limit`` stop the run and
+    return the best mesh so far, with ``status`` "interrupted" / "time limit" (the time
+    limit is checked between operations). With ``check=True`` an operation that breaks an
+    invariant is discarded and the run stops: ``.mesh`` is the last good mesh and
+    ``status`` is "invariant violation: <what, where>" (one line). Without checks, an
+    operation whose output is not even a conforming mesh raises ``InvariantError``.
+
+    Raises:
+        MeshInputError: the input is not a conforming mesh (a face in more than two tets,
+            duplicate tets, inconsistent vertex orders) or its protected entities are
+            not in it. Inverted and degenerate tets and a non-manifold boundary are fine.
     ``callback(entry)``, if given, is called with each history entry as it is made.
     """
     from ._stats import mesh_stats
@@ -152,6 +168,7 @@ def improve(
     obj = _objective(q)
     dirty = {op: None for op in opts.ops}  # None: everything is new to the operation
     stall = 0
+    _require_conforming(mesh)
     checker = None
     if opts.check:
         from ._invariants import InvariantChecker
@@ -165,7 +182,13 @@ def improve(
                     status = "time limit"
                     raise _Stop
                 ts = time.perf_counter()
-                step = STEPS[op](current, opts, q, dirty[op])
+                try:
+                    step = STEPS[op](current, opts, q, dirty[op])
+                except MeshInputError as e:
+                    # the input passed the same checks: the operation broke the mesh
+                    raise InvariantError(
+                        f"pass {pass_no}, operation {op!r}: the mesh is no longer valid: {e}"
+                    ) from e
                 if step.mesh is not current:
                     if checker is not None:
                         checker.check(step.mesh, pass_no, op)
@@ -189,7 +212,7 @@ def improve(
                 lo, hi = _dihedral_range(current)
                 entry = {
                     "pass": pass_no,
-                    **step.stats.as_dict(),
+                    **_stats_dict(op, step.stats),
                     "worst_quality": float(q.min()),
                     "min_dihedral": lo,
                     "max_dihedral": hi,
@@ -212,6 +235,11 @@ def improve(
         pass
     except KeyboardInterrupt:
         status = "interrupted"
+    except InvariantError as e:
+        if checker is None:  # nothing vouches for ``current``: do not return it
+            raise
+        # the checker runs before ``current`` is replaced: it is the last good mesh
+        status = "invariant violation: " + " ".join(str(e).split())
     return ImproveResult(
         mesh=current,
         stats_before=stats_before,
@@ -223,8 +251,46 @@ def improve(
     )
 
 
+def _stats_dict(op: str, stats) -> dict:
+    """JSON-friendly counts of an operation's stats object (arrays left out)."""
+    import dataclasses
+
+    if hasattr(stats, "as_dict"):
+        d = stats.as_dict()
+    else:
+        d = {
+            k: v
+            for k, v in dataclasses.asdict(stats).items()
+            if not isinstance(v, np.ndarray)
+        }
+    return {"op": op, **{k: v for k, v in d.items() if k != "op"}}
+
+
 class _Stop(Exception):
     pass
+
+
+def _require_conforming(mesh: TetMesh) -> None:
+    """Raise ``MeshInputError`` unless every face lies in at most two tets, on opposite
+    sides (consistent vertex orders) and no tet is repeated. Inverted and degenerate
+    tets and a non-manifold boundary are accepted (never made worse)."""
+    from ._mesh import face_conflicts
+
+    mesh.topology  # noqa: B018  (faces in > 2 tets, protected entities missing: MeshInputError)
+    over, mis, dup = face_conflicts(mesh.tets, mesh.n_points)
+    if over:
+        raise MeshInputError(f"the mesh is not conforming: {over} face(s) lie in more than 2 tets")
+    if len(dup):
+        i, j = dup[0].tolist()
+        raise MeshInputError(f"the mesh has {len(dup)} duplicate tet(s): tets {i} and {j}")
+    if len(mis):
+        i, j = mis[0].tolist()
+        raise MeshInputError(
+            f"the tets' vertex orders are inconsistent: {len(mis)} face(s) whose two tets "
+            f"induce the same orientation on it (first: tets {i} and {j}); list every tet "
+            "with positive volume (VTK order), or load it with TetMesh.from_arrays / "
+            "jtet.load, which reorder tets listed inside out"
+        )
 
 
 def _dihedral_range(mesh: TetMesh) -> tuple[float, float]:
