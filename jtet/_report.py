@@ -31,15 +31,18 @@ def quality_cell_data(mesh: TetMesh) -> dict[str, np.ndarray]:
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file and a rename (no partial file)."""
     path = Path(path)
+    tmp = None
     try:
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
         with os.fdopen(fd, "w") as f:
             f.write(text)
         os.replace(tmp, path)
+        tmp = None
     except OSError as e:
-        if "tmp" in locals() and os.path.exists(tmp):
-            os.unlink(tmp)
         raise MeshFileError(f"{path}: cannot write ({e.strerror or e})") from None
+    finally:  # also on Ctrl-C: no temporary file is left behind
+        if tmp is not None and os.path.exists(tmp):
+            os.unlink(tmp)
 
 
 def write_report(result, path: str | os.PathLike) -> None:
