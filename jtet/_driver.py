@@ -149,17 +149,18 @@ def improve(
     invariant is discarded and the run stops: ``.mesh`` is the last good mesh and
     ``status`` is "invariant violation: <what, where>" (one line). Without checks, an
     operation whose output is not even a conforming mesh raises ``InvariantError``.
+    ``callback(entry)``, if given, is called with each history entry as it is made.
 
     Raises:
         MeshInputError: the input is not a conforming mesh (a face in more than two tets,
             duplicate tets, inconsistent vertex orders) or its protected entities are
             not in it. Inverted and degenerate tets and a non-manifold boundary are fine.
-    ``callback(entry)``, if given, is called with each history entry as it is made.
     """
     from ._stats import mesh_stats
 
     opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
     t0 = time.perf_counter()
+    _require_conforming(mesh)
     stats_before = mesh_stats(mesh)
     history: list[dict] = []
     status = "converged"
@@ -168,7 +169,6 @@ def improve(
     obj = _objective(q)
     dirty = {op: None for op in opts.ops}  # None: everything is new to the operation
     stall = 0
-    _require_conforming(mesh)
     checker = None
     if opts.check:
         from ._invariants import InvariantChecker
@@ -258,11 +258,7 @@ def _stats_dict(op: str, stats) -> dict:
     if hasattr(stats, "as_dict"):
         d = stats.as_dict()
     else:
-        d = {
-            k: v
-            for k, v in dataclasses.asdict(stats).items()
-            if not isinstance(v, np.ndarray)
-        }
+        d = {k: v for k, v in dataclasses.asdict(stats).items() if not isinstance(v, np.ndarray)}
     return {"op": op, **{k: v for k, v in d.items() if k != "op"}}
 
 

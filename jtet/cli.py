@@ -1,7 +1,10 @@
 """The ``jtet`` command: ``jtet improve``, ``jtet stats``, ``jtet demo``.
 
-Exit codes: 0 success; 2 bad input or options (one line on stderr says why);
-130 interrupted before any output could be written.
+Exit codes: 0 success (also when ``--time-limit`` stopped the run: OUT holds the best
+mesh so far); 2 bad input or options (one line on stderr says why); 3 ``--check`` found
+an invariant violation (one line on stderr; OUT is not written); 130 interrupted (Ctrl-C):
+when the optimizer was running, OUT holds the best valid mesh so far (written
+atomically), otherwise nothing was written. OUT is never left partially written.
 """
 
 from __future__ import annotations
@@ -134,6 +137,9 @@ def _run_improve(mesh, out: Path, args, source: str) -> int:
     progress = _Progress(opts.max_passes, args.quiet)
     result = improve(mesh, opts, callback=progress)
     progress.done()
+    if result.status.startswith("invariant violation"):
+        print(f"jtet: error: {result.status}; {out} not written", file=sys.stderr)
+        return 3
     save(result.mesh, out, cell_data=quality_cell_data(result.mesh))
     if args.report:
         write_report(result, args.report)
@@ -145,6 +151,9 @@ def _run_improve(mesh, out: Path, args, source: str) -> int:
         for extra in (args.report, args.plot):
             if extra:
                 print(f"wrote {extra}")
+    if result.status == "interrupted":
+        print(f"jtet: interrupted; wrote the best mesh so far to {out}", file=sys.stderr)
+        return 130
     return 0
 
 
@@ -229,7 +238,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"jtet: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("jtet: interrupted; no output written", file=sys.stderr)
+        # outputs are written atomically: each one is complete or absent
+        print("jtet: interrupted", file=sys.stderr)
         return 130
 
 
