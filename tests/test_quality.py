@@ -123,6 +123,8 @@ def reference(P):
         sin.append(np.linalg.norm(np.cross(n[:, f], n[:, g]), axis=-1) / den)
     cos, sin = np.stack(cos, 1), np.stack(sin, 1)
     out = {"min_sine": sign * sin.min(axis=1) / (2 * math.sqrt(2) / 3)}
+    biased = np.where(cos < 0, 0.7 * sin, sin)  # obtuse angles count 0.7 times
+    out["biased_min_sine"] = sign * biased.min(axis=1) / (2 * math.sqrt(2) / 3)
     r_in = 3 * vol / (nlen.sum(axis=1) / 2)
     E = np.transpose(J, (0, 2, 1))  # rows p_i - p0
     centre = np.linalg.solve(2 * E, np.einsum("kij,kij->ki", E, E)[..., None])[..., 0]
