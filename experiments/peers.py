@@ -380,6 +380,21 @@ def markdown(rows: list[dict], header: list[str]) -> str:
     return "\n".join(lines + ([""] + notes if notes else [])) + "\n"
 
 
+def _revision() -> str:
+    """The git revision of the checkout (``-dirty`` with uncommitted changes), or "?"."""
+    try:
+        out = subprocess.run(
+            ["git", "describe", "--always", "--dirty"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+    except OSError:
+        return "?"
+    return out.stdout.strip() or "?"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--meshes", nargs="+", default=["cube", "sphere", "two_regions"])
@@ -439,7 +454,8 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"    {command}",
         "",
-        f"jtet ops: {','.join(ops)} (jtet {jtet.__version__}, defaults otherwise); Gmsh "
+        f"jtet ops: {','.join(ops)} (jtet {jtet.__version__} at {_revision()}, defaults "
+        "otherwise); Gmsh "
         f'`optimize("")` and `optimize("Netgen")` on the loaded mesh (boundary fixed); '
         f"MMG3D `{' '.join(MMG_ARGS)}`; TetGen (tetgenpy) `-{args.tetgen_switches}`. All "
         "scores by `jtet.stats`: dihedral angles in degrees; `< 10` etc. count tets whose "
