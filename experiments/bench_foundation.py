@@ -170,13 +170,66 @@ def quality_table(args) -> None:
     print("rates in M tets/s; numpy on", f"{n_np:,} tets")
 
 
-TABLES = {"quality": quality_table}
+def delaunay_cube(n_tets: int, seed: int = 0) -> "jtet.TetMesh":
+    """A Delaunay mesh of random points in the unit cube with about ``n_tets`` tets."""
+    from scipy.spatial import Delaunay
+
+    import jtet
+
+    rng = np.random.default_rng(seed)
+    pts = rng.random((max(n_tets // 6, 8), 3))  # Delaunay of random points: ~6.7 tets/point
+    tets = Delaunay(pts).simplices.astype(np.int64)
+    p = pts[tets]
+    vol = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
+    tets[vol < 0] = tets[vol < 0][:, [1, 0, 2, 3]]
+    return jtet.TetMesh(pts, tets[np.abs(vol) > 1e-15])
+
+
+def topology_table(args) -> None:
+    """Topology of a Delaunay mesh of ~``--topology-tets`` tets vs a NumPy baseline.
+
+    The baseline (same process) is the irreducible core of the job: np.unique of the
+    sorted face and edge keys with their inverse, which any face/edge table needs.
+    """
+    from jtet._topology import Topology, row_keys
+
+    n = args.topology_tets
+    t0 = time.perf_counter()
+    mesh = delaunay_cube(n)
+    t_mesh = time.perf_counter() - t0
+    m, npts = mesh.n_tets, mesh.n_points
+
+    def baseline():
+        tf = np.sort(mesh.tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], axis=2).reshape(
+            -1, 3
+        )
+        np.unique(row_keys(tf, npts), return_inverse=True)
+        te = np.sort(mesh.tets[:, [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]], axis=2)
+        te = te.reshape(-1, 2)
+        np.unique(te[:, 0] * npts + te[:, 1], return_inverse=True)
+
+    t_base = best_time(baseline, args.repeat)
+    t_topo = best_time(lambda: Topology.build(mesh), args.repeat)
+    T = Topology.build(mesh)
+    print(f"topology: Delaunay mesh of {m:,} tets, {npts:,} points (made in {t_mesh:.1f} s)")
+    print(f"{'step':<44}{'seconds':>9}{'ratio':>8}")
+    print("-" * 61)
+    print(f"{'baseline: np.unique faces + edges (inverse)':<44}{t_base:>9.2f}{1.0:>8.2f}")
+    print(f"{'Topology.build (faces, rings, protection)':<44}{t_topo:>9.2f}{t_topo / t_base:>8.2f}")
+    print(
+        f"{len(T.faces):,} faces, {len(T.edges):,} edges, "
+        f"{int(T.edge_boundary.sum()):,} boundary edges; target <= 5 s for ~1M tets"
+    )
+
+
+TABLES = {"quality": quality_table, "topology": topology_table}
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tets", type=int, default=10_000_000, help="problem size (tets)")
     ap.add_argument("--repeat", type=int, default=3, help="best of this many runs")
+    ap.add_argument("--topology-tets", type=int, default=1_000_000, help="topology mesh size")
     ap.add_argument("--tables", nargs="+", default=list(TABLES), choices=list(TABLES))
     args = ap.parse_args()
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
