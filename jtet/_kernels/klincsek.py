@@ -18,15 +18,16 @@ Layout and why (numbers from experiments/bench_edge_removal.py, 2-core CPU):
   structure-of-arrays quality measure on corners gathered with static index arrays.
 * Tables: ``Q`` and ``K`` are flat vectors of the intervals ``(i, i+d)``, ``d >= 2``,
   diagonal after diagonal. Diagonal ``d`` needs ``Q[i, i+t]``, ``Q[i+t, i+d]`` and the
-  candidates ``(i, i+t, i+d)``, ``t = 1 .. d-1``: all contiguous static slices. Each
-  diagonal is one elementwise max-min chain over those slices, written into the table with
-  a static ``dynamic_update_slice`` (no scatter: DESIGN.md measured scatter-filled tables at
-  0.01-0.03M rings/s). The update-slice matters: XLA:CPU fuses cheap producers into every
-  consumer, and with plain slices of earlier diagonals it re-evaluates the whole DP tree
-  per consumer (exponential in m; optimization barriers are stripped on CPU). ``K`` stores
+  candidates ``(i, i+t, i+d)``, ``t = 1 .. d-1``: three static row gathers into (d-1, m-d)
+  grids, one max-min over ``t``, and a static ``dynamic_update_slice`` into each table
+  (no scatter: DESIGN.md measured scatter-filled tables at 0.01-0.03M rings/s). Both
+  choices matter on XLA:CPU, which fuses cheap producers into every consumer: with plain
+  slices and concatenations of earlier diagonals it re-derives the whole DP tree per
+  consumer (exponential in m; optimization barriers are stripped on CPU), and a chain of
+  per-``t`` selects compiles 2x slower than the gathered grid. ``K`` stores
   ``t = k - i`` (int8); ties keep the smallest ``k`` as in Figure 5 (``q > Q[i, j]``).
   The ``lax.fori_loop`` form (``fill_tables_loop``, padded to (m-2)^2 per diagonal) is kept
-  as the measured alternative; the unrolled diagonals are 2-4x faster.
+  as the measured alternative; the unrolled diagonals are faster (see the benchmark).
 * Readback: a fixed-size stack traversal (``m - 2`` steps of a ``fori_loop``) from
   ``(0, m-1)``, popping an interval, reading its ``K`` and pushing its two children. Every
   vertex ``0 < k < m-1`` is the middle vertex of exactly one triangle of any triangulation
@@ -41,12 +42,16 @@ Layout and why (numbers from experiments/bench_edge_removal.py, 2-core CPU):
   along a minor axis of length m or T: measured 10-20x slower.
 
 Pruning (the paper's ``q_old`` short cut) cannot break out of a loop in a SIMD batch; here
-it is a two-stage batch filter (``solve_rings(prune=...)``): stage 1 screens all candidate
-triangles of the batch cheaply; a ring is dropped when some polygon edge has no surviving
-candidate (every triangulation has exactly one triangle on each polygon edge, so such a
-ring's ``q_new <= q_old``); the survivors are compacted on the host into a smaller padded
-batch and solved exactly by stage 2. A successful ring (``q_new > q_old``) always survives
-and gets the unpruned answer.
+it is a two-stage batch filter (``solve_rings(prune=...)``). Stage 1 (``screen_chunks``)
+evaluates only the a-side tets ``(v_i, v_k, v_j, a)`` of every candidate and runs the DP
+on them: since ``min(q_a, q_b) <= q_a`` for every triangulation, that is an upper bound
+of ``q_new``, and a ring whose bound does not beat ``q_old`` cannot succeed. Survivors
+(5-10 % of realistic rings at m >= 6) are compacted on the host into a smaller padded
+batch and solved exactly by stage 2. (A cheaper signed-volume screen, dropping rings in
+which some polygon edge has no candidate with two positive tets, is kept as
+``prune="volume"``: realistic rings have no inverted candidates, so it rarely prunes.) A
+successful ring always survives and gets bitwise the unpruned answer: batch capacities are
+at least two chunks, so every batch size runs the same compiled loop body.
 """
 
 from __future__ import annotations
@@ -173,37 +178,53 @@ def candidate_quality(
     return jnp.minimum(q(vi, vk, vj, a), q(vi, vj, vk, b))
 
 
+@functools.cache
+def _diagonal_tables(m: int) -> dict:
+    """Static gather indices of ``fill_tables``: for every diagonal d, (d-1, m-d) arrays.
+
+    ``iq[d][t-1, i]``: candidate ``(i, i+t, i+d)``; ``il[d]``, ``ir[d]``: rows of
+    ``Q[i, i+t]`` and ``Q[i+t, i+d]`` in the flat table, row ``n`` (one past the last
+    interval) holding +inf for ``Q[i, i+1]``.
+    """
+    p = _plan(m)
+    iq, il, ir = {}, {}, {}
+    for d in range(2, m):
+        t = np.arange(1, d)[:, None]
+        i = np.arange(m - d)[None, :]
+        iq[d] = np.asarray([p.start[d][u] for u in range(1, d)], np.int32)[:, None] + i
+        il[d] = np.where(t == 1, p.n, p.off[np.minimum(t, m - 1)] + i).astype(np.int32)
+        ir[d] = np.where(d - t == 1, p.n, p.off[np.maximum(d - t, 0)] + i + t).astype(np.int32)
+    return dict(iq=iq, il=il, ir=ir)
+
+
 def fill_tables(q_tri: Float[Array, "T ..."], *, m: int) -> tuple[Array, Array, Array]:
     """Klincsek's tables from the candidate qualities, diagonal by diagonal.
 
     Returns ``(q_new, Q, K)``: ``q_new = Q[0, m-1]`` (...); ``Q`` (n, ...) float and ``K``
     (n, ...) int8 flat tables, row ``off[d] + i`` for the interval ``(i, i+d)``, ``K``
-    holding the optimal ``t = k - i``.
+    holding the optimal ``t = k - i``. Each diagonal is three static row gathers, a
+    max-min over t and two update-slices into the tables.
     """
     p = _plan(m)
+    tb = _diagonal_tables(m)
     batch = q_tri.shape[1:]
-    Q = jnp.zeros((p.n,) + batch, q_tri.dtype)
+    nb = len(batch)
+    # the flat Q table plus a +inf row standing for Q[i, i+1] (paper's convention)
+    Q = jnp.concatenate(
+        [jnp.zeros((p.n,) + batch, q_tri.dtype), jnp.full((1,) + batch, jnp.inf, q_tri.dtype)]
+    )
     K = jnp.zeros((p.n,) + batch, jnp.int8)
     for d in range(2, m):
-        n = m - d
-        best = arg = None
-        for t in range(1, d):
-            s = p.start[d][t]
-            c = q_tri[s : s + n]
-            if t > 1:  # Q[i, i+t]; Q[i, i+1] = +inf by the paper's convention
-                c = jnp.minimum(c, Q[p.off[t] : p.off[t] + n])
-            if d - t > 1:  # Q[i+t, i+d]
-                c = jnp.minimum(c, Q[p.off[d - t] + t : p.off[d - t] + t + n])
-            if best is None:
-                best, arg = c, jnp.ones(c.shape, jnp.int8)
-            else:
-                better = c > best  # strict: ties keep the smallest k, as in Figure 5
-                best = jnp.where(better, c, best)
-                arg = jnp.where(better, jnp.int8(t), arg)
-        # update-slice, not concatenation: keeps XLA from re-deriving earlier diagonals
+        c = jnp.minimum(jnp.minimum(q_tri[tb["iq"][d]], Q[tb["il"][d]]), Q[tb["ir"][d]])
+        best = jnp.max(c, axis=0)  # (m-d, ...)
+        # the smallest maximizing t, as Figure 5's strict ">" (min() also guards NaN rows)
+        t = _lift(np.arange(1, d, dtype=np.int8)[:, None], nb)
+        arg = jnp.min(jnp.where(c == best[None], t, jnp.int8(d - 1)), axis=0)
+        # update-slices, not concatenation of per-diagonal vectors: XLA:CPU would fuse
+        # those into every later consumer and re-derive them (exponential in m)
         Q = jax.lax.dynamic_update_slice_in_dim(Q, best, int(p.off[d]), 0)
         K = jax.lax.dynamic_update_slice_in_dim(K, arg, int(p.off[d]), 0)
-    return Q[p.n - 1], Q, K
+    return Q[p.n - 1], Q[: p.n], K
 
 
 @functools.cache
@@ -333,33 +354,23 @@ def ring_kernel(
     return solve_from_quality(q_tri, m=m, form=form)
 
 
-def screen_kernel(
-    ax, ay, az, bx, by, bz, rx, ry, rz, q_old, *, m: int, measure: str, mode: str
-) -> tuple[Bool[Array, "..."], Array]:
-    """Stage 1 of the pruned solve for ONE ring: can this ring beat ``q_old`` at all?
+def screen_kernel(ax, ay, az, bx, by, bz, rx, ry, rz, q_old, *, m: int) -> Bool[Array, "..."]:
+    """Volume screen for ONE ring: can some triangulation beat ``q_old >= 0`` at all?
 
-    ``mode="volume"``: a candidate survives when both its tets have positive volume (prunes
-    only where ``q_old >= 0``: every measure is <= 0 on a tet of volume <= 0).
-    ``mode="quality"``: a candidate survives when its a-side tet's quality > ``q_old``;
-    the a-side qualities (T, ...) are returned so that stage 2 computes only the b side.
-    Returns ``(alive, q_a)``: the ring survives iff every polygon edge is a side of a
-    surviving candidate (``q_a`` is a (0, ...) dummy in volume mode).
+    A candidate survives when both its tets have positive volume (every measure is <= 0 on
+    a tet of volume <= 0); the ring survives iff every polygon edge is a side of a
+    surviving candidate (each triangulation has exactly one triangle on each polygon edge).
+    Never prunes where ``q_old < 0``. Cheap (no quality evaluation) but weak: realistic
+    rings around an edge have no inverted candidates.
     """
     p = _plan(m)
     a, b, ring = (ax, ay, az), (bx, by, bz), (rx, ry, rz)
-    if mode == "volume":
-        vi, vk, vj = _gather(ring, p.ci), _gather(ring, p.ck), _gather(ring, p.cj)
-        ok = (signed_volume(vi, vk, vj, a) > 0) & (signed_volume(vi, vj, vk, b) > 0)
-        ok = ok | (q_old < 0)
-        q_a = jnp.zeros((0,) + rx.shape[1:], rx.dtype)
-    elif mode == "quality":
-        q_a = candidate_quality(a, b, ring, m=m, measure=measure, side="a")
-        ok = q_a > q_old
-    else:
-        raise JtetError(f"unknown screen mode {mode!r}; use 'volume' or 'quality'")
+    vi, vk, vj = _gather(ring, p.ci), _gather(ring, p.ck), _gather(ring, p.cj)
+    ok = (signed_volume(vi, vk, vj, a) > 0) & (signed_volume(vi, vj, vk, b) > 0)
+    ok = ok | (q_old < 0)
     # number of surviving candidates on every polygon edge: (m, T) . (T, ...)
     per_edge = jnp.tensordot(jnp.asarray(p.edge_incidence.T), ok.astype(rx.dtype), axes=1)
-    return jnp.all(per_edge > 0, axis=0), q_a
+    return jnp.all(per_edge > 0, axis=0)
 
 
 # ---------------------------------------------------------------------------------------
@@ -378,27 +389,29 @@ def solve_chunks(ax, ay, az, bx, by, bz, rx, ry, rz, *, measure: str, form: str 
     return jax.lax.map(lambda qc: solve_from_quality(qc, m=m, form=form), q)
 
 
-@functools.partial(jax.jit, static_argnames=("measure",))
-def solve_chunks_b(ax, ay, az, bx, by, bz, rx, ry, rz, q_a, *, measure: str):
-    """Stage 2 given the a-side qualities q_a (nC, T, C) -> q_new, tris as above."""
-    m = rx.shape[1]
-    q = jax.lax.map(
-        lambda x: jnp.minimum(
-            x[9], candidate_quality(x[0:3], x[3:6], x[6:9], m=m, measure=measure, side="b")
-        ),
-        (ax, ay, az, bx, by, bz, rx, ry, rz, q_a),
-    )
-    return jax.lax.map(lambda qc: solve_from_quality(qc, m=m), q)
-
-
 @functools.partial(jax.jit, static_argnames=("measure", "mode"))
 def screen_chunks(ax, ay, az, bx, by, bz, rx, ry, rz, q_old, *, measure: str, mode: str):
-    """Stage 1 over a chunked batch -> alive (nC, C), q_a (nC, T, C) or (nC, 0, C)."""
+    """Stage 1 of the pruned solve over a chunked batch -> alive (nC, C) bool.
+
+    ``mode="quality"``: the a-side tets ``(v_i, v_k, v_j, a)`` of all candidates with the
+    full measure, then the DP on those qualities alone: an upper bound of ``q_new``
+    (``min(q_a, q_b) <= q_a`` for every triangulation); alive iff the bound beats
+    ``q_old``. Half the quality work plus one DP; on realistic rings it drops 90-95 % of
+    the rings at m = 6..12 (experiments/bench_edge_removal.py).
+    ``mode="volume"``: ``screen_kernel`` (cheap, rarely prunes realistic rings).
+    """
     m = rx.shape[1]
-    return jax.lax.map(
-        lambda x: screen_kernel(*x, m=m, measure=measure, mode=mode),
-        (ax, ay, az, bx, by, bz, rx, ry, rz, q_old),
+    args = (ax, ay, az, bx, by, bz, rx, ry, rz)
+    if mode == "volume":
+        return jax.lax.map(lambda x: screen_kernel(*x, m=m), (*args, q_old))
+    if mode != "quality":
+        raise JtetError(f"unknown screen mode {mode!r}; use 'quality' or 'volume'")
+    q_a = jax.lax.map(
+        lambda x: candidate_quality(x[0:3], x[3:6], x[6:9], m=m, measure=measure, side="a"),
+        args,
     )
+    bound = jax.lax.map(lambda q: fill_tables(q, m=m)[0], q_a)
+    return bound > q_old
 
 
 def to_chunks(
@@ -482,13 +495,14 @@ def solve_rings(
     replace. Returns NumPy ``(q_new (B,), tris (B, m-2, 3) int32)``, ``tris[r, k-1] =
     (i, k, j)`` in ring indices.
 
-    Batches are padded to ``_config.bucket_capacity`` so repeated calls do not recompile.
-    ``prune=False``: every ring solved exactly. ``prune=True`` (= ``"volume"``): a cheap
-    signed-volume screen drops rings that cannot beat ``q_old >= 0`` before the exact
-    solve; ``prune="quality"``: the screen evaluates the a-side tets with the full measure
-    and the exact solve reuses them. With pruning, every ring with ``q_new > q_old`` gets
-    the unpruned result; a dropped ring reports ``q_new = -inf`` and a placeholder fan
-    triangulation, so ``q_new > q_old`` is the success test either way.
+    Batches are padded to ``_config.bucket_capacity`` (a multiple of ``CHUNK``) so repeated
+    calls do not recompile. ``prune=False``: every ring solved exactly. ``prune=True`` (=
+    ``"quality"``): stage 1 evaluates the a-side tets and bounds ``q_new`` by the DP on them
+    alone, stage 2 solves only the rings whose bound beats ``q_old``; ``prune="volume"``:
+    stage 1 is the signed-volume screen of ``screen_kernel`` instead. With pruning every
+    ring with ``q_new > q_old`` gets the unpruned result; a dropped ring reports ``q_new =
+    -inf`` and a placeholder fan triangulation, so ``q_new > q_old`` is the success test
+    either way.
     """
     get_measure(measure)
     a = np.asarray(a, np.float64)
@@ -502,35 +516,27 @@ def solve_rings(
     if b.shape != a.shape or q_old.shape != (ring.shape[0],):
         raise JtetError(f"b must be (B, 3) and q_old (B,); got {b.shape}, {q_old.shape}")
     if prune not in (False, True, "volume", "quality"):
-        raise JtetError(f"prune must be a bool, 'volume' or 'quality'; got {prune!r}")
+        raise JtetError(f"prune must be a bool, 'quality' or 'volume'; got {prune!r}")
     n, m = ring.shape[:2]
     _plan(m)
     if n == 0:
         return np.zeros(0), np.zeros((0, m - 2, 3), np.int32)
-    cap = _config.bucket_capacity(n, CHUNK)
+    cap = _config.bucket_capacity(n, 2 * CHUNK)
     soa = to_chunks(a, b, ring, cap)
     if not prune:
         q_new, tris = solve_chunks(*soa, measure=measure)
         return _unchunk_q(q_new, n), _unchunk_tris(tris, n)
 
-    mode = "volume" if prune is True else prune
+    mode = "quality" if prune is True else prune
     q_pad = np.full(cap, np.inf)  # padding rings never survive the screen
     q_pad[:n] = q_old
-    alive, q_a = screen_chunks(*soa, q_pad.reshape(-1, CHUNK), measure=measure, mode=mode)
+    alive = screen_chunks(*soa, q_pad.reshape(-1, CHUNK), measure=measure, mode=mode)
     idx = np.flatnonzero(_unchunk_q(alive, n))
     q_new = np.full(n, -np.inf)
     tris = np.broadcast_to(_fan(m), (n, m - 2, 3)).copy()
-    if idx.size == 0:
-        return q_new, tris
-    cap2 = _config.bucket_capacity(idx.size, CHUNK)
-    sub = to_chunks(a[idx], b[idx], ring[idx], cap2)
-    if mode == "quality":
-        qa = np.asarray(q_a).transpose(0, 2, 1).reshape(cap, -1)[idx]  # (k, T)
-        qa = np.concatenate([qa, np.zeros((cap2 - idx.size, qa.shape[1]))])
-        qa = np.ascontiguousarray(qa.reshape(cap2 // CHUNK, CHUNK, -1).transpose(0, 2, 1))
-        q2, t2 = solve_chunks_b(*sub, qa, measure=measure)
-    else:
+    if idx.size:
+        sub = to_chunks(a[idx], b[idx], ring[idx], _config.bucket_capacity(idx.size, 2 * CHUNK))
         q2, t2 = solve_chunks(*sub, measure=measure)
-    q_new[idx] = _unchunk_q(q2, idx.size)
-    tris[idx] = _unchunk_tris(t2, idx.size)
+        q_new[idx] = _unchunk_q(q2, idx.size)
+        tris[idx] = _unchunk_tris(t2, idx.size)
     return q_new, tris
