@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._mesh import TetMesh
-from ._topology import match_rows
+from ._topology import _group, match_rows, row_keys
 
 
 def replace_tets(
@@ -35,3 +35,64 @@ def replace_tets(
         protected = np.concatenate([protected[keep], np.sort(new_protected[hit], axis=1)])
     out = TetMesh(mesh.points, tets, region, protected, mesh.protected_edges)
     return out, len(kept)
+
+
+# Faces of tet (v0, v1, v2, v3) opposite v0..v3, oriented outward for a positive tet; two
+# consistently oriented tets sharing a face list it with opposite parities.
+_OUT_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+
+
+def _parity3(f: np.ndarray) -> np.ndarray:
+    """(k,) parity of the permutation sorting each (k, 3) row."""
+    return ((f[:, 0] > f[:, 1]).astype(np.int64) + (f[:, 0] > f[:, 2]) + (f[:, 1] > f[:, 2])) % 2
+
+
+def worse_orientation_owners(mesh, new_tets, new_owner, claims, claim_owner, n_cand) -> np.ndarray:
+    """(n_cand,) bool: candidates creating more non-positive tets than they remove.
+
+    ``new_tets`` (N, 4) with ``new_owner`` (N,) candidate ids; ``claims`` (C,) old tets
+    removed with ``claim_owner`` (C,). Signs from the exact orient3d.
+    """
+    from ._predicates import orient3d_tets
+
+    bad_new = np.bincount(new_owner, orient3d_tets(mesh.points, new_tets) <= 0, minlength=n_cand)
+    bad_old = np.bincount(
+        claim_owner, orient3d_tets(mesh.points, mesh.tets[claims]) <= 0, minlength=n_cand
+    )
+    return bad_new > bad_old
+
+
+def nonconforming_owners(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarray:
+    """(n_cand,) bool: candidates one of whose new faces would lie in more than two tets
+    of the new mesh, or in two tets on the same side (same orientation).
+
+    The new mesh is ``mesh`` without the tets where ``remove`` (m,) plus ``new_tets``
+    (N, 4) owned by candidates ``new_owner`` (N,). Needed around inverted / degenerate
+    tets, where a cavity is not star-shaped and a new face (or a whole new tet) can
+    coincide with an existing one; costs a lookup of the new faces only. Rejecting a
+    candidate restores its old tets, so callers repeat until nothing is rejected.
+    """
+    T = mesh.topology
+    n = mesh.n_points
+    nf = new_tets[:, _OUT_FACES].reshape(-1, 3)
+    n_par = _parity3(nf)
+    nf = np.sort(nf, axis=1)
+    # kept old tets on the faces the new tets touch
+    fid = match_rows(T.faces, nf, n)
+    hit = np.unique(fid[fid >= 0])
+    kt, ka = T.face_tets[hit].reshape(-1), T.face_apex[hit].reshape(-1)
+    ok = kt >= 0
+    ok[ok] = ~remove[kt[ok]]
+    kf, kt, ka = np.repeat(hit, 2)[ok], kt[ok], ka[ok]
+    local = np.argmax(mesh.tets[kt] == ka[:, None], axis=1)
+    k_par = _parity3(np.take_along_axis(mesh.tets[kt], _OUT_FACES[local], 1))
+    faces = np.concatenate([nf, T.faces[kf]])
+    par = np.concatenate([n_par, k_par])
+    owner = np.concatenate([np.repeat(new_owner, 4), np.full(len(kf), -1)])
+    perm, ptr, inv = _group(row_keys(faces, n))
+    cnt = np.diff(ptr)
+    odd = np.add.reduceat(par[perm], ptr[:-1])
+    bad = ((cnt > 2) | ((cnt == 2) & (odd != 1)))[inv] & (owner >= 0)
+    reject = np.zeros(n_cand, bool)
+    reject[owner[bad]] = True
+    return reject

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._apply import replace_tets
+from ._apply import nonconforming_owners, replace_tets, worse_orientation_owners
 from ._kernels.klincsek import solve_rings
 from ._mesh import TetMesh
 from ._select import select_conflict_free
@@ -243,7 +243,7 @@ def edge_removal_pass(
     # Guard for inverted / degenerate input: there a cavity need not be star-shaped, and
     # an "improving" flip can still raise the number of non-positive tets or create a
     # face that already exists elsewhere (a non-conforming mesh). Reject such winners.
-    reject = _worse_orientation(mesh, new_tets, new_owner, claims, cand[own], len(edges))
+    reject = worse_orientation_owners(mesh, new_tets, new_owner, claims, cand[own], len(edges))
     if hinge:
         reject |= _changes_surface(mesh, np.concatenate(hinge), len(edges))
     while True:
@@ -254,7 +254,7 @@ def edge_removal_pass(
             new_tets, new_region, new_owner = new_tets[ok], new_region[ok], new_owner[ok]
         if not winners.any():
             return mesh, stats, None
-        reject = _nonconforming(mesh, remove, new_tets, new_owner, len(edges))
+        reject = nonconforming_owners(mesh, remove, new_tets, new_owner, len(edges))
         if not reject.any():
             break
     sizes = np.diff(T.edge_tets_ptr)[edges[winners]]
@@ -271,27 +271,6 @@ def edge_removal_pass(
     old_p, new_p = _protected_updates(mesh, we)
     out, _ = replace_tets(mesh, remove, new_tets, new_region, old_p, new_p)
     return out, stats, ~remove
-
-
-# Faces of tet (v0, v1, v2, v3) opposite v0..v3, oriented outward for a positive tet; two
-# consistently oriented tets sharing a face list it with opposite parities.
-_OUT_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
-
-
-def _parity3(f: np.ndarray) -> np.ndarray:
-    """(k,) parity of the permutation sorting each (k, 3) row."""
-    return ((f[:, 0] > f[:, 1]).astype(np.int64) + (f[:, 0] > f[:, 2]) + (f[:, 1] > f[:, 2])) % 2
-
-
-def _worse_orientation(mesh, new_tets, new_owner, claims, claim_owner, n_cand) -> np.ndarray:
-    """(n_cand,) bool: winners creating more non-positive tets than they remove."""
-    from ._predicates import orient3d_tets
-
-    bad_new = np.bincount(new_owner, orient3d_tets(mesh.points, new_tets) <= 0, minlength=n_cand)
-    bad_old = np.bincount(
-        claim_owner, orient3d_tets(mesh.points, mesh.tets[claims]) <= 0, minlength=n_cand
-    )
-    return bad_new > bad_old
 
 
 def _changes_surface(mesh, hinge: np.ndarray, n_cand) -> np.ndarray:
@@ -334,37 +313,6 @@ def _changes_surface(mesh, hinge: np.ndarray, n_cand) -> np.ndarray:
     crossing = (s.astype(np.int64) * t < 0).reshape(2, h).all(axis=0)
     reject = np.zeros(n_cand, bool)
     reject[o[~crossing]] = True
-    return reject
-
-
-def _nonconforming(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarray:
-    """(n_cand,) bool: winners one of whose new faces would lie in more than two tets of
-    the new mesh, or in two tets on the same side (same orientation)."""
-    from ._topology import _group, row_keys
-
-    T = mesh.topology
-    n = mesh.n_points
-    nf = new_tets[:, _OUT_FACES].reshape(-1, 3)
-    n_par = _parity3(nf)
-    nf = np.sort(nf, axis=1)
-    # kept old tets on the faces the new tets touch
-    fid = match_rows(T.faces, nf, n)
-    hit = np.unique(fid[fid >= 0])
-    kt, ka = T.face_tets[hit].reshape(-1), T.face_apex[hit].reshape(-1)
-    ok = kt >= 0
-    ok[ok] = ~remove[kt[ok]]
-    kf, kt, ka = np.repeat(hit, 2)[ok], kt[ok], ka[ok]
-    local = np.argmax(mesh.tets[kt] == ka[:, None], axis=1)
-    k_par = _parity3(np.take_along_axis(mesh.tets[kt], _OUT_FACES[local], 1))
-    faces = np.concatenate([nf, T.faces[kf]])
-    par = np.concatenate([n_par, k_par])
-    owner = np.concatenate([np.repeat(new_owner, 4), np.full(len(kf), -1)])
-    perm, ptr, inv = _group(row_keys(faces, n))
-    cnt = np.diff(ptr)
-    odd = np.add.reduceat(par[perm], ptr[:-1])
-    bad = ((cnt > 2) | ((cnt == 2) & (odd != 1)))[inv] & (owner >= 0)
-    reject = np.zeros(n_cand, bool)
-    reject[owner[bad]] = True
     return reject
 
 
