@@ -4,7 +4,9 @@ Qualities are compared with ``atol = 1e-12``: the kernel and the reference evalu
 same quality formula in different XLA executables, which may round the last bits
 differently (fusion decides where a*b+c becomes an FMA); ~1e-16 is what we observe. The
 DP itself only takes min and max, which are exact, so batch-size-independent paths
-(pruned vs unpruned) are compared bitwise.
+(pruned vs unpruned) are compared bitwise. The mean ratio is the exception: it grows like
+|V|^(2/3), so on a flat tet a round-off volume of 1e-17 reads as a quality of ~1e-11 with
+either sign; it gets ``atol = 1e-9``.
 """
 
 from __future__ import annotations
@@ -25,6 +27,10 @@ from jtet._quality import MEASURES, tet_quality
 
 ATOL = 1e-12
 ALL_MEASURES = sorted(MEASURES)
+
+
+def atol(measure: str) -> float:
+    return 1e-9 if measure == "mean_ratio" else ATOL
 
 
 # ---------------------------------------------------------------------------------------
@@ -159,12 +165,13 @@ def rings_batch(m: int, seed: int, per_kind: int = 2, kinds=KINDS):
 def check_against_brute_force(m: int, measure: str, seed: int) -> None:
     a, b, ring = rings_batch(m, seed)
     q_new, tris = kl.solve_rings(a, b, ring, np.full(len(a), -np.inf), measure, prune=False)
+    tol = atol(measure)
     for r in range(len(a)):
         best, qt = brute_force(a[r], b[r], ring[r], measure)
-        assert abs(q_new[r] - best) <= ATOL, (r, q_new[r], best)
+        assert abs(q_new[r] - best) <= tol, (r, q_new[r], best)
         check_triangulation(tris[r], m)
         achieved = min(qt[tuple(t)] for t in tris[r].tolist())
-        assert abs(achieved - q_new[r]) <= ATOL
+        assert abs(achieved - q_new[r]) <= tol
 
 
 # ---------------------------------------------------------------------------------------
