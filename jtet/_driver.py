@@ -225,7 +225,10 @@ def improve(
                 if callback is not None:
                     callback(entry)
             obj = _objective(q)
-            progress = bool((obj > pass_obj + 1e-12).any())
+            progress = bool(
+                obj[0] > pass_obj[0] + opts.min_improvement
+                or (obj[1:] > pass_obj[1:] * (1.0 + opts.min_progress)).any()
+            )
             stall = 0 if progress else stall + 1
             if stall >= opts.patience:
                 break

@@ -31,6 +31,9 @@ class Options:
         patience: stop after this many passes in a row without progress.
         time_limit: seconds of wall time, or None.
         min_improvement: an operation must raise its worst tet by more than this.
+        min_progress: a pass counts as progress when the worst quality rose by more than
+            ``min_improvement`` or a thresholded mean of the worst tets rose by more than
+            this fraction; ``patience`` passes in a row without progress stop the run.
         smooth_threshold: vertices whose worst tet has quality below this are smoothed
             (None: every vertex whose neighbourhood changed).
         check: verify the invariants after every operation (slower; on in tests).
@@ -48,6 +51,7 @@ class Options:
     patience: int = 2
     time_limit: float | None = None
     min_improvement: float = 1e-9
+    min_progress: float = 1e-4
     smooth_threshold: float | None = None
     check: bool = False
     seed: int = 0
@@ -75,6 +79,8 @@ class Options:
             raise JtetError(f"feature_angle must be in [0, 90) degrees, got {self.feature_angle}")
         if int(self.max_passes) < 0 or int(self.patience) < 1:
             raise JtetError("max_passes must be >= 0 and patience >= 1")
+        if not 0.0 <= float(self.min_progress) < 1.0:
+            raise JtetError(f"min_progress must be in [0, 1), got {self.min_progress}")
         if self.time_limit is not None and float(self.time_limit) <= 0:
             raise JtetError(f"time_limit must be positive seconds, got {self.time_limit}")
 

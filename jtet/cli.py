@@ -82,6 +82,12 @@ def _add_options(p: argparse.ArgumentParser) -> None:
         metavar="S",
         help="stop after S seconds, keeping the best mesh so far",
     )
+    p.add_argument(
+        "--min-progress",
+        type=float,
+        default=DEFAULTS.min_progress,
+        help="relative rise of the worst tets' thresholded means that counts as progress",
+    )
     p.add_argument("--seed", type=int, default=DEFAULTS.seed)
     p.add_argument("--check", action="store_true", help="verify invariants after every operation")
 
