@@ -191,6 +191,13 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     offsets = getattr(grid, "cell_offsets", None)
     offsets = np.asarray(grid.offset if offsets is None else offsets, dtype=np.int64)
     conn = np.asarray(grid.cell_connectivity, dtype=np.int64)
+    sizes = np.diff(offsets)[is_tet]
+    if (sizes != 4).any():
+        c = int(np.flatnonzero(is_tet)[np.flatnonzero(sizes != 4)[0]])
+        raise MeshInputError(
+            f"{source}: cell {c} is a tetrahedron with {int(np.diff(offsets)[c])} vertices "
+            f"({int((sizes != 4).sum())} such cell(s)); a tetrahedron has 4"
+        )
     tets = conn[offsets[:-1][is_tet][:, None] + np.arange(4)]
     points = np.asarray(grid.points, dtype=np.float64)
     region = _pick_region(dict(grid.cell_data), n_cells, is_tet, source)
@@ -495,7 +502,11 @@ def load(path: str | os.PathLike) -> TetMesh:
                 f"{p}: not a readable {_FORMAT_NAMES[fmt]} file ({_reason(e, captured)})"
             ) from None
         arrays = _meshio_to_arrays(m, source)
-    return TetMesh.from_arrays(*arrays, source=source)
+    try:
+        return TetMesh.from_arrays(*arrays, source=source)
+    except MeshInputError as e:
+        msg = str(e)
+        raise MeshInputError(msg if msg.startswith(source) else f"{source}: {msg}") from None
 
 
 def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict) -> None:
