@@ -78,8 +78,12 @@ __all__ = [
 ]
 
 MIN_M = 3
+MAX_M = 64  # K holds t = k - i in int8; compile time grows ~m^2 long before this bound
 # Rings per chunk of the batch entries: the DP tables of one chunk stay in L1/L2.
 CHUNK = 256
+# prune=True screens only rings of at least this size: below it the screen (half the
+# quality work plus a DP) drops too few rings to pay (benchmark: m = 3, 4 keep >= 90 %).
+PRUNE_MIN_M = 5
 
 
 # ---------------------------------------------------------------------------------------
@@ -109,8 +113,8 @@ class _Plan:
 
 @functools.cache
 def _plan(m: int) -> _Plan:
-    if not (isinstance(m, int) and m >= MIN_M):
-        raise JtetError(f"ring size m must be an int >= {MIN_M}, got {m!r}")
+    if not (isinstance(m, int) and MIN_M <= m <= MAX_M):
+        raise JtetError(f"ring size m must be an int in [{MIN_M}, {MAX_M}], got {m!r}")
     ci, ck, cj, start = [], [], [], {}
     for d in range(2, m):
         start[d] = {}
@@ -496,9 +500,10 @@ def solve_rings(
     (i, k, j)`` in ring indices.
 
     Batches are padded to ``_config.bucket_capacity`` (a multiple of ``CHUNK``) so repeated
-    calls do not recompile. ``prune=False``: every ring solved exactly. ``prune=True`` (=
-    ``"quality"``): stage 1 evaluates the a-side tets and bounds ``q_new`` by the DP on them
-    alone, stage 2 solves only the rings whose bound beats ``q_old``; ``prune="volume"``:
+    calls do not recompile. ``prune=False``: every ring solved exactly. ``prune=True``:
+    ``"quality"`` for ``m >= PRUNE_MIN_M``, no pruning below. ``prune="quality"``: stage 1
+    evaluates the a-side tets and bounds ``q_new`` by the DP on them alone, stage 2
+    solves only the rings whose bound beats ``q_old``; ``prune="volume"``:
     stage 1 is the signed-volume screen of ``screen_kernel`` instead. With pruning every
     ring with ``q_new > q_old`` gets the unpruned result; a dropped ring reports ``q_new =
     -inf`` and a placeholder fan triangulation, so ``q_new > q_old`` is the success test
@@ -523,7 +528,7 @@ def solve_rings(
         return np.zeros(0), np.zeros((0, m - 2, 3), np.int32)
     cap = _config.bucket_capacity(n, 2 * CHUNK)
     soa = to_chunks(a, b, ring, cap)
-    if not prune:
+    if not prune or (prune is True and m < PRUNE_MIN_M):
         q_new, tris = solve_chunks(*soa, measure=measure)
         return _unchunk_q(q_new, n), _unchunk_tris(tris, n)
 
