@@ -50,6 +50,20 @@ def collect(sweep: Path) -> pd.DataFrame:
     return df.reset_index(drop=True)
 
 
+def sweep_command(sweep: Path) -> str | None:
+    """The ``run.py -m ...`` command of a Hydra sweep (from its ``multirun.yaml``)."""
+    path = sweep / "multirun.yaml"
+    if not path.exists():
+        return None
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.load(path)
+    task = list(OmegaConf.select(cfg, "hydra.overrides.task", default=[]) or [])
+    own = OmegaConf.select(cfg, "hydra.overrides.hydra", default=[]) or []
+    own = [o for o in own if not o.startswith("hydra.mode=")]  # Hydra adds it for -m
+    return " ".join(["python experiments/run.py -m", *task, *own])
+
+
 def _fmt(x, digits=2) -> str:
     if isinstance(x, float | np.floating):
         return "-" if np.isnan(x) else f"{x:.{digits}f}"
@@ -89,8 +103,20 @@ def plot_worst_vs_time(df: pd.DataFrame, path: Path) -> None:
 
     ok = df.dropna(subset=["min_dihedral_after", "seconds"])
     fig, ax = plt.subplots(figsize=(7.5, 4.5), constrained_layout=True)
-    for label, g in ok.groupby("label", sort=False):
-        ax.scatter(g["seconds"], g["min_dihedral_after"], label=label, s=36)
+    # marker = mesh, colour = the rest of the configuration
+    meshes = list(dict.fromkeys(ok["mesh_name"]))
+    rest = ok["label"].map(lambda t: " ".join(w for w in t.split() if not w.startswith("mesh=")))
+    colours = {c: f"C{i % 10}" for i, c in enumerate(dict.fromkeys(rest))}
+    markers = "osD^vP*Xph"
+    for (mesh, other), g in ok.groupby([ok["mesh_name"], rest], sort=False):
+        ax.scatter(
+            g["seconds"],
+            g["min_dihedral_after"],
+            s=40,
+            color=colours[other],
+            marker=markers[meshes.index(mesh) % len(markers)],
+            label=f"{mesh} {other}".strip(),
+        )
     ax.set_xlabel("improvement time (s)")
     ax.set_ylabel("worst dihedral angle after (degrees)")
     ax.set_title("worst dihedral angle vs time, one point per run")
@@ -160,14 +186,26 @@ def aggregate(sweep: Path, out: Path | None = None) -> pd.DataFrame:
         plot_histograms(done, sweep, out / "histograms.png")
         plots = ["worst_vs_time.png", "histograms.png"]
     n_err = len(df) - len(done)
-    md = [
-        f"# Sweep {sweep.name}",
-        "",
+    md = [f"# Sweep {sweep.name}", ""]
+    command = sweep_command(sweep)
+    if command:
+        md += [
+            "Made by:",
+            "",
+            f"    {command}",
+            f"    python experiments/aggregate.py {sweep}"
+            + (f" --out {out}" if out != sweep else ""),
+            "",
+        ]
+    md += [
         f"{len(df)} runs ({n_err} failed); angles in degrees, time in seconds "
         "(jtet.improve only, not mesh generation; the first run in each worker process "
         "also pays JIT compilation unless the persistent compilation cache is warm). "
         "Counts are tets whose smallest dihedral angle is below the threshold, after "
         "improvement.",
+        "",
+        "jtet revision(s): "
+        + ", ".join(f"`{r}`" for r in dict.fromkeys(df.get("revision", pd.Series(["?"])))),
         "",
         markdown_table(df),
         "",

@@ -87,6 +87,23 @@ def _stats_columns(s, suffix: str, measure: str) -> dict:
     }
 
 
+def revision() -> str:
+    """``git describe --always --dirty`` of the checkout (which code made the numbers)."""
+    import subprocess
+
+    try:
+        proc = subprocess.run(
+            ["git", "describe", "--always", "--dirty"],
+            cwd=HERE,
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+    except OSError:
+        return "?"
+    return proc.stdout.strip() or "?"
+
+
 def run(cfg: DictConfig, out: Path, choices: dict) -> dict:
     """Do one run into directory ``out``; returns the metrics row (also in metrics.json)."""
     # configuration errors (unknown keys, bad values) raise here, before any work
@@ -104,6 +121,7 @@ def run(cfg: DictConfig, out: Path, choices: dict) -> dict:
         "boundary": opts.boundary,
         "seed": opts.seed,
         "mesh_seed": params.get("seed"),
+        "revision": revision(),
     }
     try:
         t0 = time.perf_counter()
