@@ -153,14 +153,16 @@ def improve(
 
     Raises:
         MeshInputError: the input is not a conforming mesh (a face in more than two tets,
-            duplicate tets, inconsistent vertex orders) or its protected entities are
-            not in it. Inverted and degenerate tets and a non-manifold boundary are fine.
+            duplicate tets, inconsistent vertex orders), its protected entities are not in
+            it, or its extent is outside [1e-30, 1e30] (float64 quality would overflow).
+            Inverted and degenerate tets and a non-manifold boundary are fine.
     """
     from ._stats import mesh_stats
 
     opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
     t0 = time.perf_counter()
     _require_conforming(mesh)
+    _require_scale(mesh)
     stats_before = mesh_stats(mesh)
     history: list[dict] = []
     status = "converged"
@@ -267,6 +269,22 @@ def _stats_dict(op: str, stats) -> dict:
 
 class _Stop(Exception):
     pass
+
+
+# Quality measures multiply up to six lengths: beyond these extents they overflow to
+# inf / NaN or underflow to 0 in float64 (measured: fine at 1e+-35, broken at 1e+-40).
+MIN_EXTENT, MAX_EXTENT = 1e-30, 1e30
+
+
+def _require_scale(mesh: TetMesh) -> None:
+    """Raise ``MeshInputError`` if the mesh is too large or too small for float64 quality."""
+    used = np.unique(mesh.tets)
+    extent = float(np.ptp(mesh.points[used], axis=0).max())
+    if not MIN_EXTENT <= extent <= MAX_EXTENT:
+        raise MeshInputError(
+            f"the mesh spans {extent:.3g} length units; jtet computes quality in float64 and "
+            f"needs extents in [{MIN_EXTENT:g}, {MAX_EXTENT:g}]: rescale the coordinates"
+        )
 
 
 def _require_conforming(mesh: TetMesh) -> None:
