@@ -35,6 +35,7 @@ class PassStats:
     by_size: dict = field(default_factory=dict)  # ring / tree size -> successes
     by_kind: dict = field(default_factory=dict)  # e.g. interior / boundary / surface -> successes
     overflow: int = 0  # candidates skipped because they exceed the configured capacity
+    # (edge removal: rings / chains larger than max_ring)
 
     def as_dict(self) -> dict:
         return {
@@ -65,19 +66,27 @@ def _segments(ptr: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return owner, np.arange(lens.sum()) - start
 
 
-def edge_candidates(mesh: TetMesh, max_ring: int, dirty: np.ndarray | None) -> np.ndarray:
-    """Edge ids worth trying: removable, manifold, small enough, neighbourhood changed."""
+def edge_candidates(
+    mesh: TetMesh, max_ring: int, dirty: np.ndarray | None, *, with_skipped: bool = False
+):
+    """Edge ids worth trying: removable, manifold, small enough, neighbourhood changed.
+
+    ``with_skipped=True`` also returns the number of edges left out only because their
+    ring is larger than ``max_ring`` (reported as ``overflow`` in the pass statistics).
+    """
     T = mesh.topology
     size = np.diff(T.edge_ring_ptr)  # polygon size: ring (closed) or chain (open)
     ok = ~T.subsegment & T.edge_manifold & (size >= 3)
-    # interior-surface edges split their ring in two chains, each <= max_ring; the
-    # whole ring may be up to 2 * max_ring - 2
-    surface = (T.edge_n_subfacets == 2) & ~T.edge_boundary
-    ok &= np.where(surface, size <= 2 * max_ring - 2, size <= max_ring)
     if dirty is not None:
         d = dirty[T.edge_tets].astype(np.int64)
         ok &= np.add.reduceat(d, T.edge_tets_ptr[:-1]) > 0 if len(d) else False
-    return np.flatnonzero(ok)
+    # interior-surface edges split their ring in two chains, each <= max_ring; the
+    # whole ring may be up to 2 * max_ring - 2
+    surface = (T.edge_n_subfacets == 2) & ~T.edge_boundary
+    small = np.where(surface, size <= 2 * max_ring - 2, size <= max_ring)
+    if with_skipped:
+        return np.flatnonzero(ok & small), int((ok & ~small).sum())
+    return np.flatnonzero(ok & small)
 
 
 def _build_chains(mesh: TetMesh, edges: np.ndarray) -> _Chains:
@@ -154,7 +163,8 @@ def edge_removal_pass(
     stats = PassStats("edge")
     T = mesh.topology
     q = mesh.quality(measure) if quality is None else quality
-    edges = edge_candidates(mesh, max_ring, dirty)
+    edges, too_big = edge_candidates(mesh, max_ring, dirty, with_skipped=True)
+    stats.overflow = too_big
     if len(edges) == 0:
         return mesh, stats, None
     ch = _build_chains(mesh, edges)
@@ -164,7 +174,7 @@ def edge_removal_pass(
     valid = np.ones(len(edges), bool)
     np.logical_and.at(valid, ch.cand, (clen >= 3) & (clen <= max_ring))
     stats.attempts = int(valid.sum())
-    stats.overflow = int((~valid).sum())
+    stats.overflow += int((~valid).sum())
     q_new = np.full(len(edges), np.inf)
     tris_of = {}
     a_all = T.edges[edges[ch.cand], 0]
