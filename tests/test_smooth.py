@@ -318,6 +318,27 @@ def test_repeated_passes_improve_a_perturbed_grid():
     assert m.is_valid()
 
 
+def test_tangled_vertex_is_untangled():
+    """An interior vertex pushed through its star (inverted tets): smoothing raises the
+    star minimum out of the negative range; the other correct tets stay correct."""
+    mesh = grid_mesh(3, perturb=0.2, seed=2)
+    free = np.flatnonzero(mesh.topology.vertex_kind == FREE)
+    v = free[0]
+    p = mesh.points.copy()
+    p[v] += [0.45, 0.3, 0.2]  # spacing 1/3: far through the star
+    tangled = jtet.TetMesh(p, mesh.tets)
+    q0 = np_min_sine(p[mesh.tets])
+    assert (q0 < 0).any()
+    m = tangled
+    for _ in range(4):
+        m2, stats = smooth_pass(m)
+        _check_pass(m, m2, stats)
+        m = m2
+    q1 = np_min_sine(m.points[m.tets])
+    assert q1.min() > 0.05
+    assert m.is_valid()
+
+
 def test_threshold_and_candidates_limit_attempts():
     mesh = delaunay_mesh(100, seed=11)
     kind = mesh.topology.vertex_kind
