@@ -18,7 +18,7 @@ Layout and why (numbers from experiments/bench_edge_removal.py, 2-core CPU):
   structure-of-arrays quality measure on corners gathered with static index arrays.
 * Tables: ``Q`` and ``K`` are flat vectors of the intervals ``(i, i+d)``, ``d >= 2``,
   diagonal after diagonal. Diagonal ``d`` needs ``Q[i, i+t]``, ``Q[i+t, i+d]`` and the
-  candidates ``(i, i+t, i+d)``, ``t = 1 .. d-1``: three static row gathers into (d-1, m-d)
+  candidates ``(i, i+t, i+d)``, ``t = 1 .. d-1``: static row gathers into (d-1, m-d)
   grids, one max-min over ``t``, and a static ``dynamic_update_slice`` into each table
   (no scatter: DESIGN.md measured scatter-filled tables at 0.01-0.03M rings/s). Both
   choices matter on XLA:CPU, which fuses cheap producers into every consumer: with plain
@@ -198,7 +198,8 @@ def _diagonal_tables(m: int) -> dict:
         iq[d] = np.asarray([p.start[d][u] for u in range(1, d)], np.int32)[:, None] + i
         il[d] = np.where(t == 1, p.n, p.off[np.minimum(t, m - 1)] + i).astype(np.int32)
         ir[d] = np.where(d - t == 1, p.n, p.off[np.maximum(d - t, 0)] + i + t).astype(np.int32)
-    return dict(iq=iq, il=il, ir=ir)
+    ilr = {d: np.stack([il[d], ir[d]]) for d in il}  # one gather for both (compiles faster)
+    return dict(iq=iq, il=il, ir=ir, ilr=ilr)
 
 
 def fill_tables(q_tri: Float[Array, "T ..."], *, m: int) -> tuple[Array, Array, Array]:
@@ -206,7 +207,7 @@ def fill_tables(q_tri: Float[Array, "T ..."], *, m: int) -> tuple[Array, Array, 
 
     Returns ``(q_new, Q, K)``: ``q_new = Q[0, m-1]`` (...); ``Q`` (n, ...) float and ``K``
     (n, ...) int8 flat tables, row ``off[d] + i`` for the interval ``(i, i+d)``, ``K``
-    holding the optimal ``t = k - i``. Each diagonal is three static row gathers, a
+    holding the optimal ``t = k - i``. Each diagonal is two static row gathers, a
     max-min over t and two update-slices into the tables.
     """
     p = _plan(m)
@@ -219,7 +220,8 @@ def fill_tables(q_tri: Float[Array, "T ..."], *, m: int) -> tuple[Array, Array, 
     )
     K = jnp.zeros((p.n,) + batch, jnp.int8)
     for d in range(2, m):
-        c = jnp.minimum(jnp.minimum(q_tri[tb["iq"][d]], Q[tb["il"][d]]), Q[tb["ir"][d]])
+        sub = jnp.min(Q[tb["ilr"][d]], axis=0)  # min(Q[i, i+t], Q[i+t, i+d])
+        c = jnp.minimum(q_tri[tb["iq"][d]], sub)  # (d-1, m-d, ...)
         best = jnp.max(c, axis=0)  # (m-d, ...)
         # the smallest maximizing t, as Figure 5's strict ">" (min() also guards NaN rows)
         t = _lift(np.arange(1, d, dtype=np.int8)[:, None], nb)
