@@ -3,9 +3,9 @@
 The kernel ``smooth_star`` is written for ONE vertex and its star (the tets containing it),
 padded to a fixed capacity ``K``; ``smooth_pass`` gathers many stars into padded batches and
 runs the kernel under ``jax.vmap``. Vertices solved in the same batch share no tet (they are
-an independent set of the vertex-edge graph, found by Jones-Plassmann colouring with
-"worst star first" priorities), so their moves never interact; batches run one after the
-other and each sees the positions the previous batches produced.
+an independent set of the vertex-edge graph: maximal independent sets built by Luby-style
+rounds with "worst star first" priorities), so their moves never interact; batches run one
+after the other and each sees the positions the previous batches produced.
 
 Objective. The true objective of a vertex is the smallest quality of its star, a nonsmooth
 max-min. Solvers work on a smooth surrogate (``soft-min`` of log-quality, below) or directly
@@ -366,7 +366,9 @@ def smooth_star(
     h = jnp.where(h > 0, h, 1.0)
     B = basis * h
 
-    q0 = star_qualities(jnp.zeros(3), rel, mask, measure)
+    # Acceptance is decided in GLOBAL coordinates on the rounded candidate points, i.e. on
+    # exactly the numbers the mesh will store (the solvers use the relative frame).
+    q0 = star_qualities(v0, opp, mask, measure)
     q_old = jnp.min(q0)
     t0 = jnp.zeros(3)
     if solver == "active_set":
@@ -386,7 +388,8 @@ def smooth_star(
     # Safeguard on the TRUE objective: the best of x0 + 2^-j (x* - x0).
     s = 0.5 ** jnp.arange(n_backtrack, dtype=jnp.float64)
     T = s[:, None] * t_star[None, :]
-    Q = jax.vmap(lambda t: star_qualities(B @ t, rel, mask, measure))(T)  # (J, K)
+    P = v0[None, :] + T @ B.T  # (J, 3) candidate positions, rounded as they will be stored
+    Q = jax.vmap(lambda x: star_qualities(x, opp, mask, measure))(P)  # (J, K)
     qmin = jnp.min(Q, axis=-1)
     # a correct tet stays clearly correct: above min_gain, or at least as good as before
     # (a float-positive quality at round-off level is no proof of orientation)
@@ -394,7 +397,7 @@ def smooth_star(
     ok = keeps_positive & jnp.isfinite(qmin) & (qmin > q_old + min_gain) & any_real
     j = jnp.argmax(jnp.where(ok, qmin, -jnp.inf))
     accept = ok[j]
-    new_pos = jnp.where(accept, v0 + B @ T[j], v0)
+    new_pos = jnp.where(accept, P[j], v0)
     q_new = jnp.where(accept, qmin[j], q_old)
     return new_pos, q_old, q_new
 
