@@ -341,7 +341,7 @@ def realistic(m: int, n: int, seed: int):
 
 @pytest.mark.parametrize("prune", [True, "quality", "volume"])
 def test_pruned_matches_unpruned_on_successes(prune):
-    m = 5
+    m = kl.PRUNE_MIN_M
     a, b, ring, q_old = realistic(m, 300, seed=21)
     # a few rings whose old tets are inverted (q_old < 0), and some hopeless ones
     q_old[:10] = -0.5
@@ -356,6 +356,14 @@ def test_pruned_matches_unpruned_on_successes(prune):
     assert np.all(q_p[~win] <= q_old[~win])
     for r in np.flatnonzero(~win)[:5]:
         check_triangulation(t_p[r], m)  # placeholder for dropped rings, still valid
+
+
+def test_small_rings_are_not_pruned_by_default():
+    m = kl.PRUNE_MIN_M - 1
+    a, b, ring, q_old = realistic(m, 50, seed=4)
+    q_u, t_u = kl.solve_rings(a, b, ring, q_old, prune=False)
+    q_p, t_p = kl.solve_rings(a, b, ring, q_old, prune=True)
+    assert np.array_equal(q_p, q_u) and np.array_equal(t_p, t_u)
 
 
 def test_quality_screen_prunes_realistic_rings():
