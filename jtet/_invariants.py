@@ -48,6 +48,16 @@ def _surface_signature(mesh: TetMesh, which: str) -> tuple[np.ndarray, np.ndarra
     return labels, sig, np.unique(faces)
 
 
+def _volume_roundoff(mesh: TetMesh) -> float:
+    """Bound on the float64 error of ``mesh.volumes.sum()``: each volume is a determinant
+    of the edge vectors e1, e2, e3 from the tet's first vertex, off by at most a few eps
+    times |e1| |e2| |e3| (needles far from their first vertex can exceed their volume by
+    orders of magnitude, e.g. around a vertex the smoother moved across inverted tets)."""
+    p = mesh.points[mesh.tets]
+    e = np.linalg.norm(p[:, 1:] - p[:, :1], axis=2)
+    return float(16 * np.finfo(float).eps * e.prod(axis=1).sum() / 6.0)
+
+
 class InvariantChecker:
     """Remembers the start mesh; ``check(mesh, pass_no, op)`` raises ``InvariantError``."""
 
@@ -79,7 +89,7 @@ class InvariantChecker:
         report = mesh.is_valid()
         if not report.conforming:
             fail(f"the mesh is no longer valid:\n{report}")
-        tol = VOLUME_RTOL * self.scale
+        tol = max(VOLUME_RTOL * self.scale, _volume_roundoff(mesh))
         if abs(mesh.volumes.sum() - self.volume) > tol:
             fail(f"total volume changed from {self.volume!r} to {mesh.volumes.sum()!r}")
         rv = self._region_volumes(mesh)

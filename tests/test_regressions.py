@@ -189,3 +189,50 @@ def test_multiface_removal_on_inverted_input_stays_conforming():
     out, stats, keep = multiface_removal_pass(mesh)
     assert keep is not None
     InvariantChecker(mesh).check(out, 0, "face")
+
+
+# --- the invariant checker reported "total volume changed" after smoothing moved a vertex
+# of an inverted star far away (fuzz: coplanar points, 4 moved vertices, mean_ratio): the
+# tolerance came from the start mesh's volumes only, but the round-off of the volume sum
+# grows with the (much larger) tets of the mesh being checked
+def test_checker_volume_tolerance_follows_the_checked_mesh():
+    from helpers import grid_mesh
+
+    mesh = grid_mesh(3, perturb=0.3, seed=2)
+    v = np.flatnonzero(((mesh.points > 0) & (mesh.points < 1)).all(axis=1))[0]
+    far = np.array([19.61776746, -25.86174238, 76.70114393])  # as the smoother did
+    pts = mesh.points.copy()
+    pts[v] = far
+    start = mesh.replace(points=pts)  # an interior vertex flung away: inverted tets
+    pts = pts.copy()
+    pts[v] = far * 1e6  # further along the same ray: same signs, huge tets
+    moved = mesh.replace(points=pts)
+    assert _bad(moved) == _bad(start)
+    # the signed volume is the same in exact arithmetic; the float sums differ by more
+    # than 1e-12 of the start mesh's volumes (the old tolerance)
+    assert abs(moved.volumes.sum() - start.volumes.sum()) > 1e-12 * np.abs(start.volumes).sum()
+    InvariantChecker(start).check(moved, 0, "smooth")
+
+
+def test_checker_still_catches_real_violations():
+    from helpers import delaunay_mesh, grid_mesh
+
+    mesh = delaunay_mesh(60, seed=1)
+    checker = InvariantChecker(mesh)
+    with pytest.raises(jtet.InvariantError, match="pass 3, operation 'edge': total volume"):
+        checker.check(jtet.TetMesh(mesh.points, mesh.tets[1:]), 3, "edge")  # a lost tet
+    pts = mesh.points.copy()
+    pts[7] *= 0.9  # the cube corner (1, 1, 1) moves inwards
+    with pytest.raises(jtet.InvariantError, match="volume|boundary"):
+        checker.check(mesh.replace(points=pts), 0, "smooth")
+    pts = mesh.points.copy()
+    t = mesh.tets[np.argmax(mesh.volumes)]
+    pts[t[0]] = 2 * pts[t[1:]].mean(axis=0) - pts[t[0]]  # an interior vertex flips over
+    if ((pts[t[0]] > 0) & (pts[t[0]] < 1)).all():
+        with pytest.raises(jtet.InvariantError, match="inverted"):
+            checker.check(mesh.replace(points=pts), 0, "smooth")
+    two = grid_mesh(2, two_regions=True)
+    region = two.region.copy()
+    region[np.flatnonzero(region == 0)[0]] = 1  # a tet changes sides
+    with pytest.raises(jtet.InvariantError, match="region volumes|interface"):
+        InvariantChecker(two).check(two.replace(region=region), 0, "edge")
