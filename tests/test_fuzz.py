@@ -1,0 +1,183 @@
+"""Fuzzing: random meshes and options through each operation and the whole optimizer.
+
+Every case runs with the invariant checks on (``jtet._invariants.InvariantChecker``: valid,
+volumes per region, boundary and interfaces, no new inverted / degenerate tets) and also
+checks the promises of ``jtet.improve`` (worst quality never decreases, the input is not
+modified, the status is not an invariant violation).
+
+Case counts: ``JTET_FUZZ_CASES`` (default 2000, split over the tests by ``WEIGHTS``);
+``JTET_FUZZ_PROFILE=long`` draws fresh random cases (CI replays a fixed derandomized set)
+and defaults to 100,000 cases: ``python experiments/fuzz.py --cases 100000``. A failure
+prints its ``MeshSpec``; rebuild it with ``strategies.build_mesh`` and add it to
+tests/test_regressions.py as an explicit mesh.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+from strategies import DAMAGE_OPS, build_mesh, mesh_specs, options
+
+import jtet
+from jtet._edge_removal import edge_removal_pass
+from jtet._invariants import InvariantChecker
+
+PROFILE = os.environ.get("JTET_FUZZ_PROFILE", "ci")
+TOTAL = int(os.environ.get("JTET_FUZZ_CASES", 100_000 if PROFILE == "long" else 2000))
+# share of the cases each test gets
+WEIGHTS = {
+    "edge_pass": 0.20,
+    "edge_pass_damaged": 0.10,
+    "edge_pass_labels": 0.10,
+    "face_pass": 0.15,
+    "smooth_pass": 0.10,
+    "improve": 0.20,
+    "improve_damaged": 0.15,
+}
+
+settings.register_profile(
+    "ci",
+    deadline=None,
+    derandomize=True,  # CI replays the same cases; the long profile explores
+    database=None,
+    print_blob=True,
+    suppress_health_check=list(HealthCheck),
+)
+settings.register_profile(
+    "long", deadline=None, print_blob=True, suppress_health_check=list(HealthCheck)
+)
+settings.load_profile(PROFILE)
+
+
+def _cases(name: str) -> settings:
+    return settings(max_examples=max(1, round(TOTAL * WEIGHTS[name])))
+
+
+def _bad(mesh) -> int:
+    from jtet._predicates import orient3d_tets
+
+    return int((orient3d_tets(mesh.points, mesh.tets) <= 0).sum())
+
+
+def _edge_passes(spec, measure, max_ring, n_passes=2):
+    mesh = build_mesh(spec)
+    assume(mesh is not None)
+    checker = InvariantChecker(mesh)
+    T = mesh.topology
+    subsegments = T.edges[T.subsegment]
+    for p in range(n_passes):
+        q = mesh.quality(measure)
+        out, stats, keep = edge_removal_pass(mesh, measure=measure, max_ring=max_ring, quality=q)
+        if keep is None:
+            assert out is mesh and stats.successes == 0
+            return
+        checker.check(out, p, "edge")
+        assert out.quality(measure).min() >= q.min()
+        assert stats.successes > 0 and stats.attempts >= stats.successes
+        # kept tets come first, in order
+        np.testing.assert_array_equal(out.tets[: keep.sum()], mesh.tets[keep])
+        # subsegments (incl. protected edges) are never removed
+        e = out.topology.edges
+        key = e[:, 0] * out.n_points + e[:, 1]
+        assert np.isin(subsegments[:, 0] * out.n_points + subsegments[:, 1], key).all()
+        mesh = out
+
+
+measures = st.sampled_from(sorted(jtet.MEASURES))
+rings = st.integers(3, 12)
+
+
+@_cases("edge_pass")
+@given(mesh_specs(damage=False, labels=False), measures, rings)
+def test_edge_pass(spec, measure, max_ring):
+    _edge_passes(spec, measure, max_ring)
+
+
+@_cases("edge_pass_damaged")
+@given(mesh_specs(damage=True), measures, rings)
+def test_edge_pass_inverted_input(spec, measure, max_ring):
+    _edge_passes(spec, measure, max_ring)
+
+
+@_cases("edge_pass_labels")
+@given(mesh_specs(labels=True), measures, rings)
+def test_edge_pass_regions_and_protection(spec, measure, max_ring):
+    _edge_passes(spec, measure, max_ring)
+
+
+def _face_passes(spec, measure, max_faces, n_passes=2):
+    from jtet._multiface import multiface_removal_pass
+
+    mesh = build_mesh(spec)
+    assume(mesh is not None)
+    checker = InvariantChecker(mesh)
+    for p in range(n_passes):
+        q = mesh.quality(measure)
+        out, stats, keep = multiface_removal_pass(
+            mesh, measure=measure, max_faces=max_faces, quality=q
+        )
+        if keep is None:
+            assert out is mesh
+            return
+        checker.check(out, p, "face")
+        assert out.quality(measure).min() >= q.min()
+        np.testing.assert_array_equal(out.tets[: keep.sum()], mesh.tets[keep])
+        mesh = out
+
+
+@_cases("face_pass")
+@given(
+    mesh_specs(damage=None if "face" in DAMAGE_OPS else False), measures, st.sampled_from([4, 16])
+)
+def test_face_pass(spec, measure, max_faces):
+    _face_passes(spec, measure, max_faces)
+
+
+@_cases("smooth_pass")
+@given(mesh_specs(), measures, st.sampled_from(["fixed", "slide"]))
+def test_smooth_pass(spec, measure, boundary):
+    from jtet._smooth import smooth_pass
+
+    mesh = build_mesh(spec)
+    assume(mesh is not None)
+    q = mesh.quality(measure)
+    out, stats = smooth_pass(mesh, measure=measure, boundary=boundary)
+    InvariantChecker(mesh).check(out, 0, "smooth")
+    np.testing.assert_array_equal(out.tets, mesh.tets)
+    assert out.quality(measure).min() >= q.min()
+    moved = np.flatnonzero((out.points != mesh.points).any(axis=1))
+    np.testing.assert_array_equal(np.sort(np.asarray(stats.moved)), moved)
+
+
+def _improve(spec, opts):
+    mesh = build_mesh(spec)
+    assume(mesh is not None)
+    tets, points = mesh.tets.copy(), mesh.points.copy()
+    result = jtet.improve(mesh, opts)
+    assert not result.status.startswith("invariant violation"), (spec, opts, result.status)
+    assert result.status in ("converged", "max passes")
+    # the input is untouched; the result passes the checks against it once more
+    np.testing.assert_array_equal(mesh.tets, tets)
+    np.testing.assert_array_equal(mesh.points, points)
+    InvariantChecker(mesh).check(result.mesh, -1, "improve")
+    q0, q1 = mesh.quality(opts.quality), result.mesh.quality(opts.quality)
+    assert q1.min() >= q0.min()
+    before, after = result.stats_before, result.stats_after
+    assert after.n_inverted + after.n_degenerate <= before.n_inverted + before.n_degenerate
+    assert _bad(result.mesh) <= _bad(mesh)
+    assert len(result.history) == len(opts.ops) * len({h["pass"] for h in result.history})
+
+
+@_cases("improve")
+@given(mesh_specs(damage=False), options())
+def test_improve(spec, opts):
+    _improve(spec, opts)
+
+
+@_cases("improve_damaged")
+@given(mesh_specs(damage=True), options(DAMAGE_OPS))
+def test_improve_inverted_input(spec, opts):
+    _improve(spec, opts)
