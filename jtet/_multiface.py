@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _config
-from ._apply import replace_tets
+from ._apply import nonconforming_owners, replace_tets
 from ._edge_removal import PassStats, _segments
 from ._kernels.multiface import solve_trees
 from ._mesh import TetMesh
@@ -492,8 +492,22 @@ def multiface_removal_pass(
     is_w[winners] = True
     keep_new = is_w[owner]
     new, owner = new[keep_new], owner[keep_new]
+    # Guard (as edge removal's): a new face may coincide with an existing one when the
+    # neighbourhood holds inverted or degenerate tets; reject those winners and retry.
+    claim_owner = np.repeat(cand, 2 * k)
+    while True:
+        reject = nonconforming_owners(mesh, remove, new, owner, len(forest.a))
+        if not reject.any():
+            break
+        remove[claims[reject[claim_owner] & is_w[claim_owner]]] = False
+        is_w &= ~reject
+        ok = ~reject[owner]
+        new, owner = new[ok], owner[ok]
+        if not is_w.any():
+            return mesh, stats, None
+    winners = np.flatnonzero(is_w)
     region = mesh.region[forest.ta[owner, 0]]
-    sizes = k[win]
+    sizes = k[win & is_w[cand]]
     stats.successes = int(len(winners))
     stats.by_size = {int(s): int(c) for s, c in zip(*np.unique(sizes, return_counts=True))}
     out, _ = replace_tets(mesh, remove, new, region)

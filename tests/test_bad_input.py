@@ -326,9 +326,6 @@ def test_inverted_tets_are_kept_reported_and_repaired(tmp_path, capsys):
     assert jtet.mesh_stats(out).n_inverted == after.n_inverted
 
 
-@pytest.mark.xfail(
-    strict=True, reason="multi-face removal on inverted input creates a non-conforming mesh"
-)
 def test_inverted_tets_with_every_operation():
     mesh = _inverted_mesh()
     result = _improves_safely(mesh, max_passes=5)

@@ -178,9 +178,6 @@ MF_TETS = [
 ]  # fmt: skip
 
 
-@pytest.mark.xfail(
-    strict=True, reason="multi-face removal on inverted input creates duplicate tets"
-)
 def test_multiface_removal_on_inverted_input_stays_conforming():
     from jtet._multiface import multiface_removal_pass
 
