@@ -29,11 +29,11 @@ PROFILE = os.environ.get("JTET_FUZZ_PROFILE", "ci")
 TOTAL = int(os.environ.get("JTET_FUZZ_CASES", 100_000 if PROFILE == "long" else 2000))
 # share of the cases each test gets
 WEIGHTS = {
-    "edge_pass": 0.20,
-    "edge_pass_damaged": 0.10,
-    "edge_pass_labels": 0.10,
+    "edge_pass": 0.15,
+    "edge_pass_damaged": 0.15,
+    "edge_pass_labels": 0.15,
     "face_pass": 0.15,
-    "smooth_pass": 0.10,
+    "smooth_pass": 0.05,  # ~10x the cost of an edge pass (JIT per star capacity)
     "improve": 0.20,
     "improve_damaged": 0.15,
 }
