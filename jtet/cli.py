@@ -247,6 +247,10 @@ def main(argv: list[str] | None = None) -> int:
         # outputs are written atomically: each one is complete or absent
         print("jtet: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # stdout closed early (``jtet stats m.vtu | head``): not an error of jtet's
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":
