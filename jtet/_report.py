@@ -93,8 +93,8 @@ def plot_histograms(result, path: str | os.PathLike, measure: str | None = None)
         fig.savefig(tmp, dpi=110)
         os.replace(tmp, path)
     except (OSError, ValueError) as e:
+        raise MeshFileError(f"{path}: cannot write plot ({e})") from None
+    finally:  # also on Ctrl-C: no temporary file is left behind
+        plt.close(fig)
         if tmp.exists():
             tmp.unlink()
-        raise MeshFileError(f"{path}: cannot write plot ({e})") from None
-    finally:
-        plt.close(fig)
