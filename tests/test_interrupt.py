@@ -280,3 +280,17 @@ def test_interrupted_report_write_leaves_no_temporary_file(tmp_path, monkeypatch
     with pytest.raises(KeyboardInterrupt):
         _report.write_text_atomic(tmp_path / "r.json", "{}")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_interrupted_plot_leaves_no_temporary_file(tmp_path, monkeypatch, mesh):
+    from jtet import _report
+
+    result = jtet.improve(mesh, ops=("edge",), max_passes=1)
+
+    def interrupt(src, dst):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(_report.os, "replace", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        _report.plot_histograms(result, tmp_path / "h.png")
+    assert list(tmp_path.iterdir()) == []
