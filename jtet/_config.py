@@ -1,8 +1,21 @@
 """Process-wide numerics set-up: float64 for every JAX computation jtet does, compile cache."""
 
 import os
+import signal
+import threading
 
-import jax
+# Ctrl-C while jaxlib initializes its extension crashes the interpreter (SIGSEGV / abort /
+# ImportError). Hold SIGINT back during the import: a Ctrl-C then arrives right after it
+# as a plain KeyboardInterrupt. (Threads XLA starts meanwhile keep it blocked, so the
+# signal always goes to the main thread, where Python handles it.)
+_main = threading.current_thread() is threading.main_thread() and hasattr(signal, "pthread_sigmask")
+if _main:
+    _mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+try:
+    import jax
+finally:
+    if _main:
+        signal.pthread_sigmask(signal.SIG_SETMASK, _mask)
 
 # Geometry is never computed in float32: jtet's kernels are written for float64 and the
 # quality signs (correct / degenerate / inverted) depend on it.
