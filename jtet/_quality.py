@@ -106,13 +106,22 @@ def min_sine(p0: Vec, p1: Vec, p2: Vec, p3: Vec) -> Array:
     # the end. Robustness: the sine comes from the cross product of the two computed normals,
     # not from 6V * l / (|N_k||N_l|): for a nearly collinear tet 6V's round-off (~eps L^3)
     # is huge relative to the tiny normals and that identity returned values like 1e6.
-    g = _TetGeometry(p0, p1, p2, p3)
+    return _signed_min_sine(_TetGeometry(p0, p1, p2, p3), obtuse_bias=1.0)
+
+
+def _signed_min_sine(g: _TetGeometry, obtuse_bias: float) -> Array:
+    """sign(V) min over edges of sin(theta) (times ``obtuse_bias`` for obtuse angles),
+    normalized by the regular tet's sine."""
     n = g.normals
     nsq = [_dot(v, v) for v in n]
     m = None
     for f0, f1 in _TetGeometry.EDGE_FACES:
         c = _cross(n[f0], n[f1])
         s2 = _safe_div(_dot(c, c), nsq[f0] * nsq[f1])
+        if obtuse_bias != 1.0:
+            # outward normals: the interior angle is obtuse when they point the same way
+            # (an inverted tet flips both normals, so the test is orientation-independent)
+            s2 = jnp.where(_dot(n[f0], n[f1]) > 0, (obtuse_bias * obtuse_bias) * s2, s2)
         m = s2 if m is None else jnp.minimum(m, s2)
     return jnp.sign(g.d) * jnp.sqrt(m) / _SIN_REGULAR
 
@@ -128,18 +137,7 @@ def biased_min_sine(p0: Vec, p1: Vec, p2: Vec, p3: Vec) -> Array:
     maximum dihedral angle at little cost to the minimum. 1 for the regular tet (its
     dihedral angles are acute), signed like every measure.
     """
-    g = _TetGeometry(p0, p1, p2, p3)
-    n = g.normals
-    nsq = [_dot(v, v) for v in n]
-    m = None
-    for f0, f1 in _TetGeometry.EDGE_FACES:
-        c = _cross(n[f0], n[f1])
-        s2 = _safe_div(_dot(c, c), nsq[f0] * nsq[f1])
-        # outward normals: the interior angle is obtuse when the normals point the same way
-        # (for an inverted tet both normals flip, so the test is orientation-independent)
-        s2 = jnp.where(_dot(n[f0], n[f1]) > 0, (OBTUSE_BIAS * OBTUSE_BIAS) * s2, s2)
-        m = s2 if m is None else jnp.minimum(m, s2)
-    return jnp.sign(g.d) * jnp.sqrt(m) / _SIN_REGULAR
+    return _signed_min_sine(_TetGeometry(p0, p1, p2, p3), obtuse_bias=OBTUSE_BIAS)
 
 
 def radius_ratio(p0: Vec, p1: Vec, p2: Vec, p3: Vec) -> Array:
