@@ -39,6 +39,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from ._errors import JtetError
+from ._predicates import orient3d_tets
 from ._quality import _SIN_REGULAR, _cross, _dot, _safe_div, _TetGeometry, get_measure
 
 # For a tet whose local vertex i is the smoothed vertex v, the other three vertices in an
@@ -484,7 +485,8 @@ def motion_bases(
     for each basis column u, and every subsegment containing it is parallel to its line
     to ``slide_tol``: then each incident subfacet moves within its own plane and the
     surface stays geometrically identical (provided no tet inverts, which the kernel
-    guarantees).
+    guarantees). Vertices of subfacets next to an inverted or flat tet are pinned too:
+    such a subfacet may be folded, and sliding would change the surface the folds cover.
     """
     if boundary not in ("fixed", "slide"):
         raise JtetError(f"boundary must be 'fixed' or 'slide', got {boundary!r}")
@@ -518,6 +520,14 @@ def motion_bases(
             dots = np.einsum("ij,ijk->ik", np.repeat(fn, 3, axis=0), basis[verts])
             viol = (np.abs(dots).max(axis=1) > slide_tol) | np.repeat(degenerate, 3)
             bad[verts[viol]] = True
+            # a subfacet next to an inverted or flat tet may be folded over its neighbours;
+            # sliding a vertex of it changes the area the folds cover, i.e. the surface.
+            # Next to positive tets it cannot fold (the kernel keeps them positive).
+            ft = topo.face_tets[topo.subfacet]
+            has = ft >= 0
+            positive = np.ones(ft.shape, bool)
+            positive[has] = orient3d_tets(pts, mesh.tets[ft[has]]) > 0
+            bad[sf[~positive.all(axis=1)].reshape(-1)] = True
         se = topo.edges[topo.subsegment]
         if len(se):
             e = _unit_rows(pts[se[:, 1]] - pts[se[:, 0]])

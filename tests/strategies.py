@@ -33,11 +33,9 @@ from jtet._options import BOUNDARY_MODES
 
 KINDS = ("uniform", "clustered", "coplanar", "cospherical", "grid", "cube")
 REGIONS = ("none", "planes", "random")
-# Operations the fuzz tests run (all of jtet's) and those run on damaged (inverted)
-# input: "face" joins DAMAGE_OPS once multi-face removal guards against inverted input
-# (tests/test_regressions.py::test_multiface_removal_on_inverted_input_stays_conforming).
+# Operations the fuzz tests run (all of jtet's) and those run on damaged (inverted) input.
 FUZZ_OPS = ("edge", "face", "smooth")
-DAMAGE_OPS = ("edge", "smooth")
+DAMAGE_OPS = FUZZ_OPS
 
 
 @dataclass(frozen=True)

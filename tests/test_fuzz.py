@@ -129,9 +129,7 @@ def _face_passes(spec, measure, max_faces, n_passes=2):
 
 
 @_cases("face_pass")
-@given(
-    mesh_specs(damage=None if "face" in DAMAGE_OPS else False), measures, st.sampled_from([4, 16])
-)
+@given(mesh_specs(), measures, st.sampled_from([4, 16]))
 def test_face_pass(spec, measure, max_faces):
     _face_passes(spec, measure, max_faces)
 

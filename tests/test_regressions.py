@@ -233,3 +233,21 @@ def test_checker_still_catches_real_violations():
     region[np.flatnonzero(region == 0)[0]] = 1  # a tet changes sides
     with pytest.raises(jtet.InvariantError, match="region volumes|interface"):
         InvariantChecker(two).check(two.replace(region=region), 0, "edge")
+
+
+# --- smoothing with boundary="slide" changed the boundary surface of a damaged mesh (fuzz:
+# cube, 2 vertices moved so tets next to the boundary are inverted): a subfacet next to an
+# inverted tet can be folded over its neighbours, and sliding one of its vertices changed
+# the area the fold covers. Such vertices are now pinned.
+def test_slide_next_to_inverted_boundary_tets_keeps_the_surface():
+    from strategies import MeshSpec, build_mesh
+
+    from jtet._smooth import smooth_pass
+
+    spec = MeshSpec(kind="cube", n_points=132, seed=0, scale=0.0, n_moved=2, move=0.3,
+                    regions="none", n_regions=2, protect_edges=0.0, protect_faces=0.0)  # fmt: skip
+    mesh = build_mesh(spec)
+    assert _bad(mesh) > 0
+    out, stats = smooth_pass(mesh, measure="biased_min_sine", boundary="slide")
+    assert len(stats.moved) > 0
+    InvariantChecker(mesh).check(out, 0, "smooth")
