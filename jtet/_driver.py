@@ -92,14 +92,24 @@ def _smooth_step(mesh: TetMesh, opts: Options, quality, dirty) -> StepResult:
 STEPS = {"edge": _edge_step, "face": _face_step, "smooth": _smooth_step}
 
 
-def _objective(q: np.ndarray) -> np.ndarray:
-    """Worst quality, then thresholded means mean(min(q, t)) for rising thresholds.
+def _objective(q: np.ndarray, good: float | None) -> np.ndarray:
+    """Worst quality, then thresholded means mean(min(q, t)) for t = 0.1, 0.2, ... up to
+    ``good`` (the good-enough quality; None: up to 1, the regular tet).
 
     A pass makes progress when any entry rises: the worst tet improved, or the
     second-worst ones did (the spirit of the paper's lexicographic objective).
     """
-    thresholds = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
+    top = 1.0 if good is None else good
+    thresholds = [t for t in np.arange(1, 10) / 10 if t < top - 1e-9] + [top]
     return np.array([q.min()] + [np.minimum(q, t).mean() for t in thresholds])
+
+
+def _workable(dirty: np.ndarray | None, q: np.ndarray, good: float | None) -> np.ndarray | None:
+    """(m,) tets an operation may work around: dirty ones below the good-enough quality."""
+    if good is None:
+        return dirty
+    bad = q < good
+    return bad if dirty is None else dirty & bad
 
 
 @dataclass
@@ -168,7 +178,7 @@ def improve(
     status = "converged"
     current = mesh
     q = current.quality(opts.quality)
-    obj = _objective(q)
+    obj = _objective(q, opts.good_quality)
     dirty = {op: None for op in opts.ops}  # None: everything is new to the operation
     stall = 0
     checker = None
@@ -185,7 +195,7 @@ def improve(
                     raise _Stop
                 ts = time.perf_counter()
                 try:
-                    step = STEPS[op](current, opts, q, dirty[op])
+                    step = STEPS[op](current, opts, q, _workable(dirty[op], q, opts.good_quality))
                 except MeshInputError as e:
                     # the input passed the same checks: the operation broke the mesh
                     raise InvariantError(
@@ -226,11 +236,10 @@ def improve(
                     _log(entry)
                 if callback is not None:
                     callback(entry)
-            obj = _objective(q)
-            progress = bool(
-                obj[0] > pass_obj[0] + opts.min_improvement
-                or (obj[1:] > pass_obj[1:] * (1.0 + opts.min_progress)).any()
-            )
+            obj = _objective(q, opts.good_quality)
+            # relative rises; the worst quality may be <= 0 (inverted input), hence abs
+            need = np.maximum(opts.min_progress * np.abs(pass_obj), opts.min_improvement)
+            progress = bool((obj > pass_obj + need).any())
             stall = 0 if progress else stall + 1
             if stall >= opts.patience:
                 break

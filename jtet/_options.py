@@ -31,11 +31,15 @@ class Options:
         patience: stop after this many passes in a row without progress.
         time_limit: seconds of wall time, or None.
         min_improvement: an operation must raise its worst tet by more than this.
-        min_progress: a pass counts as progress when the worst quality rose by more than
-            ``min_improvement`` or a thresholded mean of the worst tets rose by more than
-            this fraction; ``patience`` passes in a row without progress stop the run.
+        min_progress: a pass counts as progress when the worst quality or a thresholded
+            mean of the worst tets rose by more than this fraction; ``patience`` passes in
+            a row without progress stop the run.
+        good_quality: tets of at least this quality are good enough: every operation
+            works only around tets below it (edges, faces and vertices made only of good
+            tets are not attempted), and the thresholded means of the objective stop
+            here. None: work everywhere. Qualities are normalized (regular tet = 1).
         smooth_threshold: vertices whose worst tet has quality below this are smoothed
-            (None: every vertex whose neighbourhood changed).
+            (None: ``good_quality`` alone decides).
         check: verify the invariants after every operation (slower; on in tests).
         seed: seed of every random choice (independent sets); runs are reproducible.
         progress: show a progress bar / per-pass log on stderr.
@@ -51,7 +55,8 @@ class Options:
     patience: int = 2
     time_limit: float | None = None
     min_improvement: float = 1e-9
-    min_progress: float = 1e-4
+    min_progress: float = 1e-3
+    good_quality: float | None = 0.7
     smooth_threshold: float | None = None
     check: bool = False
     seed: int = 0
@@ -81,6 +86,8 @@ class Options:
             raise JtetError("max_passes must be >= 0 and patience >= 1")
         if not 0.0 <= float(self.min_progress) < 1.0:
             raise JtetError(f"min_progress must be in [0, 1), got {self.min_progress}")
+        if self.good_quality is not None and not 0.0 < float(self.good_quality) <= 1.0:
+            raise JtetError(f"good_quality must be in (0, 1] or None, got {self.good_quality}")
         if self.time_limit is not None and float(self.time_limit) <= 0:
             raise JtetError(f"time_limit must be positive seconds, got {self.time_limit}")
 

@@ -86,10 +86,22 @@ def _add_options(p: argparse.ArgumentParser) -> None:
         "--min-progress",
         type=float,
         default=DEFAULTS.min_progress,
-        help="relative rise of the worst tets' thresholded means that counts as progress",
+        help="relative rise of the worst quality or of the worst tets' thresholded means "
+        "that counts as progress",
+    )
+    p.add_argument(
+        "--good-quality",
+        type=_optional_float,
+        default=DEFAULTS.good_quality,
+        metavar="Q",
+        help="leave tets of at least this quality alone ('none': work everywhere)",
     )
     p.add_argument("--seed", type=int, default=DEFAULTS.seed)
     p.add_argument("--check", action="store_true", help="verify invariants after every operation")
+
+
+def _optional_float(text: str) -> float | None:
+    return None if text.lower() == "none" else float(text)
 
 
 def _options_from(args) -> Options:
