@@ -9,6 +9,12 @@ persistent cache), each in its own subprocess.
     python experiments/bench_improve.py --meshes gmsh_cube --ops edge,face
     python experiments/bench_improve.py --compile             # compile-overhead table
     python experiments/bench_improve.py --big 165000          # + a ~1M-tet Delaunay mesh
+    python experiments/bench_improve.py --meshes gmsh:cube:0.03   # Gmsh cube, h = 0.03 (~200k)
+    python experiments/bench_improve.py --smooth-effort 15x6,8x3,4x4   # smoothing effort table
+
+Mesh names: a file of ../shared/meshes, ``demo``, ``delaunay:N`` (random points in a cube,
+worst quality limited by its fixed flat-hull boundary) or ``gmsh:SHAPE:H`` (an unoptimized
+Gmsh Delaunay mesh like the reference ones, any size; cached under $TMPDIR).
 
 Reference points (../shared/meshes/README.md, same kind of machine, one core): Stellar
 (flips + smoothing) 29-34 / 138-145 degrees at ~0.3 ms CPU per tet; Gmsh ~13 / 157;
@@ -50,14 +56,24 @@ def load_mesh(name: str) -> jtet.TetMesh:
         vol = mesh.volumes
         tets = np.where((vol < 0)[:, None], tets[:, [1, 0, 2, 3]], tets)[np.abs(vol) > 1e-15]
         return jtet.TetMesh(pts, tets)
+    if name.startswith("gmsh:"):
+        _, shape, h = name.split(":")
+        cache = Path(tempfile.gettempdir()) / f"jtet_bench_gmsh_{shape}_{h}.vtu"
+        if not cache.exists():
+            sys.path.insert(0, str(Path(__file__).parent))
+            from meshgen import gmsh_shape
+
+            jtet.save(gmsh_shape(shape, float(h)), cache)
+        return jtet.load(cache)
     return jtet.load(SHARED / f"{name}.vtu")
 
 
-def run_one(name: str, ops: tuple[str, ...], time_limit: float | None) -> dict:
-    mesh = load_mesh(name)
+def run_one(name: str, ops: tuple[str, ...], time_limit: float | None, mesh=None) -> dict:
+    mesh = load_mesh(name) if mesh is None else mesh
     t0 = time.perf_counter()
     r = jtet.improve(mesh, ops=ops, time_limit=time_limit)
     wall = time.perf_counter() - t0
+    smooth_s = sum(h["seconds"] for h in r.history if h["op"] == "smooth")
     b, a = r.stats_before, r.stats_after
     return {
         "mesh": name,
@@ -70,8 +86,33 @@ def run_one(name: str, ops: tuple[str, ...], time_limit: float | None) -> dict:
         "seconds": wall,
         "us_per_tet": 1e6 * wall / mesh.n_tets,
         "passes": 1 + max((h["pass"] for h in r.history), default=-1),
+        "smooth_share": smooth_s / wall,
         "status": r.status,
     }
+
+
+def smooth_effort(names: list[str], ops: tuple[str, ...], efforts: list[str]) -> None:
+    """The same improve runs with smoothing at several (iterations x trial steps) per pass,
+    each after a warm-up run of the same setting on the same mesh (steady state)."""
+    import functools
+
+    import jtet._smooth as smooth
+
+    original = smooth.smooth_pass
+    rows = []
+    try:
+        for name in names:
+            mesh = load_mesh(name)
+            for effort in efforts:
+                iters, trials = (int(x) for x in effort.split("x"))
+                smooth.smooth_pass = functools.partial(original, max_iters=iters, n_trials=trials)
+                run_one(name, ops, None, mesh)
+                row = run_one(name, ops, None, mesh)
+                row["mesh"] = f"{name} {effort}"
+                rows.append(row)
+    finally:
+        smooth.smooth_pass = original
+    print_table(rows, f"smoothing effort (iterations x trial steps per pass), ops={ops}")
 
 
 def print_table(rows: list[dict], title: str) -> None:
@@ -85,6 +126,7 @@ def print_table(rows: list[dict], title: str) -> None:
         "wall s",
         "us/tet",
         "passes",
+        "smooth %",
         "status",
     ]
     body = [
@@ -97,6 +139,7 @@ def print_table(rows: list[dict], title: str) -> None:
             f"{r['seconds']:.1f}",
             f"{r['us_per_tet']:.0f}",
             str(r["passes"]),
+            f"{100 * r['smooth_share']:.0f}",
             r["status"],
         ]
         for r in rows
@@ -139,6 +182,11 @@ def main() -> None:
     p.add_argument(
         "--compile", action="store_true", help="measure compile overhead (cold vs warm cache)"
     )
+    p.add_argument(
+        "--smooth-effort",
+        default="",
+        help="comma list of ITERSxTRIALS smoothing settings to compare, e.g. 15x6,8x3",
+    )
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
     ops = tuple(args.ops.split(","))
@@ -147,6 +195,9 @@ def main() -> None:
         names.append(f"delaunay:{args.big}")
     if args.compile:
         compile_overhead(names[0], args.ops)
+        return
+    if args.smooth_effort:
+        smooth_effort(names, ops, args.smooth_effort.split(","))
         return
     # warm up the kernels once on the smallest mesh so rows measure steady-state speed
     if not args.json:
