@@ -1,0 +1,298 @@
+"""The ``jtet`` command through ``jtet.cli.main``: improve, stats, demo, --help.
+
+The full ``jtet improve IN OUT --report --plot`` run on the two-region demo mesh (1,928
+tets) is made once (module fixture); other runs use one operation and one pass.
+"""
+
+import contextlib
+import io
+import json
+
+import numpy as np
+import pytest
+import pyvista as pv
+
+import jtet
+from jtet.cli import main
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+CELL_ARRAYS = [f"quality_{m}" for m in jtet.MEASURES] + ["min_dihedral", "max_dihedral", "volume"]
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    """The two-region demo mesh saved as .vtu (never modified by the tests)."""
+    path = tmp_path_factory.mktemp("in") / "two_regions.vtu"
+    jtet.save(jtet.demo_mesh("two_regions"), path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def improved(small, tmp_path_factory):
+    """``jtet improve IN OUT --report R --plot H`` with default options, run once."""
+    d = tmp_path_factory.mktemp("out")
+    out, report, plot = d / "out.vtu", d / "report.json", d / "hist.png"
+    before = small.read_bytes()
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        code = main(["improve", str(small), str(out), "--report", str(report), "--plot", str(plot)])
+    return dict(
+        code=code,
+        out=out,
+        report=report,
+        plot=plot,
+        stdout=stdout.getvalue(),
+        stderr=stderr.getvalue(),
+        input_before=before,
+    )
+
+
+def _improve(*args) -> int:
+    return main(["improve", *map(str, args)])
+
+
+# --- jtet improve -----------------------------------------------------------------------
+
+
+def test_improve_exit_code_and_input_untouched(improved, small):
+    assert improved["code"] == 0, improved["stderr"]
+    assert small.read_bytes() == improved["input_before"]
+
+
+def test_improve_output_mesh(improved, small):
+    src = jtet.load(small)
+    out = jtet.load(improved["out"])
+    assert src.n_tets == 1928
+    assert out.is_valid().ok
+    assert out.n_points == src.n_points  # no vertex is inserted or deleted
+    assert set(np.unique(out.region)) == set(np.unique(src.region)) == {1, 2}
+    # measured: worst min_sine 0.015 -> 0.56; the bound only asks for a real improvement
+    assert out.quality().min() > src.quality().min()
+    assert out.quality().min() > 0.3
+
+
+def test_improve_output_cell_arrays(improved):
+    grid = pv.read(improved["out"])
+    for name in CELL_ARRAYS:
+        assert name in grid.cell_data, name
+        assert len(grid.cell_data[name]) == grid.n_cells
+    mesh = jtet.load(improved["out"])
+    assert grid.n_cells == mesh.n_tets
+    # the arrays describe the tets as written (.vtu keeps float64: 1e-12 is round-off of
+    # recomputing the same quantities)
+    for m in jtet.MEASURES:
+        np.testing.assert_allclose(
+            grid.cell_data[f"quality_{m}"], jtet.quality(mesh, m), rtol=0, atol=1e-12
+        )
+    np.testing.assert_allclose(grid.cell_data["volume"], mesh.volumes, rtol=1e-12, atol=1e-15)
+    s = jtet.stats(mesh)
+    assert grid.cell_data["min_dihedral"].min() == pytest.approx(s.min_dihedral, abs=1e-9)
+    assert grid.cell_data["max_dihedral"].max() == pytest.approx(s.max_dihedral, abs=1e-9)
+    lo, hi = grid.cell_data["min_dihedral"], grid.cell_data["max_dihedral"]
+    assert (lo > 0).all() and (lo <= hi).all() and (hi < 180).all()
+
+
+def test_improve_report(improved, small):
+    rep = json.loads(improved["report"].read_text())
+    assert {"status", "history", "stats_before", "stats_after", "options"} <= set(rep)
+    assert rep["status"] in ("converged", "max passes")
+    assert rep["options"] == jtet.Options().as_dict()  # the CLI defaults are Options()
+    assert rep["stats_before"] == jtet.stats(jtet.load(small)).as_dict()
+    out = jtet.load(improved["out"])
+    assert rep["stats_after"]["n_tets"] == out.n_tets
+    # quality is recomputed from the written file: equal up to float64 round-off
+    assert rep["stats_after"]["min_dihedral"] == pytest.approx(
+        jtet.stats(out).min_dihedral, abs=1e-9
+    )
+    h = rep["history"]
+    assert h and [e["op"] for e in h[:3]] == ["edge", "face", "smooth"]
+    assert h[-1]["worst_quality"] == pytest.approx(out.quality().min(), abs=1e-12)
+    assert rep["stats_after"]["min_dihedral"] > rep["stats_before"]["min_dihedral"]
+
+
+def test_improve_plot(improved):
+    data = improved["plot"].read_bytes()
+    assert data.startswith(PNG_MAGIC)
+    assert len(data) > 10_000  # two histograms with axes and titles, not an empty image
+
+
+def test_improve_prints_summary(improved, small):
+    rep = json.loads(improved["report"].read_text())
+    out = improved["stdout"]
+    assert f"{small} -> {improved['out']}" in out
+    assert rep["status"] in out
+    assert "before" in out and "after" in out
+    assert "min dihedral (deg)" in out
+    assert f"{rep['stats_before']['min_dihedral']:.3f}" in out
+    assert f"{rep['stats_after']['min_dihedral']:.3f}" in out
+    assert f"wrote {improved['report']}" in out and f"wrote {improved['plot']}" in out
+    # progress lines go to stderr, never to stdout
+    assert "pass 1 edge" in improved["stderr"]
+    assert "[" not in out.splitlines()[0]
+
+
+def test_improve_options_reach_options(small, tmp_path, capsys):
+    out, report = tmp_path / "o.vtu", tmp_path / "r.json"
+    code = _improve(
+        small,
+        out,
+        "--ops",
+        "edge",
+        "--max-ring",
+        "5",
+        "--quality",
+        "radius_ratio",
+        "--max-passes",
+        "1",
+        "--good-quality",
+        "none",
+        "--report",
+        report,
+        "-q",
+    )
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    assert cap.out == ""  # -q: nothing on stdout
+    opts = json.loads(report.read_text())["options"]
+    assert opts["ops"] == ["edge"]
+    assert opts["max_ring"] == 5
+    assert opts["quality"] == "radius_ratio"
+    assert opts["max_passes"] == 1
+    assert opts["good_quality"] is None
+    # the other options keep their defaults
+    defaults = jtet.Options().as_dict()
+    changed = {"ops", "max_ring", "quality", "max_passes", "good_quality"}
+    assert {k: v for k, v in opts.items() if k not in changed} == {
+        k: v for k, v in defaults.items() if k not in changed
+    }
+    h = json.loads(report.read_text())["history"]
+    assert [(e["pass"], e["op"]) for e in h] == [(0, "edge")]
+    assert h[0]["worst_quality"] == pytest.approx(
+        jtet.quality(jtet.load(out), "radius_ratio").min(), abs=1e-12
+    )
+
+
+def test_improve_bad_option_exits_2(small, tmp_path, capsys):
+    out = tmp_path / "o.vtu"
+    # out of range for Options: JtetError -> exit 2 with one line naming the option
+    assert _improve(small, out, "--max-ring", "20") == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jtet: error:") and "max_ring" in err
+    assert len(err.strip().splitlines()) == 1
+    assert not out.exists()
+    # unknown operation: argparse rejects it (exit 2 through SystemExit)
+    with pytest.raises(SystemExit) as e:
+        _improve(small, out, "--ops", "edge,flip")
+    assert e.value.code == 2
+    assert "flip" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_improve_refuses_to_overwrite_input(tmp_path, capsys):
+    path = tmp_path / "m.vtu"
+    jtet.save(jtet.demo_mesh("two_regions"), path)
+    original = path.read_bytes()
+    (tmp_path / "sub").mkdir()
+    link = tmp_path / "hard.vtu"
+    link.hardlink_to(path)
+    # the same file spelled three ways: same path, through "..", a hard link
+    for out in (path, tmp_path / "sub" / ".." / "m.vtu", link):
+        assert _improve(path, out, "--ops", "edge", "--max-passes", "1") == 2
+        err = capsys.readouterr().err
+        assert "--overwrite" in err and "is the input file" in err
+        assert path.read_bytes() == original
+    # with --overwrite the input is replaced by the improved mesh
+    assert _improve(path, path, "--ops", "edge", "--max-passes", "1", "--overwrite", "-q") == 0
+    assert path.read_bytes() != original
+    m = jtet.load(path)
+    assert m.quality().min() > jtet.demo_mesh("two_regions").quality().min()
+    assert "quality_min_sine" in pv.read(path).cell_data
+
+
+# --- jtet stats ---------------------------------------------------------------------------
+
+
+def test_stats_prints_counts(small, capsys):
+    assert main(["stats", str(small)]) == 0
+    out = capsys.readouterr().out
+    s = jtet.stats(jtet.load(small))
+    assert s.n_tets == 1928
+    lines = out.splitlines()
+    assert lines[0].startswith(f"{small}: TetMesh(")
+    assert "1928 tets" in lines[0]
+    rows = {ln.split("  ")[0].strip(): ln.split()[-1] for ln in lines[1:] if "  " in ln}
+    assert rows["tets"] == "1928"
+    assert rows["points"] == str(s.n_points)
+    assert rows["min dihedral (deg)"] == f"{s.min_dihedral:.3f}"
+    assert rows["inverted tets"] == "0"
+    assert lines[-1] == "valid"
+
+
+def test_stats_json(small, capsys):
+    assert main(["stats", str(small), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d == jtet.stats(jtet.load(small)).as_dict()
+
+
+def test_stats_missing_file_exits_2(tmp_path, capsys):
+    assert main(["stats", str(tmp_path / "nope.vtu")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jtet: error:") and "nope.vtu" in err
+
+
+# --- jtet demo ------------------------------------------------------------------------------
+
+DEMO_FILES = ("demo_improved.vtu", "demo_report.json", "demo_histograms.png")
+
+
+def _check_demo_dir(d):
+    for name in DEMO_FILES:
+        assert (d / name).is_file(), name
+    rep = json.loads((d / "demo_report.json").read_text())
+    assert rep["stats_before"]["n_tets"] == 6209
+    assert rep["options"]["ops"] == ["edge"] and rep["options"]["max_passes"] == 1
+    m = jtet.load(d / "demo_improved.vtu")
+    assert m.n_tets == rep["stats_after"]["n_tets"]
+    assert m.quality().min() > jtet.demo_mesh().quality().min()
+    assert (d / "demo_histograms.png").read_bytes().startswith(PNG_MAGIC)
+
+
+def test_demo_default_directory(tmp_path, monkeypatch, capsys):
+    # one edge-removal pass: the outputs, not the full optimization, are tested here
+    monkeypatch.chdir(tmp_path)
+    assert main(["demo", "--ops", "edge", "--max-passes", "1"]) == 0
+    out = capsys.readouterr().out
+    assert "embedded demo mesh -> jtet-demo-out" in out
+    assert "min dihedral (deg)" in out
+    _check_demo_dir(tmp_path / "jtet-demo-out")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["jtet-demo-out"]
+
+
+def test_demo_out_option(tmp_path, capsys):
+    d = tmp_path / "a" / "b"  # created with its parents
+    assert main(["demo", "--out", str(d), "--ops", "edge", "--max-passes", "1", "-q"]) == 0
+    assert capsys.readouterr().out == ""
+    _check_demo_dir(d)
+    assert sorted(p.name for p in d.iterdir()) == sorted(DEMO_FILES)
+
+
+# --- --help ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "argv, expect",
+    [
+        ([], ["improve", "stats", "demo"]),
+        (["improve"], ["--overwrite", "--report", "--plot", "--good-quality", "--ops"]),
+        (["stats"], ["--json"]),
+        (["demo"], ["--out", "--ops", "--max-passes"]),
+    ],
+)
+def test_help(argv, expect, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([*argv, "--help"])
+    assert e.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: jtet")
+    for word in expect:
+        assert word in out, word

@@ -1,0 +1,408 @@
+"""jtet.improve / jtet.Options / ImproveResult: the optimizer's happy paths.
+
+The demo mesh (6,209 tets, worst dihedral ~1.14 deg) is improved once with the default
+options (module fixture); most checks read that one result. Other runs use one operation
+or few passes: the schedule, stop rules and options are what they test, not the quality.
+"""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from helpers import grid_mesh
+
+import jtet
+from jtet._driver import _objective
+from jtet._invariants import InvariantChecker
+
+HISTORY_KEYS = {
+    "pass",
+    "op",
+    "attempts",
+    "successes",
+    "worst_quality",
+    "min_dihedral",
+    "max_dihedral",
+    "n_tets",
+    "seconds",
+}
+
+# A pass counts as progress when an objective entry rises by more than this fraction
+# (Options.min_progress default), or by more than min_improvement when it is ~0.
+MIN_PROGRESS, MIN_IMPROVEMENT = 1e-3, 1e-9
+
+
+def _arrays(mesh):
+    return mesh.points.copy(), mesh.tets.copy(), mesh.region.copy()
+
+
+def _same_mesh(a, b) -> bool:
+    return (
+        np.array_equal(a.points, b.points)
+        and np.array_equal(a.tets, b.tets)
+        and np.array_equal(a.region, b.region)
+    )
+
+
+def _passes(history) -> list[int]:
+    return sorted({e["pass"] for e in history})
+
+
+def _worst_per_pass(history) -> list[float]:
+    """Worst quality at the end of each pass (the last entry of the pass)."""
+    return [[e for e in history if e["pass"] == p][-1]["worst_quality"] for p in _passes(history)]
+
+
+def _no_progress(before: float, after: float) -> bool:
+    """The worst quality did not rise enough to count as progress."""
+    return after - before <= max(MIN_PROGRESS * abs(before), MIN_IMPROVEMENT)
+
+
+@pytest.fixture(scope="module")
+def demo():
+    return jtet.demo_mesh()
+
+
+@pytest.fixture(scope="module")
+def demo_run(demo):
+    """(input copies, callback entries, result) of improve(demo) with default options."""
+    before = _arrays(demo)
+    seen = []
+    result = jtet.improve(demo, callback=seen.append)
+    return before, seen, result
+
+
+# --- the default run on the demo mesh ---------------------------------------------------
+
+
+def test_demo_quality_rises(demo, demo_run):
+    _, _, r = demo_run
+    q0, q1 = demo.quality("min_sine"), r.mesh.quality("min_sine")
+    s0 = jtet.stats(demo)
+    assert s0.n_tets == 6209 and s0.min_dihedral == pytest.approx(1.14, abs=0.01)
+    # measured: worst min_sine 0.021 -> 0.53, min dihedral 1.14 -> 30.0 deg; the bounds
+    # are far below that so a slightly different schedule still passes, but a run that
+    # only nudges the slivers fails
+    assert q1.min() > q0.min()
+    assert q1.min() > 0.3
+    assert r.stats_after.min_dihedral > s0.min_dihedral
+    assert r.stats_after.min_dihedral > 20.0
+    assert r.stats_after.max_dihedral < s0.max_dihedral
+    assert r.stats_after.n_inverted == 0 and r.stats_after.n_degenerate == 0
+
+
+def test_demo_result_valid_and_input_untouched(demo, demo_run):
+    before, _, r = demo_run
+    assert r.mesh.is_valid().ok
+    assert r.mesh is not demo
+    for a, b in zip(before, _arrays(demo), strict=True):
+        assert np.array_equal(a, b)
+    # the boundary is fixed by default: total volume is kept (the flips regroup the same
+    # space; 1e-12 relative is float64 round-off over ~6k signed terms)
+    assert r.mesh.volumes.sum() == pytest.approx(demo.volumes.sum(), rel=1e-12)
+    InvariantChecker(demo).check(r.mesh, 0, "demo")
+
+
+def test_demo_stats_match_jtet_stats(demo, demo_run):
+    _, _, r = demo_run
+    # same functions on the same arrays: equal to the last bit
+    assert r.stats_before.as_dict() == jtet.stats(demo).as_dict()
+    assert r.stats_after.as_dict() == jtet.stats(r.mesh).as_dict()
+    assert r.stats_after.n_tets == r.mesh.n_tets
+    assert r.stats_after.quality_min["min_sine"] == r.mesh.quality("min_sine").min()
+
+
+def test_demo_history(demo, demo_run):
+    _, _, r = demo_run
+    h = r.history
+    assert h, "no history"
+    for e in h:
+        assert HISTORY_KEYS <= set(e), set(HISTORY_KEYS) - set(e)
+        assert 0 <= e["successes"] <= e["attempts"]
+    ops = r.options.ops
+    assert ops == ("edge", "face", "smooth")
+    n_passes = len(h) // len(ops)
+    assert len(h) == n_passes * len(ops)
+    assert [e["op"] for e in h] == list(ops) * n_passes
+    assert [e["pass"] for e in h] == [i // len(ops) for i in range(len(h))]
+    worst = [e["worst_quality"] for e in h]
+    assert worst == sorted(worst), "the worst quality went down"
+    assert worst[0] >= demo.quality().min()
+    last = h[-1]
+    assert last["worst_quality"] == r.mesh.quality().min()
+    assert last["n_tets"] == r.mesh.n_tets
+    assert last["min_dihedral"] == pytest.approx(r.stats_after.min_dihedral, abs=1e-12)
+    assert last["max_dihedral"] == pytest.approx(r.stats_after.max_dihedral, abs=1e-12)
+    assert r.status in ("converged", "max passes")
+    if r.status == "converged":
+        assert n_passes < r.options.max_passes
+        # stopped after `patience` passes without progress of (at least) the worst quality
+        w = [demo.quality().min(), *_worst_per_pass(h)]
+        for p in range(1, r.options.patience + 1):
+            assert _no_progress(w[-p - 1], w[-p])
+    else:
+        assert n_passes == r.options.max_passes
+
+
+def test_demo_as_dict_and_summary(demo_run):
+    _, _, r = demo_run
+    d = json.loads(json.dumps(r.as_dict()))
+    assert d["status"] == r.status
+    assert d["options"] == jtet.Options().as_dict()
+    assert d["options"]["ops"] == ["edge", "face", "smooth"]
+    assert len(d["history"]) == len(r.history)
+    assert d["history"][-1]["worst_quality"] == r.history[-1]["worst_quality"]
+    assert d["stats_before"]["n_tets"] == 6209
+    assert d["stats_after"]["min_dihedral"] == r.stats_after.min_dihedral
+    s = r.summary()
+    assert isinstance(s, str)
+    assert "dihedral" in s
+    assert f"{r.stats_before.min_dihedral:.3f}" in s
+    assert f"{r.stats_after.min_dihedral:.3f}" in s
+
+
+def test_callback_receives_every_entry_in_order(demo_run):
+    _, seen, r = demo_run
+    assert len(seen) == len(r.history)
+    assert all(a is b for a, b in zip(seen, r.history, strict=True))
+
+
+def test_dirty_set_schedule(demo_run):
+    # failed attempts are not repeated: pass 1 re-attempts only edges whose neighbourhood
+    # changed (measured 5246 -> 4782 edges)
+    _, _, r = demo_run
+    edge = [e for e in r.history if e["op"] == "edge"]
+    assert len(edge) >= 2
+    assert edge[1]["attempts"] < edge[0]["attempts"]
+
+
+# --- options: Options(...) and **kw ------------------------------------------------------
+
+
+def test_options_object_and_kwargs_are_equivalent(demo):
+    kw = dict(ops=("edge", "face"), max_ring=5, max_passes=1)
+    a = jtet.improve(demo, jtet.Options(**kw))
+    b = jtet.improve(demo, **kw)
+    c = jtet.improve(demo, jtet.Options(ops=("edge", "face")), max_ring=5, max_passes=1)
+    assert a.options == b.options == c.options == jtet.Options(**kw)
+    assert a.mesh.n_tets != demo.n_tets  # the runs did change the mesh
+    assert _same_mesh(a.mesh, b.mesh) and _same_mesh(a.mesh, c.mesh)
+    strip = [{k: v for k, v in e.items() if k != "seconds"} for e in a.history]
+    assert strip == [{k: v for k, v in e.items() if k != "seconds"} for e in b.history]
+
+
+def test_ops_run_in_the_order_given(demo):
+    r = jtet.improve(demo, ops=("face", "edge"), max_passes=2)
+    assert [(e["pass"], e["op"]) for e in r.history] == [
+        (0, "face"),
+        (0, "edge"),
+        (1, "face"),
+        (1, "edge"),
+    ]
+
+
+def test_unknown_option_name_raises(demo):
+    with pytest.raises(jtet.JtetError, match="max_rings"):
+        jtet.improve(demo, max_rings=5)
+    with pytest.raises(jtet.JtetError, match="unknown option"):
+        jtet.Options().replace(bogus=1)
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        (dict(ops=("flip",)), "operation"),
+        (dict(ops=()), "operation"),
+        (dict(quality="aspect"), "quality measure"),
+        (dict(max_ring=2), "max_ring"),
+        (dict(max_ring=17), "max_ring"),
+        (dict(max_faces=0), "max_faces"),
+        (dict(boundary="free"), "boundary"),
+        (dict(feature_angle=90.0), "feature_angle"),
+        (dict(max_passes=-1), "max_passes"),
+        (dict(patience=0), "patience"),
+        (dict(min_progress=1.0), "min_progress"),
+        (dict(good_quality=0.0), "good_quality"),
+        (dict(good_quality=1.5), "good_quality"),
+        (dict(good_quality=-0.1), "good_quality"),
+        (dict(time_limit=0), "time_limit"),
+    ],
+)
+def test_bad_option_values_raise(demo, kw, match):
+    with pytest.raises(jtet.JtetError, match=match):
+        jtet.Options(**kw)
+    with pytest.raises(jtet.JtetError, match=match):
+        jtet.improve(demo, **kw)
+
+
+def test_good_quality_accepted_values():
+    assert jtet.Options().good_quality == 0.7
+    assert jtet.Options(good_quality=1.0).good_quality == 1.0
+    assert jtet.Options(good_quality=None).good_quality is None
+    assert jtet.Options(good_quality=0.01).good_quality == 0.01
+
+
+# --- stop rules ----------------------------------------------------------------------
+
+
+def test_max_passes_one(demo, demo_run):
+    _, _, full = demo_run
+    r = jtet.improve(demo, max_passes=1)
+    assert r.status == "max passes"
+    assert _passes(r.history) == [0]
+    assert [e["op"] for e in r.history] == ["edge", "face", "smooth"]
+    # same input, options and seed: pass 0 is the default run's pass 0, count for count
+    for a, b in zip(r.history, full.history[:3], strict=True):
+        for k in ("attempts", "successes", "worst_quality", "n_tets", "min_dihedral"):
+            assert a[k] == b[k], k
+    assert r.mesh.quality().min() > demo.quality().min()
+
+
+def test_max_passes_zero_returns_input(demo):
+    r = jtet.improve(demo, max_passes=0)
+    assert r.history == []
+    assert r.status == "max passes"
+    assert _same_mesh(r.mesh, demo)
+    assert r.stats_after.as_dict() == r.stats_before.as_dict()
+
+
+def test_patience(demo):
+    # edge removal alone: a cheap run that needs several passes on the demo
+    # (measured: patience=1 stops after 4 passes, patience=3 after 6)
+    p1 = jtet.improve(demo, ops=("edge",), patience=1)
+    p3 = jtet.improve(demo, ops=("edge",), patience=3)
+    assert p1.status == p3.status == "converged"
+    n1, n3 = len(_passes(p1.history)), len(_passes(p3.history))
+    assert 2 <= n1 <= n3
+    # both runs make the same passes until patience=1 stops
+    strip = [{k: v for k, v in e.items() if k != "seconds"} for e in p1.history]
+    assert strip == [{k: v for k, v in e.items() if k != "seconds"} for e in p3.history[:n1]]
+    # patience=1 stopped at its first pass without progress: the last pass did not raise
+    # the worst quality enough (a necessary condition: the objective has more entries)
+    w1 = [demo.quality().min(), *_worst_per_pass(p1.history)]
+    assert _no_progress(w1[-2], w1[-1])
+    # patience=3: the last three passes made no progress
+    w3 = [demo.quality().min(), *_worst_per_pass(p3.history)]
+    for p in (1, 2, 3):
+        assert _no_progress(w3[-p - 1], w3[-p])
+    assert p3.mesh.quality().min() >= p1.mesh.quality().min()
+
+
+# --- good_quality ----------------------------------------------------------------------
+
+
+def test_objective_thresholds():
+    q = np.random.default_rng(0).uniform(-0.2, 1.0, 500)
+    o = _objective(q, 0.7)
+    assert len(o) == 1 + 7  # worst, then thresholds 0.1 .. 0.6 and 0.7
+    assert o[0] == q.min()
+    assert o[-1] == pytest.approx(np.minimum(q, 0.7).mean(), rel=1e-15)
+    for i, t in enumerate((0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7)):
+        assert o[1 + i] == pytest.approx(np.minimum(q, t).mean(), rel=1e-14)
+    o = _objective(q, None)
+    assert len(o) == 1 + 10  # thresholds 0.1 .. 0.9 and 1.0
+    assert o[-1] == pytest.approx(np.minimum(q, 1.0).mean(), rel=1e-15)
+    # a threshold that is not a multiple of 0.1 ends the list, once
+    o = _objective(q, 0.55)
+    assert len(o) == 1 + 6
+    assert o[-1] == pytest.approx(np.minimum(q, 0.55).mean(), rel=1e-15)
+
+
+def _assert_nothing_attempted(mesh, **kw):
+    r = jtet.improve(mesh, **kw)
+    assert r.history
+    assert {e["op"] for e in r.history} == {"edge", "face", "smooth"}
+    for e in r.history:
+        assert e["attempts"] == 0, e
+        assert e["successes"] == 0, e
+    assert _same_mesh(r.mesh, mesh)
+    # nothing to do is no progress: the run stops after `patience` passes
+    assert r.status == "converged"
+    assert len(_passes(r.history)) == r.options.patience
+
+
+def test_good_quality_kuhn_grid_untouched():
+    mesh = grid_mesh(3)
+    # every Kuhn tet has dihedral angles 45..90 deg: min_sine is sin(45) normalized by the
+    # regular tet's sine 2 sqrt(2) / 3, i.e. 0.75 >= 0.7 (1e-12: float64 round-off)
+    kuhn = math.sqrt(0.5) / (2 * math.sqrt(2) / 3)
+    assert kuhn == pytest.approx(0.75, abs=1e-15)
+    assert mesh.quality("min_sine").min() == pytest.approx(kuhn, abs=1e-12)
+    _assert_nothing_attempted(mesh)
+
+
+@pytest.mark.parametrize("good", [0.01, 0.5])
+def test_good_quality_improved_demo_untouched(demo_run, good):
+    _, _, r = demo_run
+    assert r.mesh.quality("min_sine").min() > good  # measured 0.53
+    _assert_nothing_attempted(r.mesh, good_quality=good)
+
+
+def test_good_quality_none_attempts_at_least_as_much(demo, demo_run):
+    _, _, full = demo_run  # good_quality=0.7 (default)
+    r = jtet.improve(demo, good_quality=None, max_passes=1)
+    for a, b in zip(r.history, full.history[:3], strict=True):
+        assert a["op"] == b["op"]
+        assert a["attempts"] >= b["attempts"], a["op"]
+    # most tets of the demo are better than 0.7: their edges are only tried with None
+    # (measured 8097 vs 5246 edges)
+    assert r.history[0]["attempts"] > full.history[0]["attempts"]
+
+
+# --- single operations, boundary sliding, every measure -------------------------------
+
+
+@pytest.mark.parametrize("op", ["edge", "face", "smooth"])
+def test_single_op_never_lowers_worst_quality(demo, op):
+    q0 = demo.quality().min()
+    r = jtet.improve(demo, ops=(op,), max_passes=2)
+    assert {e["op"] for e in r.history} == {op}
+    worst = [q0] + [e["worst_quality"] for e in r.history]
+    assert worst == sorted(worst)
+    assert r.mesh.quality().min() >= q0
+    assert r.mesh.is_valid().ok
+    assert r.history[0]["successes"] > 0  # each operation finds work on the demo
+    if op == "smooth":
+        # smoothing moves vertices, never changes the connectivity
+        assert np.array_equal(r.mesh.tets, demo.tets)
+        assert not np.array_equal(r.mesh.points, demo.points)
+    else:
+        assert np.array_equal(r.mesh.points, demo.points)
+
+
+def test_boundary_slide_keeps_boundary():
+    mesh = jtet.demo_mesh("two_regions")
+    assert mesh.n_tets == 1928
+    r = jtet.improve(mesh, boundary="slide")
+    assert r.options.boundary == "slide"
+    assert r.mesh.is_valid().ok
+    # raises InvariantError if the boundary, the z = 0.45 interface, or a region's volume
+    # changed
+    InvariantChecker(mesh).check(r.mesh, 0, "x")
+    # measured: worst min_sine 0.015 -> 0.65 (0.56 with the boundary fixed)
+    assert r.mesh.quality().min() > 0.3
+    # sliding was used: some vertex on a face of the unit box moved (within that face)
+    p0, p1 = mesh.points, r.mesh.points
+    moved = np.any(p0 != p1, axis=1)
+    on_box = np.any(np.isclose(p0, 0.0, atol=1e-12) | np.isclose(p0, 1.0, atol=1e-12), axis=1)
+    assert (moved & on_box).any()
+    for axis in range(3):
+        for v in (0.0, 1.0):
+            plane = np.isclose(p0[:, axis], v, atol=1e-12)
+            assert np.allclose(p1[plane, axis], v, atol=1e-12)
+
+
+@pytest.mark.parametrize("measure", sorted(jtet.MEASURES))
+def test_every_measure_edge_pass(demo, measure):
+    q0 = jtet.quality(demo, measure).min()
+    r = jtet.improve(demo, ops=("edge",), max_passes=1, quality=measure)
+    q1 = jtet.quality(r.mesh, measure).min()
+    assert r.options.quality == measure
+    assert r.history[-1]["worst_quality"] == q1
+    assert q1 >= q0
+    # the demo's worst tets are interior slivers that edge removal fixes under every
+    # measure (measured: worst quality x9 or more)
+    assert q1 > q0
+    assert r.history[0]["successes"] > 0
+    assert r.mesh.is_valid().ok
