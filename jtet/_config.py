@@ -35,6 +35,28 @@ if _cache_dir and _cache_dir.lower() != "off":
         pass
 
 
+# Independent kernel calls (e.g. the batches of one smoothing colour) run in this many
+# threads: XLA runs each call on one core, and JAX releases the GIL while it runs, so on
+# 2 cores two calls in flight measured 1.4-1.9x one after the other.
+WORKERS = max(1, int(os.environ.get("JTET_THREADS", os.cpu_count() or 1)))
+_pool = None
+_pool_lock = threading.Lock()
+
+
+def parallel_map(fn, items: list) -> list:
+    """``[fn(x) for x in items]`` on ``WORKERS`` threads, results in order (deterministic:
+    the items must not depend on each other)."""
+    global _pool
+    if WORKERS == 1 or len(items) < 2:
+        return [fn(x) for x in items]
+    with _pool_lock:
+        if _pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            _pool = ThreadPoolExecutor(WORKERS, thread_name_prefix="jtet")
+    return list(_pool.map(fn, items))
+
+
 def bucket_capacity(n: int, minimum: int = 256) -> int:
     """Smallest capacity from the fixed set {minimum * 2**k} holding ``n`` items.
 

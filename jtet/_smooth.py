@@ -38,6 +38,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from ._config import parallel_map
 from ._errors import JtetError
 from ._predicates import orient3d_tets
 from ._quality import _SIN_REGULAR, _cross, _dot, _safe_div, _TetGeometry, get_measure
@@ -708,12 +709,19 @@ def smooth_pass(
     for verts in sets:
         # bucket by star size: the smallest capacity holding the star
         bucket = np.searchsorted(np.asarray(capacities), size[verts], side="left")
+        tasks = []
         for bi, K in enumerate(capacities):
             vb = verts[bucket == bi]
             attempts += len(vb)
-            for chunk, size_b in _chunks(len(vb), *batch_sizes):
-                moved = _run_batch(kernels[K], K, size_b, vb[chunk], pts, basis, ptr, opp_ids)
-                moved_all.append(moved)
+            tasks += [(K, size_b, vb[chunk]) for chunk, size_b in _chunks(len(vb), *batch_sizes)]
+        # one colour's vertices share no tet: its batches are independent, solved in
+        # parallel, and every batch reads only points no other batch of it writes
+        results = parallel_map(
+            lambda task: _solve_batch(kernels[task[0]], *task, pts, basis, ptr, opp_ids), tasks
+        )
+        for ids, positions in results:
+            pts[ids] = positions
+            moved_all.append(ids)
     moved = np.concatenate(moved_all) if moved_all else np.zeros(0, np.int64)
     new = mesh.replace(points=pts)
     # connectivity and subfacet planes are unchanged: the topology stays valid
@@ -763,15 +771,15 @@ def gather_stars(
     return pts[opp_ids[rows]], mask
 
 
-def _run_batch(kernel, K, batch, chunk, pts, basis, ptr, opp_ids) -> np.ndarray:
-    """Smooth the vertices ``chunk`` (an independent set, star sizes <= K) in one padded
-    kernel call; writes accepted positions into ``pts``; returns the moved ids."""
+def _solve_batch(
+    kernel, K, batch, chunk, pts, basis, ptr, opp_ids
+) -> tuple[np.ndarray, np.ndarray]:
+    """Smooth the vertices ``chunk`` (an independent set, star sizes <= K) in one kernel
+    call padded to ``batch``; returns (moved ids (j,), their new positions (j, 3))."""
     b = len(chunk)
     padded = np.concatenate([chunk, np.full(batch - b, chunk[0])]) if b < batch else chunk
     opp, mask = gather_stars(padded, K, pts, ptr, opp_ids)
     new_pos, q_old, q_new = kernel(pts[padded], basis[padded], opp, mask)
     new_pos, q_old, q_new = (np.asarray(a)[:b] for a in (new_pos, q_old, q_new))
     ok = q_new > q_old
-    ids = chunk[ok]
-    pts[ids] = new_pos[ok]
-    return ids
+    return chunk[ok], new_pos[ok]
