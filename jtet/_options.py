@@ -3,12 +3,24 @@
 from __future__ import annotations
 
 import dataclasses
+import math
+import numbers
 from dataclasses import dataclass
 
 from ._errors import JtetError
 from ._quality import MEASURES
 
 OPS = ("edge", "face", "smooth")
+_INTS = ("max_ring", "max_faces", "max_passes", "patience", "seed")
+_FLOATS = (
+    "feature_angle",
+    "time_limit",
+    "min_improvement",
+    "min_progress",
+    "good_quality",
+    "smooth_threshold",
+)
+_OPTIONAL = ("time_limit", "good_quality", "smooth_threshold")
 BOUNDARY_MODES = ("fixed", "slide")
 
 
@@ -63,6 +75,25 @@ class Options:
     progress: bool = False
 
     def __post_init__(self):
+        for name in _INTS:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                raise JtetError(f"{name} must be an integer, got {value!r}")
+            object.__setattr__(self, name, int(value))
+        for name in _FLOATS:
+            value = getattr(self, name)
+            if value is None and name in _OPTIONAL:
+                continue
+            if isinstance(value, bool) or not isinstance(value, numbers.Real):
+                raise JtetError(f"{name} must be a number, got {value!r}")
+            if not math.isfinite(value):
+                raise JtetError(f"{name} must be finite, got {value!r}")
+            object.__setattr__(self, name, float(value))
+        for name in ("check", "progress"):
+            if not isinstance(getattr(self, name), bool):
+                raise JtetError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        if self.seed < 0:
+            raise JtetError(f"seed must be >= 0, got {self.seed}")
         ops = (self.ops,) if isinstance(self.ops, str) else tuple(self.ops)
         object.__setattr__(self, "ops", ops)
         bad = [o for o in ops if o not in OPS]

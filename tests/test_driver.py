@@ -227,6 +227,15 @@ def test_unknown_option_name_raises(demo):
         (dict(good_quality=1.5), "good_quality"),
         (dict(good_quality=-0.1), "good_quality"),
         (dict(time_limit=0), "time_limit"),
+        # wrong types and values that used to pass and fail later (or never stop)
+        (dict(seed=-1), "seed"),
+        (dict(max_ring=7.5), "max_ring"),
+        (dict(max_ring="7"), "max_ring"),
+        (dict(max_passes=True), "max_passes"),
+        (dict(time_limit=float("nan")), "time_limit"),
+        (dict(min_improvement=float("inf")), "min_improvement"),
+        (dict(smooth_threshold="x"), "smooth_threshold"),
+        (dict(check=1), "check"),
     ],
 )
 def test_bad_option_values_raise(demo, kw, match):
