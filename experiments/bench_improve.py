@@ -87,8 +87,17 @@ def run_one(name: str, ops: tuple[str, ...], time_limit: float | None, mesh=None
         "us_per_tet": 1e6 * wall / mesh.n_tets,
         "passes": 1 + max((h["pass"] for h in r.history), default=-1),
         "smooth_share": smooth_s / wall,
+        # peak resident set of this process so far (rows run in order of size: the peak of
+        # the largest mesh is its own)
+        "peak_rss_gb": _peak_rss_gb(),
         "status": r.status,
     }
+
+
+def _peak_rss_gb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux
 
 
 def smooth_effort(names: list[str], ops: tuple[str, ...], efforts: list[str]) -> None:
@@ -127,6 +136,7 @@ def print_table(rows: list[dict], title: str) -> None:
         "us/tet",
         "passes",
         "smooth %",
+        "peak RSS GB",
         "status",
     ]
     body = [
@@ -140,6 +150,7 @@ def print_table(rows: list[dict], title: str) -> None:
             f"{r['us_per_tet']:.0f}",
             str(r["passes"]),
             f"{100 * r['smooth_share']:.0f}",
+            f"{r['peak_rss_gb']:.2f}",
             r["status"],
         ]
         for r in rows

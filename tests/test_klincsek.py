@@ -339,6 +339,22 @@ def realistic(m: int, n: int, seed: int):
     return a, b, ring, q_old
 
 
+@pytest.mark.parametrize("prune", [False, True])
+def test_threads_split_chunks_without_changing_results(monkeypatch, prune):
+    # the chunk axis is split over worker threads; 1, 2 and 3 workers (3 does not divide
+    # the 4 chunks: falls back to 2) must give bit-identical results
+    from jtet import _config
+
+    m = kl.PRUNE_MIN_M
+    a, b, ring, q_old = realistic(m, 3 * kl.CHUNK, seed=5)
+    results = []
+    for workers in (1, 2, 3):
+        monkeypatch.setattr(_config, "WORKERS", workers)
+        results.append(kl.solve_rings(a, b, ring, q_old, prune=prune))
+    for q, t in results[1:]:
+        assert np.array_equal(q, results[0][0]) and np.array_equal(t, results[0][1])
+
+
 @pytest.mark.parametrize("prune", [True, "quality", "volume"])
 def test_pruned_matches_unpruned_on_successes(prune):
     m = kl.PRUNE_MIN_M

@@ -445,6 +445,23 @@ def to_chunks(
     return out
 
 
+def _parallel_chunks(kernel, arrays: list[np.ndarray], **static):
+    """``kernel(*arrays, **static)`` with the chunk axis (0) split evenly over
+    ``_config.WORKERS`` threads (XLA runs one call on one core). The parts keep
+    power-of-two chunk counts, so they hit the same compiled shapes as whole batches."""
+    nc = arrays[0].shape[0]
+    w = _config.WORKERS
+    while w > 1 and nc % w:
+        w -= 1
+    if w == 1:
+        return kernel(*arrays, **static)
+    parts = [[x[i * nc // w : (i + 1) * nc // w] for x in arrays] for i in range(w)]
+    outs = _config.parallel_map(lambda part: jax.device_get(kernel(*part, **static)), parts)
+    if isinstance(outs[0], tuple):
+        return tuple(np.concatenate(o) for o in zip(*outs, strict=True))
+    return np.concatenate(outs)
+
+
 def _unchunk_q(q, n: int) -> np.ndarray:
     return np.asarray(q).reshape(-1)[:n]
 
@@ -533,19 +550,21 @@ def solve_rings(
     cap = _config.bucket_capacity(n, 2 * CHUNK)
     soa = to_chunks(a, b, ring, cap)
     if not prune or (prune is True and m < PRUNE_MIN_M):
-        q_new, tris = solve_chunks(*soa, measure=measure)
+        q_new, tris = _parallel_chunks(solve_chunks, soa, measure=measure)
         return _unchunk_q(q_new, n), _unchunk_tris(tris, n)
 
     mode = "quality" if prune is True else prune
     q_pad = np.full(cap, np.inf)  # padding rings never survive the screen
     q_pad[:n] = q_old
-    alive = screen_chunks(*soa, q_pad.reshape(-1, CHUNK), measure=measure, mode=mode)
+    alive = _parallel_chunks(
+        screen_chunks, [*soa, q_pad.reshape(-1, CHUNK)], measure=measure, mode=mode
+    )
     idx = np.flatnonzero(_unchunk_q(alive, n))
     q_new = np.full(n, -np.inf)
     tris = np.broadcast_to(_fan(m), (n, m - 2, 3)).copy()
     if idx.size:
         sub = to_chunks(a[idx], b[idx], ring[idx], _config.bucket_capacity(idx.size, 2 * CHUNK))
-        q2, t2 = solve_chunks(*sub, measure=measure)
+        q2, t2 = _parallel_chunks(solve_chunks, sub, measure=measure)
         q_new[idx] = _unchunk_q(q2, idx.size)
         tris[idx] = _unchunk_tris(t2, idx.size)
     return q_new, tris
