@@ -376,31 +376,37 @@ def solve_forest(
     chosen = np.zeros((nt, N), bool)
     P = mesh.points
     live = ~forest.bad
+    tasks = []
     lo = 0
     for cap in _tree_caps(N):
         group = np.flatnonzero(live & (forest.count > lo) & (forest.count <= cap))
         lo = cap
-        for start in range(0, len(group), _CHUNK):
-            sel = group[start : start + _CHUNK]
-            bcap = _config.bucket_capacity(len(sel))
-            pad = np.concatenate([sel, np.full(bcap - len(sel), sel[0])])
-            real = np.arange(bcap) < len(sel)
-            f = forest.face[pad, :cap]
-            valid = (f >= 0) & real[:, None]
-            xyz = P[forest.verts[pad, :cap]]  # (B, cap, 3 corners, 3 coords)
-            pa, pb = P[forest.a[pad]], P[forest.b[pad]]
-            qt = np.minimum(quality[forest.ta[pad, :cap]], quality[forest.tb[pad, :cap]])
-            child = np.where(valid[:, :, None], forest.child[pad, :cap], -1)
-            qo, qn, ch = solve_trees(
-                pa[:, 0], pa[:, 1], pa[:, 2], pb[:, 0], pb[:, 1], pb[:, 2],
-                xyz[..., 0], xyz[..., 1], xyz[..., 2],
-                np.maximum(forest.parent[pad, :cap], 0), forest.pslot[pad, :cap], child,
-                qt, valid, np.int32(forest.count[sel].max()), measure=measure,
-            )  # fmt: skip
-            n = len(sel)
-            q_old[sel] = np.asarray(qo)[:n]
-            q_new[sel] = np.asarray(qn)[:n]
-            chosen[sel, :cap] = np.asarray(ch)[:n]
+        tasks += [(cap, group[s : s + _CHUNK]) for s in range(0, len(group), _CHUNK)]
+
+    def solve(task):
+        cap, sel = task
+        bcap = _config.bucket_capacity(len(sel))
+        pad = np.concatenate([sel, np.full(bcap - len(sel), sel[0])])
+        real = np.arange(bcap) < len(sel)
+        f = forest.face[pad, :cap]
+        valid = (f >= 0) & real[:, None]
+        xyz = P[forest.verts[pad, :cap]]  # (B, cap, 3 corners, 3 coords)
+        pa, pb = P[forest.a[pad]], P[forest.b[pad]]
+        qt = np.minimum(quality[forest.ta[pad, :cap]], quality[forest.tb[pad, :cap]])
+        child = np.where(valid[:, :, None], forest.child[pad, :cap], -1)
+        out = solve_trees(
+            pa[:, 0], pa[:, 1], pa[:, 2], pb[:, 0], pb[:, 1], pb[:, 2],
+            xyz[..., 0], xyz[..., 1], xyz[..., 2],
+            np.maximum(forest.parent[pad, :cap], 0), forest.pslot[pad, :cap], child,
+            qt, valid, np.int32(forest.count[sel].max()), measure=measure,
+        )  # fmt: skip
+        return [np.asarray(x)[: len(sel)] for x in out]
+
+    # the trees' chunks are independent: solved on the worker threads, in order
+    for (cap, sel), (qo, qn, ch) in zip(tasks, _config.parallel_map(solve, tasks), strict=True):
+        q_old[sel] = qo
+        q_new[sel] = qn
+        chosen[sel, :cap] = ch
     return q_old, q_new, chosen
 
 
