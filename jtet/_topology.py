@@ -106,7 +106,14 @@ def _group(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def _csr(groups: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray]:
     """(ptr, order): entries sorted by group id, and CSR pointers per group."""
-    order = np.argsort(groups, kind="stable")
+    N = len(groups)
+    ibits = max(N - 1, 1).bit_length()
+    if max(n_groups - 1, 1).bit_length() + ibits <= 63:
+        # stable argsort by a value sort of packed (group, index) pairs, as in ``_group``
+        order = np.sort((groups.astype(np.int64) << ibits) | np.arange(N, dtype=np.int64))
+        order &= (1 << ibits) - 1
+    else:
+        order = np.argsort(groups, kind="stable")
     counts = np.bincount(groups, minlength=n_groups)
     ptr = np.zeros(n_groups + 1, np.int64)
     np.cumsum(counts, out=ptr[1:])
