@@ -617,7 +617,7 @@ def smooth_pass(
     min_gain: float = 1e-9,
     sharpness: tuple[float, ...] = (20.0, 80.0),
     slide_tol: float = 1e-10,
-    batch_sizes: tuple[int, int] = (8, 64),
+    batch_sizes: tuple[int, int] = (32, 32),
     levels: int = 4,
     seed: int = 0,
 ):
@@ -639,8 +639,11 @@ def smooth_pass(
             largest is skipped and counted.
         slide_tol: flatness / straightness tolerance for sliding (see ``motion_bases``).
         batch_sizes: (small, large) vertices per kernel call: full large batches, the rest
-            in small ones (or one large one if that wastes less); two fixed sizes so the
-            kernel compiles at most twice per capacity K.
+            in small ones (or one large one if that wastes less); fixed sizes so the
+            kernel compiles at most twice per capacity K. Default one size, 32: tracing
+            and lowering the kernel costs ~2.5 s per shape in every new process (the
+            persistent cache skips only XLA's compile), and (8, 64) measured at most
+            ~20 % faster in steady state (cube 1.7 s either way, sphere 4.7 vs 5.6 s).
         levels: the worst-star quality is cut into this many quantile levels; worse levels
             are smoothed first, random order within a level (see ``independent_sets``).
         seed: seed of the random tie-breaking.
