@@ -25,12 +25,14 @@ jax.config.update("jax_enable_x64", True)
 _cache_dir = os.environ.get(
     "JTET_COMPILATION_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "jtet", "jax")
 )
+CACHE_DIR = None  # the cache directory in use (also holds _aot's exported kernels), or None
 if _cache_dir and _cache_dir.lower() != "off":
     try:
         os.makedirs(_cache_dir, exist_ok=True)
         jax.config.update("jax_compilation_cache_dir", _cache_dir)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+        CACHE_DIR = _cache_dir
     except OSError:  # a read-only home must not stop jtet; it only costs compile time
         pass
 

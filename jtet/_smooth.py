@@ -38,6 +38,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from ._aot import cached_call
 from ._config import parallel_map
 from ._errors import JtetError
 from ._predicates import orient3d_tets
@@ -407,11 +408,13 @@ def smooth_star(
 @functools.cache
 def batched_smoother(measure: str, solver: str, max_iters: int, **options):
     """Jitted ``vmap`` of ``smooth_star`` over (v0 (B,3), basis (B,3,3), opp (B,K,3,3),
-    mask (B,K)) for fixed static settings; cached so a pass never re-traces it."""
+    mask (B,K)) for fixed static settings; cached so a pass never re-traces it, and
+    exported to disk (``_aot``) so a new process does not trace it either."""
     fn = functools.partial(
         smooth_star, measure=measure, solver=solver, max_iters=max_iters, **options
     )
-    return jax.jit(jax.vmap(fn))
+    settings = (measure, solver, max_iters, tuple(sorted(options.items())))
+    return functools.partial(cached_call, "smooth_star", settings, jax.vmap(fn))
 
 
 # ---------------------------------------------------------------------------------------
