@@ -22,11 +22,13 @@ exactly "the new tet (a, b, v, u) is positive".
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
 from . import _config
+from ._aot import cached_call
 from ._apply import nonconforming_owners, replace_tets
 from ._edge_removal import PassStats, _segments
 from ._kernels.multiface import solve_trees
@@ -394,11 +396,12 @@ def solve_forest(
         pa, pb = P[forest.a[pad]], P[forest.b[pad]]
         qt = np.minimum(quality[forest.ta[pad, :cap]], quality[forest.tb[pad, :cap]])
         child = np.where(valid[:, :, None], forest.child[pad, :cap], -1)
-        out = solve_trees(
+        out = cached_call(
+            "solve_trees", (measure,), functools.partial(solve_trees, measure=measure),
             pa[:, 0], pa[:, 1], pa[:, 2], pb[:, 0], pb[:, 1], pb[:, 2],
             xyz[..., 0], xyz[..., 1], xyz[..., 2],
             np.maximum(forest.parent[pad, :cap], 0), forest.pslot[pad, :cap], child,
-            qt, valid, np.int32(forest.count[sel].max()), measure=measure,
+            qt, valid, np.asarray(forest.count[sel].max(), np.int32),
         )  # fmt: skip
         return [np.asarray(x)[: len(sel)] for x in out]
 

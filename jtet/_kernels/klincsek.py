@@ -66,6 +66,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .. import _config
+from .._aot import cached_call
 from .._errors import JtetError
 from .._quality import Vec, get_measure, signed_volume
 
@@ -453,10 +454,15 @@ def _parallel_chunks(kernel, arrays: list[np.ndarray], **static):
     w = _config.WORKERS
     while w > 1 and nc % w:
         w -= 1
+    # traced once per shape and settings, then reloaded from disk by later processes
+    name, settings = kernel.__name__, tuple(sorted(static.items()))
+    fn = functools.partial(kernel, **static)
     if w == 1:
-        return kernel(*arrays, **static)
+        return cached_call(name, settings, fn, *arrays)
     parts = [[x[i * nc // w : (i + 1) * nc // w] for x in arrays] for i in range(w)]
-    outs = _config.parallel_map(lambda part: jax.device_get(kernel(*part, **static)), parts)
+    outs = _config.parallel_map(
+        lambda part: jax.device_get(cached_call(name, settings, fn, *part)), parts
+    )
     if isinstance(outs[0], tuple):
         return tuple(np.concatenate(o) for o in zip(*outs, strict=True))
     return np.concatenate(outs)
