@@ -24,7 +24,7 @@ import jax
 
 from . import _config
 
-_memo: dict[str, object] = {}
+_memo: dict[tuple, object] = {}  # (name, settings, shapes) -> jitted call
 _lock = threading.Lock()
 
 
@@ -45,8 +45,7 @@ def cached_call(name: str, settings: tuple, fn, *args):
     """``jax.jit(fn)(*args)``, with the traced ``fn`` for these argument shapes exported to
     and reloaded from the on-disk cache. ``settings`` must name everything ``fn`` closes
     over (static options); ``name`` the kernel."""
-    shapes = tuple((tuple(a.shape), str(a.dtype)) for a in args)
-    key = hashlib.sha256(repr((name, settings, shapes, _source_hash())).encode()).hexdigest()
+    key = (name, settings, tuple((a.shape, str(a.dtype)) for a in args))
     call = _memo.get(key)
     if call is None:
         with _lock:  # one thread exports / loads a kernel; the others wait for it
@@ -57,12 +56,13 @@ def cached_call(name: str, settings: tuple, fn, *args):
     return call(*args)
 
 
-def _load_or_export(key: str, fn, args):
+def _load_or_export(key: tuple, fn, args):
     directory = _directory()
     jitted = jax.jit(fn)
     if directory is None:
         return jitted
-    path = directory / f"{key}.bin"
+    digest = hashlib.sha256(repr((key, _source_hash())).encode()).hexdigest()
+    path = directory / f"{digest}.bin"
     try:
         if path.exists():
             return jax.jit(jax.export.deserialize(bytearray(path.read_bytes())).call)
