@@ -35,6 +35,21 @@ from pathlib import Path
 # and prints one JSON line {"seconds", "rss_mb", "py_peak_mb", ...}.
 
 
+def _save_positive(pts, tets, path) -> int:
+    """Reorder the negatively oriented tets (swap two vertices), save the mesh, return the
+    number of tets. Generated tets come in either orientation (scipy, the grid's paths)."""
+    import numpy as np
+
+    import jtet
+
+    p = pts[tets]
+    vol = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
+    tets[vol < 0] = tets[vol < 0][:, [1, 0, 2, 3]]
+    mesh = jtet.TetMesh(pts, tets)
+    jtet.save(mesh, path)
+    return mesh.n_tets
+
+
 def _rss_mb() -> float:
     import resource
 
@@ -62,14 +77,7 @@ def _worker(name: str, args) -> dict:
         rng = np.random.default_rng(0)
         pts = rng.random((args.points1m, 3))
         tets = Delaunay(pts).simplices.astype(np.int64)
-        p = pts[tets]
-        vol = np.einsum(
-            "ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])
-        )
-        tets[vol < 0] = tets[vol < 0][:, [1, 0, 2, 3]]
-        mesh = jtet.TetMesh(pts, tets)
-        jtet.save(mesh, cache / "mesh1m.vtu")
-        info["n_tets"] = mesh.n_tets
+        info["n_tets"] = _save_positive(pts, tets, cache / "mesh1m.vtu")
     elif name == "make5m":
         n = args.grid5m
         ax = np.linspace(0.0, 1.0, n + 1)
@@ -86,14 +94,7 @@ def _worker(name: str, args) -> dict:
         ]
         paths = [(4, 6), (4, 5), (2, 6), (2, 3), (1, 5), (1, 3)]
         tets = np.concatenate([np.stack([c[0], c[a], c[b], c[7]], axis=1) for a, b in paths])
-        p = pts[tets]
-        vol = np.einsum(
-            "ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])
-        )
-        tets[vol < 0] = tets[vol < 0][:, [1, 0, 2, 3]]
-        mesh = jtet.TetMesh(pts, tets)
-        jtet.save(mesh, cache / "mesh5m.vtu")
-        info["n_tets"] = mesh.n_tets
+        info["n_tets"] = _save_positive(pts, tets, cache / "mesh5m.vtu")
     elif name in ("load1m", "load5m"):
         mesh = jtet.load(cache / f"mesh{name[4:]}.vtu")
         info["n_tets"] = mesh.n_tets
