@@ -79,3 +79,25 @@ def test_saved_files_are_identical(tmp_path):
     jtet.save(r1.mesh, tmp_path / "a.vtu")
     jtet.save(r2.mesh, tmp_path / "b.vtu")
     assert (tmp_path / "a.vtu").read_bytes() == (tmp_path / "b.vtu").read_bytes()
+
+
+def test_worker_threads_do_not_change_the_output(monkeypatch):
+    # independent kernel calls run on _config.WORKERS threads (Klincsek chunk groups,
+    # tree chunks, one smoothing colour's batches); 1 and 2 workers must agree bit for bit
+    from jtet import _config
+
+    mesh = jtet.demo_mesh()
+    parallel_calls = []
+    serial_map = _config.parallel_map
+
+    def counting_map(fn, items):
+        parallel_calls.append(len(items))
+        return serial_map(fn, items)
+
+    monkeypatch.setattr(_config, "parallel_map", counting_map)
+    digests = []
+    for workers in (1, 2):
+        monkeypatch.setattr(_config, "WORKERS", workers)
+        digests.append(_digest(jtet.improve(mesh, max_passes=2).mesh))
+    assert max(parallel_calls) >= 2  # some calls really had several items to spread
+    assert digests[0] == digests[1]
