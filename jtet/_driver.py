@@ -9,9 +9,7 @@ where most of the speed is won: most attempts fail, and failing again is pure wa
 
 from __future__ import annotations
 
-import signal
 import sys
-import threading
 import time
 from dataclasses import dataclass, field
 
@@ -188,13 +186,15 @@ def improve(
         from ._invariants import InvariantChecker
 
         checker = InvariantChecker(mesh)
-    ctrl_c = _CtrlC()
+    from ._interrupt import catch_ctrl_c, pressed
+
+    ctrl_c = catch_ctrl_c()
     try:
-        ctrl_c.install()
+        ctrl_c.__enter__()
         for pass_no in range(opts.max_passes):
             pass_obj = obj
             for op in opts.ops:
-                if ctrl_c.pressed:  # its KeyboardInterrupt was swallowed (see _CtrlC)
+                if pressed():  # its KeyboardInterrupt was swallowed (see _interrupt)
                     status = "interrupted"
                     raise _Stop
                 if opts.time_limit is not None and time.perf_counter() - t0 > opts.time_limit:
@@ -262,7 +262,7 @@ def improve(
         # the checker runs before ``current`` is replaced: it is the last good mesh
         status = "invariant violation: " + " ".join(str(e).split())
     finally:
-        ctrl_c.uninstall()
+        ctrl_c.__exit__(None, None, None)
     return ImproveResult(
         mesh=current,
         stats_before=stats_before,
@@ -287,34 +287,6 @@ def _stats_dict(op: str, stats) -> dict:
 
 class _Stop(Exception):
     pass
-
-
-class _CtrlC:
-    """Remembers a Ctrl-C during ``improve``. Python raises KeyboardInterrupt wherever the
-    main thread is, and where that is a garbage-collection callback (JAX registers one)
-    the exception is printed and swallowed: the run went on and ended "converged"
-    (seen in CI). The handler still raises, and also sets ``pressed``, which the loop
-    checks between operations. Only Python's default handler is replaced (a user's own
-    handler is left alone), and only from the main thread."""
-
-    def __init__(self):
-        self.pressed = False
-        self.previous = None
-
-    def _handler(self, signum, frame):
-        self.pressed = True
-        raise KeyboardInterrupt
-
-    def install(self) -> None:
-        if threading.current_thread() is not threading.main_thread():
-            return
-        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-            self.previous = signal.signal(signal.SIGINT, self._handler)
-
-    def uninstall(self) -> None:
-        if self.previous is not None:
-            signal.signal(signal.SIGINT, self.previous)
-            self.previous = None
 
 
 # Quality measures multiply up to six lengths: beyond these extents they overflow to

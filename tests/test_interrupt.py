@@ -326,3 +326,31 @@ def _check_swallowed_ctrl_c(mesh, signal):
     assert result.status == "interrupted"
     assert len(result.history) == 1  # stopped before the next operation
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+
+def test_cli_remembers_a_ctrl_c_swallowed_before_the_optimizer_starts(
+    infile, tmp_path, monkeypatch, capsys
+):
+    # seen in CI: Ctrl-C ~2 s after start landed in JAX's gc callback while the input was
+    # read, was swallowed, and the CLI ran to the end with exit 0
+    import signal
+
+    original = _io.load
+
+    def load_then_swallowed_ctrl_c(path, *a, **kw):
+        mesh = original(path, *a, **kw)
+        try:
+            signal.getsignal(signal.SIGINT)(signal.SIGINT, None)
+        except KeyboardInterrupt:
+            pass  # what a gc callback does with it
+        return mesh
+
+    monkeypatch.setattr(_io, "load", load_then_swallowed_ctrl_c)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        out = tmp_path / "out.vtu"
+        code = cli.main(["improve", str(infile), str(out), "--ops", "edge", "-q"])
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert code == 130
+    assert "interrupted" in capsys.readouterr().err
