@@ -45,3 +45,4 @@ def catch_ctrl_c():
         yield
     finally:
         signal.signal(signal.SIGINT, previous)
+        _pressed = False  # the record never outlives the handler that made it
