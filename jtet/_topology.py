@@ -204,10 +204,6 @@ class Topology:
             face_tets[tet_faces, 0],
         )
         tet_neighbors = other
-        boundary_face = counts == 1
-        r0 = region[face_tets[:, 0]]
-        r1 = np.where(two, region[np.maximum(face_tets[:, 1], 0)], r0)
-        interface_face = two & (r0 != r1)
         protected = np.zeros(F, bool)
         if len(mesh.protected_faces):
             idx = match_rows(faces, mesh.protected_faces, n)
@@ -215,31 +211,14 @@ class Topology:
                 bad = mesh.protected_faces[idx < 0][0].tolist()
                 raise MeshInputError(f"protected face {bad} is not a face of the mesh")
             protected[idx] = True
-        subfacet = boundary_face | interface_face | protected
-        # Surface identity: the (region, region) pair it separates; user-protected faces
-        # inside one region form surfaces of their own kind.
-        sub = np.flatnonzero(subfacet)
-        rmin, rmax = np.minimum(r0[sub], r1[sub]), np.maximum(r0[sub], r1[sub])
-        _, surface_code = np.unique(
-            np.stack(
-                [
-                    np.where(boundary_face[sub], -1, rmin),
-                    rmax,
-                    protected[sub] & ~interface_face[sub] & ~boundary_face[sub],
-                ],
-                1,
-            ),
-            axis=0,
-            return_inverse=True,
+        boundary_face, interface_face, subfacet, surface_id = _face_flags(
+            face_tets, region, protected
         )
-        surface_id = np.full(F, -1, np.int64)
-        surface_id[sub] = surface_code.reshape(-1)
 
         # ---------------------------------------------------------------- edges
         te = np.sort(tets[:, TET_EDGES], axis=2).reshape(-1, 2)  # (6m, 2)
         eperm, eptr, einv = _group(te[:, 0] * np.int64(n) + te[:, 1])
         edges = te[eperm[eptr[:-1]]]
-        E = len(edges)
         tet_edges = einv.reshape(m, 6)
 
         # ring step c -> d of every (tet, local edge), oriented w.r.t. the sorted edge:
@@ -258,27 +237,9 @@ class Topology:
         edge_tets_ptr = eptr
 
         # ---------------------------------------------------------------- protection
-        # subfacets containing each edge: every face has 3 edges
-        sfaces = faces[sub]
-        fe = np.stack([sfaces[:, [0, 1]], sfaces[:, [0, 2]], sfaces[:, [1, 2]]], 1).reshape(-1, 2)
-        ekeys_u = edges[:, 0] * np.int64(n) + edges[:, 1]  # sorted: edges come from a sort
-        sf_edge = np.searchsorted(ekeys_u, fe[:, 0] * np.int64(n) + fe[:, 1])
-        sf_face = np.repeat(sub, 3)
-        edge_n_subfacets = np.bincount(sf_edge, minlength=E)
-        subsegment = (edge_n_subfacets != 0) & (edge_n_subfacets != 2)
-        subsegment |= ~edge_manifold
-        # edges with exactly two subfacets: same surface and coplanar?
-        pair_edges = np.flatnonzero(edge_n_subfacets == 2)
-        if len(pair_edges):
-            optr, oorder = _csr(sf_edge, E)
-            f1 = sf_face[oorder[optr[pair_edges]]]
-            f2 = sf_face[oorder[optr[pair_edges] + 1]]
-            diff_surface = surface_id[f1] != surface_id[f2]
-            a, b = edges[pair_edges, 0], edges[pair_edges, 1]
-            third1 = faces[f1].sum(1) - a - b
-            third2 = faces[f2].sum(1) - a - b
-            bent = _bent(points, a, b, third1, third2, feature_angle)
-            subsegment[pair_edges] |= diff_surface | bent
+        edge_n_subfacets, subsegment = _subsegments(
+            points, faces, subfacet, surface_id, edges, edge_manifold, feature_angle
+        )
         if len(mesh.protected_edges):
             idx = match_rows(edges, mesh.protected_edges, n)
             if (idx < 0).any():
@@ -318,6 +279,72 @@ class Topology:
             surface_normal=surface_normal,
             segment_direction=segment_direction,
         )
+
+
+def _face_flags(face_tets, region, protected):
+    """Boundary, interface, subfacet flags (F,) and surface ids (F,) of every face.
+
+    ``face_tets`` (F, 2) with -1 in slot 1 for a boundary face, ``region`` (m,) tet labels,
+    ``protected`` (F,) bool user-protected faces. Shared by ``Topology.build`` and the
+    incremental update so both give identical arrays.
+    """
+    two = face_tets[:, 1] >= 0
+    boundary_face = ~two
+    r0 = region[face_tets[:, 0]]
+    r1 = np.where(two, region[np.maximum(face_tets[:, 1], 0)], r0)
+    interface_face = two & (r0 != r1)
+    subfacet = boundary_face | interface_face | protected
+    # Surface identity: the (region, region) pair it separates; user-protected faces
+    # inside one region form surfaces of their own kind.
+    sub = np.flatnonzero(subfacet)
+    rmin, rmax = np.minimum(r0[sub], r1[sub]), np.maximum(r0[sub], r1[sub])
+    _, surface_code = np.unique(
+        np.stack(
+            [
+                np.where(boundary_face[sub], -1, rmin),
+                rmax,
+                protected[sub] & ~interface_face[sub] & ~boundary_face[sub],
+            ],
+            1,
+        ),
+        axis=0,
+        return_inverse=True,
+    )
+    surface_id = np.full(len(face_tets), -1, np.int64)
+    surface_id[sub] = surface_code.reshape(-1)
+    return boundary_face, interface_face, subfacet, surface_id
+
+
+def _subsegments(points, faces, subfacet, surface_id, edges, edge_manifold, feature_angle):
+    """(E,) number of subfacets on each edge and (E,) subsegment flags.
+
+    ``edges`` (E, 2) must be sorted by key a * n + b (as built). User-protected edges are
+    added by the caller.
+    """
+    n, E = len(points), len(edges)
+    sub = np.flatnonzero(subfacet)
+    # subfacets containing each edge: every face has 3 edges
+    sfaces = faces[sub]
+    fe = np.stack([sfaces[:, [0, 1]], sfaces[:, [0, 2]], sfaces[:, [1, 2]]], 1).reshape(-1, 2)
+    ekeys_u = edges[:, 0] * np.int64(n) + edges[:, 1]  # sorted: edges come from a sort
+    sf_edge = np.searchsorted(ekeys_u, fe[:, 0] * np.int64(n) + fe[:, 1])
+    sf_face = np.repeat(sub, 3)
+    edge_n_subfacets = np.bincount(sf_edge, minlength=E)
+    subsegment = (edge_n_subfacets != 0) & (edge_n_subfacets != 2)
+    subsegment |= ~edge_manifold
+    # edges with exactly two subfacets: same surface and coplanar?
+    pair_edges = np.flatnonzero(edge_n_subfacets == 2)
+    if len(pair_edges):
+        optr, oorder = _csr(sf_edge, E)
+        f1 = sf_face[oorder[optr[pair_edges]]]
+        f2 = sf_face[oorder[optr[pair_edges] + 1]]
+        diff_surface = surface_id[f1] != surface_id[f2]
+        a, b = edges[pair_edges, 0], edges[pair_edges, 1]
+        third1 = faces[f1].sum(1) - a - b
+        third2 = faces[f2].sum(1) - a - b
+        bent = _bent(points, a, b, third1, third2, feature_angle)
+        subsegment[pair_edges] |= diff_surface | bent
+    return edge_n_subfacets, subsegment
 
 
 def _order_rings(ptr, c, d, entry_tet):

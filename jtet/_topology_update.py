@@ -1,0 +1,385 @@
+"""Incremental topology: the adjacency of a mesh after a flip step, from the one before.
+
+A flip step (``jtet._apply.replace_tets``) keeps most tets in their order and appends a
+few new ones. Rebuilding the topology from scratch sorts every face and edge and orders
+every ring again; here only the faces, edges and vertices of removed and new tets are
+regrouped and reordered, and the rest is carried over with renumbered tets. The cheap
+global per-face / per-edge / per-vertex passes (surface flags and ids, subsegments,
+vertex kinds) reuse ``Topology.build``'s own helpers on the new arrays, so every field
+is identical to ``Topology.build(new_mesh)`` by construction.
+
+Whenever a precondition fails (large change, a mesh that is not the old one minus some
+tets plus appended ones, an error the full build would report) the full build runs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._topology import (
+    _EDGE_OTHERS,
+    TET_EDGES,
+    TET_FACES,
+    Topology,
+    _face_flags,
+    _order_rings,
+    _subsegments,
+    _vertex_kinds,
+    row_keys,
+)
+
+# Above this fraction of changed tets (removed + added, relative to the old count) the
+# full build is about as fast and simpler.
+MAX_CHANGE = 0.3
+
+
+def update_topology(
+    old: Topology,
+    old_mesh,
+    new_mesh,
+    keep: np.ndarray,
+    feature_angle: float = 0.0,
+) -> Topology:
+    """``Topology.build(new_mesh, feature_angle)``, derived from ``old`` (of ``old_mesh``).
+
+    ``new_mesh.tets`` must be ``old_mesh.tets[keep]`` followed by new tets (``keep`` (m,)
+    bool), with the same points and protected edges; ``old`` must have been built with
+    the same ``feature_angle``. Falls back to the full build otherwise.
+    """
+    keep = np.asarray(keep, bool)
+    if _compatible(old, old_mesh, new_mesh, keep):
+        topo = _update(old, old_mesh, new_mesh, keep, feature_angle)
+        if topo is not None:
+            return topo
+    return Topology.build(new_mesh, feature_angle)
+
+
+def _compatible(old: Topology, old_mesh, new_mesh, keep: np.ndarray) -> bool:
+    """Whether ``new_mesh`` is ``old_mesh`` with the tets where ~keep replaced by appended
+    ones, small enough a change, and face keys that compare across meshes."""
+    m0, n = old_mesh.n_tets, old_mesh.n_points
+    if keep.shape != (m0,) or len(old.tet_faces) != m0 or new_mesh.n_points != n:
+        return False
+    K = int(keep.sum())
+    m1 = new_mesh.n_tets
+    if m1 < K or (m0 - K) + (m1 - K) > MAX_CHANGE * m0:
+        return False
+    # row_keys switches to per-call ranks for huge n: keys would not compare across meshes
+    if float(n) ** 3 >= 2.0**62:
+        return False
+    if new_mesh.points is not old_mesh.points and not np.array_equal(
+        new_mesh.points, old_mesh.points
+    ):
+        return False
+    if not np.array_equal(new_mesh.protected_edges, old_mesh.protected_edges):
+        return False
+    return np.array_equal(new_mesh.tets[:K], old_mesh.tets[keep]) and np.array_equal(
+        new_mesh.region[:K], old_mesh.region[keep]
+    )
+
+
+def _update(old: Topology, old_mesh, new_mesh, keep, feature_angle) -> Topology | None:
+    """The incremental update proper; None when the full build must decide (errors)."""
+    points, tets, region = new_mesh.points, new_mesh.tets, new_mesh.region
+    n, m0 = len(points), len(keep)
+    K = int(keep.sum())
+    removed = np.flatnonzero(~keep)
+    # old tet id -> new id, -1 for removed tets; renum[-1] == -1 maps "no tet" to itself
+    renum = np.full(m0 + 1, -1, np.int64)
+    renum[:m0][keep] = np.arange(K)
+
+    faces = _update_faces(old, old_mesh, tets, keep, removed, renum, n)
+    if faces is None:
+        return None
+    face_arrays, tet_faces, face_tets = faces[0], faces[1], faces[2]
+    fkeys = faces[3]
+    protected = np.zeros(len(face_arrays), bool)
+    if len(new_mesh.protected_faces):
+        idx = _lookup(fkeys, row_keys(new_mesh.protected_faces, n))
+        if (idx < 0).any():
+            return None  # the full build reports the missing face
+        protected[idx] = True
+    boundary_face, interface_face, subfacet, surface_id = _face_flags(face_tets, region, protected)
+
+    edges, tet_edges, edge_tets_ptr, edge_tets, ring_ptr, ring, bnd, manifold = _update_edges(
+        old, tets, keep, removed, renum, n
+    )
+    edge_n_subfacets, subsegment = _subsegments(
+        points, face_arrays, subfacet, surface_id, edges, manifold, feature_angle
+    )
+    if len(new_mesh.protected_edges):
+        pe = new_mesh.protected_edges
+        idx = _lookup(edges[:, 0] * np.int64(n) + edges[:, 1], pe[:, 0] * np.int64(n) + pe[:, 1])
+        if (idx < 0).any():
+            return None
+        subsegment[idx] = True
+
+    vert_tets_ptr, vert_tets = _update_vertices(old, old_mesh.tets, tets, keep, removed, renum)
+    vertex_kind, surface_normal, segment_direction = _vertex_kinds(
+        points, face_arrays, subfacet, edges, subsegment, n
+    )
+    return Topology(
+        faces=face_arrays,
+        tet_faces=tet_faces,
+        face_tets=face_tets,
+        face_apex=faces[4],
+        tet_neighbors=faces[5],
+        boundary_face=boundary_face,
+        interface_face=interface_face,
+        subfacet=subfacet,
+        surface_id=surface_id,
+        edges=edges,
+        tet_edges=tet_edges,
+        edge_tets_ptr=edge_tets_ptr,
+        edge_tets=edge_tets,
+        edge_ring_ptr=ring_ptr,
+        edge_ring=ring,
+        edge_boundary=bnd,
+        edge_manifold=manifold,
+        edge_n_subfacets=edge_n_subfacets,
+        subsegment=subsegment,
+        vert_tets_ptr=vert_tets_ptr,
+        vert_tets=vert_tets,
+        vertex_kind=vertex_kind,
+        surface_normal=surface_normal,
+        segment_direction=segment_direction,
+    )
+
+
+# -------------------------------------------------------------------------- helpers
+def _lookup(sorted_keys: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """(q,) index of every query in the sorted unique ``sorted_keys`` (G,), or -1."""
+    if len(sorted_keys) == 0:
+        return np.full(len(queries), -1, np.int64)
+    pos = np.minimum(np.searchsorted(sorted_keys, queries), len(sorted_keys) - 1)
+    return np.where(sorted_keys[pos] == queries, pos, -1)
+
+
+def _merge(old_keys, survive, cand_keys):
+    """Sorted keys of the new entity set: surviving old keys plus new candidate keys.
+
+    ``old_keys`` (G0,) sorted unique, ``survive`` (G0,) bool, ``cand_keys`` (q,) any keys
+    (duplicates and already-present ones allowed). Returns ``keys`` (G1,) sorted,
+    ``gmap`` (G0,) new id of each old entity (-1 if gone), ``add_pos`` (A,) new ids of
+    the added keys and ``add_src`` (A,) the index in ``cand_keys`` each came from.
+    Positions come from two searchsorted calls instead of a sort of all G1 keys.
+    """
+    ukeys, src = np.unique(cand_keys, return_index=True)
+    hit = _lookup(old_keys, ukeys)
+    fresh = (hit < 0) | ~survive[np.maximum(hit, 0)]
+    add, add_src = ukeys[fresh], src[fresh]
+    sk = old_keys[survive]
+    pos_s = np.arange(len(sk)) + np.searchsorted(add, sk)
+    add_pos = np.arange(len(add)) + np.searchsorted(sk, add)
+    keys = np.empty(len(sk) + len(add), np.int64)
+    keys[pos_s] = sk
+    keys[add_pos] = add
+    gmap = np.full(len(old_keys), -1, np.int64)
+    gmap[survive] = pos_s
+    return keys, gmap, add_pos, add_src
+
+
+def _csr_take(ptr: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(pos, owner): positions of the CSR entries of groups ``ids`` (g,), concatenated,
+    and the index into ``ids`` each came from."""
+    start = ptr[ids]
+    lens = ptr[ids + 1] - start
+    owner = np.repeat(np.arange(len(ids)), lens)
+    first = np.cumsum(lens) - lens
+    pos = start[owner] + np.arange(len(owner)) - first[owner]
+    return pos, owner
+
+
+def _splice(old_vals, old_lens, old_carry, new_lens, new_redo, redo_vals, mapping=None):
+    """CSR of the new groups: carried-over groups copy their old entries, redone groups
+    take ``redo_vals``.
+
+    ``old_vals`` with (G0,) ``old_lens``; ``old_carry`` (G0,) bool marks the old groups
+    carried over, which are exactly the new groups where ``new_redo`` (G1,) is False, in
+    the same order. ``redo_vals`` lists the redone groups' entries in group order.
+    ``mapping`` renumbers the carried entries. Returns (ptr (G1+1,), vals).
+    """
+    ptr = np.zeros(len(new_lens) + 1, np.int64)
+    np.cumsum(new_lens, out=ptr[1:])
+    vals = np.empty(ptr[-1], np.int64)
+    carried = old_vals[np.repeat(old_carry, old_lens)]
+    redo = np.repeat(new_redo, new_lens)
+    vals[~redo] = carried if mapping is None else mapping[carried]
+    vals[redo] = redo_vals
+    return ptr, vals
+
+
+def _regroup(group, slot, n_slots):
+    """Sort entries by (group, slot); returns (group, slot) sorted and the CSR pointers
+    of the distinct groups. Packed into one int64 value sort (group < 2**31)."""
+    packed = np.sort(group * np.int64(n_slots) + slot)
+    group, slot = packed // n_slots, packed % n_slots
+    new = np.empty(len(group), bool)
+    new[:1] = True
+    np.not_equal(group[1:], group[:-1], out=new[1:])
+    ptr = np.append(np.flatnonzero(new), len(group)).astype(np.int64)
+    return group, slot, ptr
+
+
+# -------------------------------------------------------------------------- faces
+def _update_faces(old: Topology, old_mesh, tets, keep, removed, renum, n):
+    """Faces, tet_faces, face_tets, face keys, face_apex, tet_neighbors of the new mesh.
+
+    Faces of removed and new tets are regrouped from their tets; the others keep their
+    tets (renumbered) and slot order, since kept tets keep their relative order.
+    Returns None when a face would lie in more than two tets (build raises).
+    """
+    K, m1 = int(keep.sum()), len(tets)
+    added = tets[K:]
+    nf = np.sort(added[:, TET_FACES], axis=2).reshape(-1, 3)  # (4A, 3)
+    nk = row_keys(nf, n)
+    fk0 = row_keys(old.faces, n)  # sorted: faces come from a sort by key
+    # old faces touched: faces of removed tets and old faces a new tet also has
+    hit = _lookup(fk0, nk)
+    touched = np.unique(np.concatenate([old.tet_faces[removed].reshape(-1), hit[hit >= 0]]))
+    ft = old.face_tets[touched]  # (T, 2)
+    kept_slot = (ft >= 0) & keep[np.maximum(ft, 0)]
+    survive = np.ones(len(fk0), bool)
+    survive[touched[~kept_slot.any(axis=1)]] = False
+    fkeys, fmap, add_pos, add_src = _merge(fk0, survive, nk)
+    F = len(fkeys)
+    faces = np.empty((F, 3), np.int64)
+    faces[fmap[survive]] = old.faces[survive]
+    faces[add_pos] = nf[add_src]
+    tet_faces = np.empty((m1, 4), np.int64)
+    tet_faces[:K] = fmap[old.tet_faces[keep]]
+    tet_faces[K:] = np.searchsorted(fkeys, nk).reshape(-1, 4)
+
+    # carried faces: renumbered tets, same slots (touched ones are overwritten below)
+    face_tets = np.full((F, 2), -1, np.int64)
+    face_apex = np.full((F, 2), -1, np.int64)
+    face_tets[fmap[survive]] = renum[old.face_tets[survive]]
+    face_apex[fmap[survive]] = old.face_apex[survive]
+    # entries (face, slot = tet * 4 + local vertex) of the touched faces, as build sorts them
+    kt = renum[ft[kept_slot]]
+    apex = old.face_apex[touched][kept_slot]
+    local = np.argmax(tets[kt] == apex[:, None], axis=1)
+    kface = np.broadcast_to(fmap[touched][:, None], ft.shape)[kept_slot]
+    group = np.concatenate([kface, tet_faces[K:].reshape(-1)])
+    slot = np.concatenate([kt * 4 + local, np.arange(4 * K, 4 * m1)])
+    group, slot, ptr = _regroup(group, slot, 4 * m1)
+    counts = np.diff(ptr)
+    if (counts > 2).any():
+        return None
+    redo = group[ptr[:-1]]
+    flat = tets.reshape(-1)
+    s0 = slot[ptr[:-1]]
+    face_tets[redo, 0] = s0 // 4
+    face_apex[redo, 0] = flat[s0]
+    two = counts == 2
+    s1 = slot[ptr[:-1][two] + 1]
+    face_tets[redo, 1] = -1
+    face_apex[redo, 1] = -1
+    face_tets[redo[two], 1] = s1 // 4
+    face_apex[redo[two], 1] = flat[s1]
+
+    # neighbours: carried, except for tets on a regrouped face (as build computes them)
+    tet_neighbors = np.empty((m1, 4), np.int64)
+    tet_neighbors[:K] = renum[old.tet_neighbors[keep]]
+    rows = np.unique(slot // 4)
+    tf = tet_faces[rows]
+    tet_neighbors[rows] = np.where(
+        face_tets[tf, 0] == rows[:, None], face_tets[tf, 1], face_tets[tf, 0]
+    )
+    return faces, tet_faces, face_tets, fkeys, face_apex, tet_neighbors
+
+
+# -------------------------------------------------------------------------- edges
+def _ring_steps(tets, tet, local):
+    """Ring step c -> d (each (q,)) of entries (tet, local edge), as ``Topology.build``:
+    v_k -> v_l for local edge (i, j), reversed when tets[i] > tets[j]."""
+    lo = tets[tet, TET_EDGES[local, 0]]
+    hi = tets[tet, TET_EDGES[local, 1]]
+    ck = tets[tet, _EDGE_OTHERS[local, 0]]
+    cl = tets[tet, _EDGE_OTHERS[local, 1]]
+    swap = lo > hi
+    return np.where(swap, cl, ck), np.where(swap, ck, cl)
+
+
+def _update_edges(old: Topology, tets, keep, removed, renum, n):
+    """Edges, tet_edges, ring CSRs, boundary and manifold flags of the new mesh.
+
+    Edges of removed and new tets get their tets regrouped (in build's slot order) and
+    their rings ordered again by ``_order_rings``; the rings of all other edges are
+    carried over, renumbered: their tets are all kept and keep their relative order, so
+    the ring start (the lowest slot on a cycle) does not change either.
+    """
+    K, m1 = int(keep.sum()), len(tets)
+    added = tets[K:]
+    ne = np.sort(added[:, TET_EDGES], axis=2).reshape(-1, 2)  # (6A, 2)
+    nk = ne[:, 0] * np.int64(n) + ne[:, 1]
+    ek0 = old.edges[:, 0] * np.int64(n) + old.edges[:, 1]  # sorted: edges come from a sort
+    hit = _lookup(ek0, nk)
+    touched = np.unique(np.concatenate([old.tet_edges[removed].reshape(-1), hit[hit >= 0]]))
+    pos, owner = _csr_take(old.edge_tets_ptr, touched)
+    rt = old.edge_tets[pos]
+    kept = keep[rt]
+    alive = np.bincount(owner[kept], minlength=len(touched)) > 0
+    survive = np.ones(len(ek0), bool)
+    survive[touched[~alive]] = False
+    ekeys, emap, add_pos, add_src = _merge(ek0, survive, nk)
+    E = len(ekeys)
+    edges = np.empty((E, 2), np.int64)
+    edges[emap[survive]] = old.edges[survive]
+    edges[add_pos] = ne[add_src]
+    tet_edges = np.empty((m1, 6), np.int64)
+    tet_edges[:K] = emap[old.tet_edges[keep]]
+    tet_edges[K:] = np.searchsorted(ekeys, nk).reshape(-1, 6)
+
+    # entries (edge, slot = tet * 6 + local edge) of the redone edges, in build's order
+    kt, ke = rt[kept], touched[owner[kept]]
+    klocal = np.argmax(old.tet_edges[kt] == ke[:, None], axis=1)
+    group = np.concatenate([emap[ke], tet_edges[K:].reshape(-1)])
+    slot = np.concatenate([renum[kt] * 6 + klocal, np.arange(6 * K, 6 * m1)])
+    group, slot, ptr = _regroup(group, slot, 6 * m1)
+    redo_ids = group[ptr[:-1]]
+    etet, elocal = slot // 6, slot % 6
+    c, d = _ring_steps(tets, etet, elocal)
+    r_tets, r_ring_ptr, r_ring, r_bnd, r_man = _order_rings(ptr, c, d, etet)
+
+    redo = np.zeros(E, bool)
+    redo[redo_ids] = True
+    carry = survive.copy()
+    carry[survive] = ~redo[emap[survive]]
+    lens0 = np.diff(old.edge_tets_ptr)
+    lens1 = np.zeros(E, np.int64)
+    lens1[emap[carry]] = lens0[carry]
+    lens1[redo_ids] = np.diff(ptr)
+    edge_tets_ptr, edge_tets = _splice(old.edge_tets, lens0, carry, lens1, redo, r_tets, renum)
+    bnd = np.zeros(E, bool)
+    man = np.zeros(E, bool)
+    bnd[emap[carry]] = old.edge_boundary[carry]
+    man[emap[carry]] = old.edge_manifold[carry]
+    bnd[redo_ids] = r_bnd
+    man[redo_ids] = r_man
+    ring_ptr, ring = _splice(
+        old.edge_ring, np.diff(old.edge_ring_ptr), carry, lens1 + bnd, redo, r_ring
+    )
+    return edges, tet_edges, edge_tets_ptr, edge_tets, ring_ptr, ring, bnd, man
+
+
+# -------------------------------------------------------------------------- vertices
+def _update_vertices(old: Topology, old_tets, tets, keep, removed, renum):
+    """(vert_tets_ptr (n+1,), vert_tets): tets around each vertex in increasing order."""
+    n = len(old.vert_tets_ptr) - 1
+    K, m1 = int(keep.sum()), len(tets)
+    added = tets[K:]
+    redo = np.zeros(n, bool)
+    redo[old_tets[removed].reshape(-1)] = True
+    redo[added.reshape(-1)] = True
+    vids = np.flatnonzero(redo)
+    pos, owner = _csr_take(old.vert_tets_ptr, vids)
+    t = old.vert_tets[pos]
+    k = keep[t]
+    group = np.concatenate([vids[owner[k]], added.reshape(-1)])
+    tet = np.concatenate([renum[t[k]], np.repeat(np.arange(K, m1), 4)])
+    group, tet, _ = _regroup(group, tet, m1)
+    lens0 = np.diff(old.vert_tets_ptr)
+    lens1 = lens0.copy()
+    lens1[vids] = np.bincount(group, minlength=n)[vids]
+    return _splice(old.vert_tets, lens0, ~redo, lens1, redo, tet, renum)
