@@ -22,6 +22,8 @@ def replace_tets(
     ``start`` index marks the tets this step created (the optimizer's "dirty" set).
     User-protected faces a flip replaced (``old_protected`` (p,3)) are swapped for the
     faces that now carry the same surface (``new_protected`` (p,3)).
+    When ``mesh``'s topology is already computed, the new mesh's is derived from it
+    incrementally (identical to a full build, much cheaper for a small change).
     """
     kept = mesh.tets[~remove]
     tets = np.concatenate([kept, new_tets.astype(np.int64)])
@@ -34,6 +36,13 @@ def replace_tets(
         keep[idx[hit]] = False
         protected = np.concatenate([protected[keep], np.sort(new_protected[hit], axis=1)])
     out = TetMesh(mesh.points, tets, region, protected, mesh.protected_edges)
+    if "topology" in mesh.__dict__:  # cached_property already computed on the old mesh
+        from ._topology_update import update_topology
+
+        # None (large change, or a mesh the full build rejects): stays lazy, as before
+        topo = update_topology(mesh.topology, mesh, out, ~remove, fallback=False)
+        if topo is not None:
+            out.__dict__["topology"] = topo
     return out, len(kept)
 
 

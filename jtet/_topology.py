@@ -298,18 +298,14 @@ def _face_flags(face_tets, region, protected):
     # inside one region form surfaces of their own kind.
     sub = np.flatnonzero(subfacet)
     rmin, rmax = np.minimum(r0[sub], r1[sub]), np.maximum(r0[sub], r1[sub])
-    _, surface_code = np.unique(
-        np.stack(
-            [
-                np.where(boundary_face[sub], -1, rmin),
-                rmax,
-                protected[sub] & ~interface_face[sub] & ~boundary_face[sub],
-            ],
-            1,
-        ),
-        axis=0,
-        return_inverse=True,
-    )
+    c0 = np.where(boundary_face[sub], -1, rmin)
+    c2 = protected[sub] & ~interface_face[sub] & ~boundary_face[sub]
+    # rank of the row (c0, rmax, c2) among the distinct rows, as np.unique(axis=0) would
+    # give, from one 1-D key: values replaced by their rank keep the lexicographic order
+    vals, vrank = np.unique(np.concatenate([c0, rmax]), return_inverse=True)
+    vrank = vrank.reshape(-1)
+    code = (vrank[: len(sub)] * np.int64(len(vals)) + vrank[len(sub) :]) * 2 + c2
+    _, surface_code = np.unique(code, return_inverse=True)
     surface_id = np.full(len(face_tets), -1, np.int64)
     surface_id[sub] = surface_code.reshape(-1)
     return boundary_face, interface_face, subfacet, surface_id

@@ -39,19 +39,22 @@ def update_topology(
     new_mesh,
     keep: np.ndarray,
     feature_angle: float = 0.0,
-) -> Topology:
+    fallback: bool = True,
+) -> Topology | None:
     """``Topology.build(new_mesh, feature_angle)``, derived from ``old`` (of ``old_mesh``).
 
     ``new_mesh.tets`` must be ``old_mesh.tets[keep]`` followed by new tets (``keep`` (m,)
     bool), with the same points and protected edges; ``old`` must have been built with
-    the same ``feature_angle``. Falls back to the full build otherwise.
+    the same ``feature_angle``. Otherwise, or for a large change, or when the full build
+    would raise (non-conforming faces, missing protected entities), it runs the full build
+    (``fallback``) or returns None.
     """
     keep = np.asarray(keep, bool)
     if _compatible(old, old_mesh, new_mesh, keep):
         topo = _update(old, old_mesh, new_mesh, keep, feature_angle)
         if topo is not None:
             return topo
-    return Topology.build(new_mesh, feature_angle)
+    return Topology.build(new_mesh, feature_angle) if fallback else None
 
 
 def _compatible(old: Topology, old_mesh, new_mesh, keep: np.ndarray) -> bool:
@@ -84,11 +87,12 @@ def _update(old: Topology, old_mesh, new_mesh, keep, feature_angle) -> Topology 
     n, m0 = len(points), len(keep)
     K = int(keep.sum())
     removed = np.flatnonzero(~keep)
+    keep_idx = np.flatnonzero(keep)
     # old tet id -> new id, -1 for removed tets; renum[-1] == -1 maps "no tet" to itself
     renum = np.full(m0 + 1, -1, np.int64)
-    renum[:m0][keep] = np.arange(K)
+    renum[keep_idx] = np.arange(K)
 
-    faces = _update_faces(old, old_mesh, tets, keep, removed, renum, n)
+    faces = _update_faces(old, tets, keep, keep_idx, removed, renum, n)
     if faces is None:
         return None
     face_arrays, tet_faces, face_tets = faces[0], faces[1], faces[2]
@@ -102,7 +106,7 @@ def _update(old: Topology, old_mesh, new_mesh, keep, feature_angle) -> Topology 
     boundary_face, interface_face, subfacet, surface_id = _face_flags(face_tets, region, protected)
 
     edges, tet_edges, edge_tets_ptr, edge_tets, ring_ptr, ring, bnd, manifold = _update_edges(
-        old, tets, keep, removed, renum, n
+        old, tets, keep, keep_idx, removed, renum, n
     )
     edge_n_subfacets, subsegment = _subsegments(
         points, face_arrays, subfacet, surface_id, edges, manifold, feature_angle
@@ -160,23 +164,35 @@ def _merge(old_keys, survive, cand_keys):
 
     ``old_keys`` (G0,) sorted unique, ``survive`` (G0,) bool, ``cand_keys`` (q,) any keys
     (duplicates and already-present ones allowed). Returns ``keys`` (G1,) sorted,
-    ``gmap`` (G0,) new id of each old entity (-1 if gone), ``add_pos`` (A,) new ids of
-    the added keys and ``add_src`` (A,) the index in ``cand_keys`` each came from.
-    Positions come from two searchsorted calls instead of a sort of all G1 keys.
+    ``gmap`` (G0,) new id of each old entity (-1 if gone), ``src`` (G1,) where each new
+    entity comes from (an old id, or G0 + j for the j-th added key) and ``add_src`` (A,)
+    the index in ``cand_keys`` of each added key. Only the few added keys are searched;
+    the survivors fill the remaining positions in order.
     """
-    ukeys, src = np.unique(cand_keys, return_index=True)
+    G0 = len(old_keys)
+    ukeys, first = np.unique(cand_keys, return_index=True)
     hit = _lookup(old_keys, ukeys)
     fresh = (hit < 0) | ~survive[np.maximum(hit, 0)]
-    add, add_src = ukeys[fresh], src[fresh]
-    sk = old_keys[survive]
-    pos_s = np.arange(len(sk)) + np.searchsorted(add, sk)
-    add_pos = np.arange(len(add)) + np.searchsorted(sk, add)
-    keys = np.empty(len(sk) + len(add), np.int64)
-    keys[pos_s] = sk
-    keys[add_pos] = add
-    gmap = np.full(len(old_keys), -1, np.int64)
-    gmap[survive] = pos_s
-    return keys, gmap, add_pos, add_src
+    add, add_src = ukeys[fresh], first[fresh]
+    alive = np.flatnonzero(survive)
+    # added key j lands after j earlier added keys and the survivors below it
+    below = np.searchsorted(old_keys, add) - np.searchsorted(old_keys[~survive], add)
+    add_pos = np.arange(len(add)) + below
+    is_old = np.ones(len(alive) + len(add), bool)
+    is_old[add_pos] = False
+    src = np.empty(len(is_old), np.int64)
+    src[is_old] = alive
+    src[add_pos] = G0 + np.arange(len(add))
+    keys = np.concatenate([old_keys, add])[src]
+    gmap = np.full(G0, -1, np.int64)
+    gmap[alive] = np.flatnonzero(is_old)
+    return keys, gmap, src, add_src
+
+
+def _take_rows(old_rows, add_rows, src):
+    """Rows ``concat(old_rows, add_rows)[src]``; np.take along axis 0 is several times
+    faster than fancy or boolean row indexing on large arrays."""
+    return np.take(np.concatenate([old_rows, add_rows]), src, axis=0)
 
 
 def _csr_take(ptr: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -222,7 +238,7 @@ def _regroup(group, slot, n_slots):
 
 
 # -------------------------------------------------------------------------- faces
-def _update_faces(old: Topology, old_mesh, tets, keep, removed, renum, n):
+def _update_faces(old: Topology, tets, keep, keep_idx, removed, renum, n):
     """Faces, tet_faces, face_tets, face keys, face_apex, tet_neighbors of the new mesh.
 
     Faces of removed and new tets are regrouped from their tets; the others keep their
@@ -241,20 +257,17 @@ def _update_faces(old: Topology, old_mesh, tets, keep, removed, renum, n):
     kept_slot = (ft >= 0) & keep[np.maximum(ft, 0)]
     survive = np.ones(len(fk0), bool)
     survive[touched[~kept_slot.any(axis=1)]] = False
-    fkeys, fmap, add_pos, add_src = _merge(fk0, survive, nk)
-    F = len(fkeys)
-    faces = np.empty((F, 3), np.int64)
-    faces[fmap[survive]] = old.faces[survive]
-    faces[add_pos] = nf[add_src]
+    fkeys, fmap, src, add_src = _merge(fk0, survive, nk)
+    A = len(add_src)
+    faces = _take_rows(old.faces, nf[add_src], src)
     tet_faces = np.empty((m1, 4), np.int64)
-    tet_faces[:K] = fmap[old.tet_faces[keep]]
+    tet_faces[:K] = fmap[np.take(old.tet_faces, keep_idx, axis=0)]
     tet_faces[K:] = np.searchsorted(fkeys, nk).reshape(-1, 4)
 
-    # carried faces: renumbered tets, same slots (touched ones are overwritten below)
-    face_tets = np.full((F, 2), -1, np.int64)
-    face_apex = np.full((F, 2), -1, np.int64)
-    face_tets[fmap[survive]] = renum[old.face_tets[survive]]
-    face_apex[fmap[survive]] = old.face_apex[survive]
+    # carried faces: renumbered tets, same slots (regrouped ones are overwritten below)
+    none = np.full((A, 2), -1, np.int64)
+    face_tets = renum[_take_rows(old.face_tets, none, src)]
+    face_apex = _take_rows(old.face_apex, none, src)
     # entries (face, slot = tet * 4 + local vertex) of the touched faces, as build sorts them
     kt = renum[ft[kept_slot]]
     apex = old.face_apex[touched][kept_slot]
@@ -280,7 +293,7 @@ def _update_faces(old: Topology, old_mesh, tets, keep, removed, renum, n):
 
     # neighbours: carried, except for tets on a regrouped face (as build computes them)
     tet_neighbors = np.empty((m1, 4), np.int64)
-    tet_neighbors[:K] = renum[old.tet_neighbors[keep]]
+    tet_neighbors[:K] = renum[np.take(old.tet_neighbors, keep_idx, axis=0)]
     rows = np.unique(slot // 4)
     tf = tet_faces[rows]
     tet_neighbors[rows] = np.where(
@@ -301,7 +314,7 @@ def _ring_steps(tets, tet, local):
     return np.where(swap, cl, ck), np.where(swap, ck, cl)
 
 
-def _update_edges(old: Topology, tets, keep, removed, renum, n):
+def _update_edges(old: Topology, tets, keep, keep_idx, removed, renum, n):
     """Edges, tet_edges, ring CSRs, boundary and manifold flags of the new mesh.
 
     Edges of removed and new tets get their tets regrouped (in build's slot order) and
@@ -322,13 +335,11 @@ def _update_edges(old: Topology, tets, keep, removed, renum, n):
     alive = np.bincount(owner[kept], minlength=len(touched)) > 0
     survive = np.ones(len(ek0), bool)
     survive[touched[~alive]] = False
-    ekeys, emap, add_pos, add_src = _merge(ek0, survive, nk)
+    ekeys, emap, src, add_src = _merge(ek0, survive, nk)
     E = len(ekeys)
-    edges = np.empty((E, 2), np.int64)
-    edges[emap[survive]] = old.edges[survive]
-    edges[add_pos] = ne[add_src]
+    edges = _take_rows(old.edges, ne[add_src], src)
     tet_edges = np.empty((m1, 6), np.int64)
-    tet_edges[:K] = emap[old.tet_edges[keep]]
+    tet_edges[:K] = emap[np.take(old.tet_edges, keep_idx, axis=0)]
     tet_edges[K:] = np.searchsorted(ekeys, nk).reshape(-1, 6)
 
     # entries (edge, slot = tet * 6 + local edge) of the redone edges, in build's order

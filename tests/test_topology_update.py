@@ -1,0 +1,228 @@
+"""Incremental topology (jtet._topology_update) against a from-scratch Topology.build.
+
+Every field must be identical (values, shape, dtype) after real edge-removal and
+multi-face steps (boundary 2-2, interface 4-4, swapped user-protected faces, inverted
+input) and after synthetic changes: tets removed and re-added in another order, holes,
+random 2-3 flips with random regions and protected faces.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from helpers import delaunay_mesh, grid_mesh
+
+import jtet
+import jtet._topology_update as U
+from jtet._apply import replace_tets
+from jtet._edge_removal import edge_removal_pass
+from jtet._errors import MeshInputError
+from jtet._multiface import multiface_removal_pass
+from jtet._topology import Topology
+
+
+def assert_same(got: Topology, want: Topology):
+    for f in dataclasses.fields(Topology):
+        a, b = getattr(got, f.name), getattr(want, f.name)
+        assert a.dtype == b.dtype and a.shape == b.shape, f.name
+        assert np.array_equal(a, b), f.name
+
+
+def check_step(old_mesh, new_mesh, keep):
+    """The incremental path itself (no size fallback) and the public entry point."""
+    want = Topology.build(new_mesh)
+    direct = U._update(old_mesh.topology, old_mesh, new_mesh, np.asarray(keep, bool), 0.0)
+    assert direct is not None
+    assert_same(direct, want)
+    assert_same(U.update_topology(old_mesh.topology, old_mesh, new_mesh, keep), want)
+
+
+def run_passes(mesh, n_passes=3, **kw):
+    """Alternate edge removal and multi-face removal, checking every step; returns the
+    number of steps that changed the mesh."""
+    steps = 0
+    for _ in range(n_passes):
+        for p in (edge_removal_pass, multiface_removal_pass):
+            out, _, keep = p(mesh, **({"max_ring": 8} if p is edge_removal_pass else {}), **kw)
+            if keep is None:
+                continue
+            check_step(mesh, out, keep)
+            # replace_tets installed the incremental topology on the new mesh
+            assert "topology" in out.__dict__ or (~keep).sum() + out.n_tets - keep.sum() > (
+                U.MAX_CHANGE * len(keep)
+            )
+            steps += 1
+            mesh = out
+    return steps
+
+
+def flat_protected_mesh():
+    """One region with user-protected faces on the flat plane x = 0.5 (4-4 flips there
+    swap protected faces in replace_tets)."""
+    m = grid_mesh(4, perturb=0.9, seed=1, two_regions=True)
+    T = m.topology
+    on_plane = (m.points[T.faces, 0] == 0.5).all(axis=1) & ~T.boundary_face
+    return jtet.TetMesh(m.points, m.tets, None, T.faces[on_plane])
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: delaunay_mesh(100, seed=5, surface_points=60),  # boundary 2-2 flips
+        lambda: grid_mesh(4, perturb=0.9, seed=1, two_regions=True),  # interface 4-4 flips
+        flat_protected_mesh,
+        lambda: delaunay_mesh(150, seed=3, clustered=True),
+    ],
+    ids=["boundary", "interface", "protected", "clustered"],
+)
+def test_real_passes(make):
+    assert run_passes(make()) > 0
+
+
+def test_protected_faces_swapped():
+    mesh = flat_protected_mesh()
+    before = {tuple(f) for f in mesh.protected_faces}
+    run_passes(mesh, n_passes=1)
+    out, _, keep = edge_removal_pass(mesh, max_ring=8)
+    assert {tuple(f) for f in out.protected_faces} != before  # the case is exercised
+    check_step(mesh, out, keep)
+
+
+def test_inverted_input():
+    # three tets around an edge, one inverted; the 3-2 flip replaces them all
+    pts = np.array([[1.2, 0, 1.0], [0.9, 0, -1.0], [1, 0, 0], [-0.5, 0.8, 0], [-0.5, -0.8, 0.0]])
+    bad = jtet.TetMesh(pts, np.array([[0, 1, 3, 2], [0, 1, 4, 3], [0, 1, 2, 4]]))
+    out, _, keep = edge_removal_pass(bad)
+    check_step(bad, out, keep)
+    # a bigger mesh with a few inverted tets: pushed interior vertices
+    mesh = delaunay_mesh(200, seed=7)
+    T = mesh.topology
+    rng = np.random.default_rng(0)
+    free = np.flatnonzero(T.vertex_kind == 0)
+    pts = mesh.points.copy()
+    pts[rng.choice(free, 6, replace=False)] += rng.normal(0, 0.08, (6, 3))
+    inv = jtet.TetMesh(pts, mesh.tets)
+    assert (inv.volumes < 0).any()
+    out, _, keep = edge_removal_pass(inv)
+    check_step(inv, out, keep)
+
+
+# ------------------------------------------------------------------ synthetic changes
+def random_labels(mesh, rng):
+    """The mesh with random regions (labels include -1) and random protected faces."""
+    region = rng.choice([-1, 0, 3], mesh.n_tets, p=[0.1, 0.8, 0.1])
+    faces = mesh.topology.faces
+    pf = faces[rng.choice(len(faces), len(faces) // 50, replace=False)]
+    return jtet.TetMesh(mesh.points, mesh.tets, region, pf, mesh.topology.edges[:3])
+
+
+def replaced(mesh, remove, new_tets, new_region):
+    """replace_tets, keeping user-protected faces that are still faces of the result."""
+    out, _ = replace_tets(mesh, remove, new_tets, new_region)
+    faces = {
+        tuple(f)
+        for f in np.sort(out.tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], 2).reshape(
+            -1, 3
+        )
+    }
+    pf = np.array([f for f in out.protected_faces if tuple(f) in faces]).reshape(-1, 3)
+    return out.replace(protected_faces=pf)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_reinsert_shuffled(seed):
+    """Removed tets come back in another order with rotated vertices: renumbered slots."""
+    rng = np.random.default_rng(seed)
+    mesh = random_labels(delaunay_mesh(200, seed=seed, surface_points=20), rng)
+    remove = rng.random(mesh.n_tets) < 0.1
+    back = rng.permutation(np.flatnonzero(remove))
+    tets = mesh.tets[back][:, [2, 3, 0, 1]]  # an even permutation: same orientation
+    out, _ = replace_tets(mesh, remove, tets, mesh.region[back])
+    check_step(mesh, out, ~remove)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_holes(seed):
+    """Tets removed and nothing added: faces and edges disappear, boundary grows,
+    edges may become non-manifold."""
+    rng = np.random.default_rng(seed)
+    mesh = random_labels(delaunay_mesh(200, seed=seed), rng)
+    remove = rng.random(mesh.n_tets) < 0.08
+    out = replaced(mesh, remove, np.zeros((0, 4), np.int64), np.zeros(0, np.int64))
+    check_step(mesh, out, ~remove)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_random_23_flips(seed):
+    """2-3 flips of random independent interior faces (some inverted, some making a
+    non-conforming mesh: then the update defers to the full build, which raises)."""
+    rng = np.random.default_rng(seed)
+    mesh = random_labels(delaunay_mesh(150, seed=seed, clustered=seed % 2 == 1), rng)
+    T = mesh.topology
+    inner = rng.permutation(np.flatnonzero(T.face_tets[:, 1] >= 0))
+    ft = T.face_tets[inner]
+    # independent faces: no tet used twice (first use wins)
+    first = np.zeros(mesh.n_tets, bool)
+    order = np.unique(ft.reshape(-1), return_index=True)[1]
+    first[ft.reshape(-1)[order]] = True
+    used = np.zeros(len(ft) * 2, bool)
+    used[order] = True
+    pick = used.reshape(-1, 2).all(axis=1)
+    faces, ft, apex = T.faces[inner[pick]], ft[pick], T.face_apex[inner[pick]]
+    if seed % 2 == 0:  # keep flips whose new edge de is not an edge yet: a conforming result
+        de = np.sort(apex, axis=1)
+        fresh = (
+            U._lookup(
+                T.edges[:, 0] * mesh.n_points + T.edges[:, 1], de[:, 0] * mesh.n_points + de[:, 1]
+            )
+            < 0
+        )
+        fresh &= np.isin(np.arange(len(de)), np.unique(de, axis=0, return_index=True)[1])
+        faces, ft, apex = faces[fresh], ft[fresh], apex[fresh]
+    faces, ft, apex = faces[:20], ft[:20], apex[:20]
+    a, b, c = faces.T
+    d, e = apex.T
+    new = np.concatenate([np.stack(t, 1) for t in ([a, b, d, e], [b, c, d, e], [c, a, d, e])])
+    vol = jtet.TetMesh(mesh.points, new).volumes
+    new = np.where((vol < 0)[:, None], new[:, [1, 0, 2, 3]], new)
+    remove = np.zeros(mesh.n_tets, bool)
+    remove[ft.reshape(-1)] = True
+    region = rng.choice([0, 3], len(new))
+    out = replaced(mesh, remove, new, region)
+    try:
+        want = Topology.build(out)
+    except MeshInputError:
+        assert U._update(T, mesh, out, ~remove, 0.0) is None
+        assert U.update_topology(T, mesh, out, ~remove, fallback=False) is None
+        assert seed % 2 == 1
+        return
+    assert_same(U._update(T, mesh, out, ~remove, 0.0), want)
+
+
+def test_fallbacks():
+    mesh = delaunay_mesh(150, seed=1)
+    T = mesh.topology
+    keep = np.ones(mesh.n_tets, bool)
+    keep[:5] = False
+    out, _ = replace_tets(mesh, ~keep, mesh.tets[:5], mesh.region[:5])
+    # not "kept tets first": the update must not be used
+    shuffled = jtet.TetMesh(out.points, out.tets[::-1])
+    assert U.update_topology(T, mesh, shuffled, keep, fallback=False) is None
+    assert_same(U.update_topology(T, mesh, shuffled, keep), Topology.build(shuffled))
+    # a large change falls back
+    big = np.zeros(mesh.n_tets, bool)
+    out2, _ = replace_tets(mesh, ~big, mesh.tets, mesh.region)
+    assert U.update_topology(T, mesh, out2, big, fallback=False) is None
+    # a protected face that is no longer a face: the full build reports it
+    t, i = np.argwhere(T.tet_neighbors < 0)[0]  # a tet with a boundary face: remove both
+    gone = T.faces[T.tet_faces[t, i]][None]
+    keep0 = np.arange(mesh.n_tets) != t
+    holed = jtet.TetMesh(mesh.points, mesh.tets[keep0], None, gone)
+    assert U.update_topology(T, mesh, holed, keep0, fallback=False) is None
+    with pytest.raises(MeshInputError):
+        U.update_topology(T, mesh, holed, keep0)
+
+
+@pytest.mark.slow
+def test_demo_mesh_passes():
+    assert run_passes(jtet.demo_mesh(), n_passes=3) > 0
