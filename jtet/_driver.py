@@ -77,6 +77,7 @@ def _smooth_step(mesh: TetMesh, opts: Options, quality, dirty) -> StepResult:
         candidates[mesh.tets[dirty].reshape(-1)] = True
     out, stats = smooth_pass(
         mesh,
+        quality=quality,
         measure=opts.quality,
         boundary=opts.boundary,
         threshold=opts.smooth_threshold,
@@ -167,6 +168,7 @@ def improve(
             it, or its extent is outside [1e-30, 1e30] (float64 quality would overflow).
             Inverted and degenerate tets and a non-manifold boundary are fine.
     """
+    from ._quality import tet_dihedrals
     from ._stats import mesh_stats
 
     opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
@@ -178,6 +180,7 @@ def improve(
     status = "converged"
     current = mesh
     q = current.quality(opts.quality)
+    _, lo_t, hi_t = tet_dihedrals(current.points, current.tets)
     obj = _objective(q, opts.good_quality)
     dirty = {op: None for op in opts.ops}  # None: everything is new to the operation
     stall = 0
@@ -225,10 +228,10 @@ def improve(
                                 )
                             )
                         dirty[other] = None if d is None else d | step.changed
+                    q, lo_t, hi_t = _updated_tet_measures(step, opts.quality, q, lo_t, hi_t)
                     current = step.mesh
-                    q = current.quality(opts.quality)
                 dirty[op] = step.changed.copy()
-                lo, hi = _dihedral_range(current)
+                lo, hi = float(lo_t.min()), float(hi_t.max())
                 entry = {
                     "pass": pass_no,
                     **_stats_dict(op, step.stats),
@@ -328,11 +331,24 @@ def _require_conforming(mesh: TetMesh) -> None:
         )
 
 
-def _dihedral_range(mesh: TetMesh) -> tuple[float, float]:
-    from ._quality import tet_dihedrals
+def _updated_tet_measures(step: StepResult, measure: str, q, lo, hi):
+    """(quality, min dihedral, max dihedral) per tet (m_new,) of ``step.mesh`` from those
+    of the mesh before the step: only the tets the step created or moved are evaluated
+    (per-tet values do not depend on the batch they are computed in)."""
+    from ._quality import tet_dihedrals, tet_quality
 
-    _, lo, hi = tet_dihedrals(mesh.points, mesh.tets)
-    return float(lo.min()), float(hi.max())
+    mesh = step.mesh
+    if step.keep is not None:  # kept tets first, in order, then the new ones
+        start = int(step.keep.sum())
+        redo = np.arange(start, mesh.n_tets)
+        q, lo, hi = (np.concatenate([a[step.keep], np.empty(len(redo))]) for a in (q, lo, hi))
+    else:  # same tets: those with a moved vertex changed
+        redo = np.flatnonzero(step.changed)
+        q, lo, hi = q.copy(), lo.copy(), hi.copy()
+    if len(redo):
+        q[redo] = tet_quality(mesh.points, mesh.tets[redo], measure)
+        _, lo[redo], hi[redo] = tet_dihedrals(mesh.points, mesh.tets[redo])
+    return q, lo, hi
 
 
 def _log(entry: dict) -> None:

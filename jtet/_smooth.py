@@ -42,7 +42,15 @@ from ._aot import cached_call
 from ._config import parallel_map
 from ._errors import JtetError
 from ._predicates import orient3d_tets
-from ._quality import _SIN_REGULAR, _cross, _dot, _safe_div, _TetGeometry, get_measure
+from ._quality import (
+    _SIN_REGULAR,
+    _cross,
+    _dot,
+    _safe_div,
+    _TetGeometry,
+    get_measure,
+    tet_quality,
+)
 
 # For a tet whose local vertex i is the smoothed vertex v, the other three vertices in an
 # order that makes (v, f0, f1, f2) an even permutation of the tet, hence positively oriented
@@ -239,14 +247,27 @@ def _min_norm_in_hull(G: Float[Array, "A 3"], valid: Bool[Array, " A"]) -> Float
 
 
 def _smallest(c: Float[Array, " N"], k: int) -> Int[Array, " k"]:
-    """Indices of the k smallest entries (k small): k argmin passes, cheaper than a sort
-    under vmap on CPU."""
+    """Indices of the k smallest entries (k small), ties to the lowest index: k passes of
+    a min and a min-index (two plain reductions vectorize on CPU; ``argmin``, a variadic
+    reduction, measured 1.5x slower, ``lax.top_k`` and sorts ~10x slower under vmap)."""
     out = []
+    idx = jnp.arange(c.shape[0])
     for _ in range(k):
-        i = jnp.argmin(c)
+        i = jnp.min(jnp.where(c == jnp.min(c), idx, c.shape[0]))
         out.append(i)
-        c = c.at[i].set(jnp.inf)
+        c = jnp.where(idx == i, jnp.inf, c)
     return jnp.stack(out)
+
+
+def _smallest_pieces(c: Float[Array, "K C"], k: int) -> Int[Array, " k"]:
+    """Flat indices (tet * C + piece) of the k smallest entries of ``c`` (k <= K), as
+    ``_smallest(c.reshape(-1), k)`` up to the order of ties: the k smallest pieces lie in
+    the k tets of smallest minimum, so the search runs over K tet minima and then k * C
+    pieces instead of K * C pieces (2.2x cheaper at K = 32, C = 6, measured)."""
+    C = c.shape[1]
+    tets = _smallest(jnp.min(c, axis=1), k)
+    j = _smallest(c[tets].reshape(-1), k)
+    return tets[j // C] * C + j % C
 
 
 def _solve_active_set(t0, B, rel, mask, measure, max_iters, n_trials, active_rel, n_active=5):
@@ -274,8 +295,8 @@ def _solve_active_set(t0, B, rel, mask, measure, max_iters, n_trials, active_rel
         i, t, c, level = state
         cmin = jnp.min(c)
         # the n_active smallest components, those within the current width of the minimum;
-        # gradients only for those (their tets), the other rates by one JVP along d
-        top = _smallest(c, n_active)
+        # gradients only for those (their tets), the other rates by a difference along d
+        top = _smallest_pieces(c.reshape(-1, C), n_active)
         top_tet, top_comp = top // C, top % C
         rel_top = rel[top_tet]
 
@@ -285,10 +306,16 @@ def _solve_active_set(t0, B, rel, mask, measure, max_iters, n_trials, active_rel
         G = jax.jacfwd(top_comps)(t)  # (n_active, 3)
         active_top = c[top] <= cmin + widths[level] * jnp.abs(cmin) + 1e-14
         d = _min_norm_in_hull(G, active_top)
-        active = jnp.zeros_like(cmask).at[top].set(active_top)
+        slots = jnp.arange(cmask.shape[0])
+        active = jnp.any((slots[:, None] == top[None, :]) & active_top[None, :], axis=1)
         dn = jnp.sqrt(d @ d)
         rate_a = jnp.min(jnp.where(active_top, G @ d, jnp.inf))
-        rate = jnp.where(cmask, jax.jvp(comps, (t,), (d,))[1], 0.0)
+        # Rates of all components along d only place the trial steps (the trials are
+        # scored exactly), so a forward difference does: one evaluation instead of a JVP
+        # (2.7x an evaluation, measured). A step of 1e-6 / |d| (units of h) keeps
+        # truncation ~1e-6 and round-off ~1e-10 relative.
+        fd = 1e-6 / jnp.maximum(dn, 1e-300)
+        rate = jnp.where(cmask, (comps(t + fd * d) - c) / fd, 0.0)
         closing = cmask & ~active & (rate < rate_a)
         alpha_k = jnp.where(closing, (c - cmin) / jnp.where(closing, rate_a - rate, 1.0), jnp.inf)
         alpha_max = 0.5 / jnp.maximum(dn, 1e-300)  # never more than h/2 per step
@@ -613,6 +640,7 @@ def smooth_pass(
     boundary: str = "fixed",
     threshold: float | None = None,
     candidates: np.ndarray | None = None,
+    quality: np.ndarray | None = None,
     solver: str = "active_set",
     max_iters: int = 8,
     n_trials: int = 3,
@@ -634,6 +662,7 @@ def smooth_pass(
         threshold: only vertices of tets with quality below this are tried (None: all).
         candidates: optional (n,) bool mask of vertices to try (e.g. those whose
             neighbourhood changed); combined with ``threshold``.
+        quality: optional (m,) ``measure`` of every tet of ``mesh``, if already known.
         solver, max_iters, n_trials, min_gain, sharpness: see ``smooth_star``. A pass
             needs no converged stars (the optimizer smooths again where it helps): 8
             iterations of 3 trial steps measured 1.5-2.5x faster than 15 x 6 over whole
@@ -667,7 +696,7 @@ def smooth_pass(
     topo = mesh.topology
     n = mesh.n_points
     tets = mesh.tets
-    q = mesh.quality(measure)
+    q = mesh.quality(measure) if quality is None else np.asarray(quality)
     worst_before = float(q.min())
 
     # worst quality of each vertex's star
@@ -732,7 +761,14 @@ def smooth_pass(
     new = mesh.replace(points=pts)
     # connectivity and subfacet planes are unchanged: the topology stays valid
     new.__dict__["topology"] = topo
-    worst_after = float(new.quality(measure).min())
+    # only tets with a moved vertex changed quality
+    touched = np.zeros(n, bool)
+    touched[moved] = True
+    redo = touched[tets].any(axis=1)
+    worst_after = min(
+        float(q[~redo].min(initial=np.inf)),
+        float(tet_quality(pts, tets[redo], measure).min(initial=np.inf)),
+    )
     stats = SmoothStats(
         attempts=attempts,
         successes=len(moved),
