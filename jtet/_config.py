@@ -43,20 +43,26 @@ if _cache_dir and _cache_dir.lower() != "off":
 WORKERS = max(1, int(os.environ.get("JTET_THREADS", os.cpu_count() or 1)))
 _pool = None
 _pool_lock = threading.Lock()
+_worker = threading.local()  # .busy: this thread is one of the pool's workers
 
 
 def parallel_map(fn, items: list) -> list:
     """``[fn(x) for x in items]`` on ``WORKERS`` threads, results in order (deterministic:
     the items must not depend on each other)."""
     global _pool
-    if WORKERS == 1 or len(items) < 2:
+    if WORKERS == 1 or len(items) < 2 or getattr(_worker, "busy", False):
+        # (a worker waiting on tasks queued behind itself could deadlock the pool)
         return [fn(x) for x in items]
     with _pool_lock:
         if _pool is None:
             from concurrent.futures import ThreadPoolExecutor
 
-            _pool = ThreadPoolExecutor(WORKERS, thread_name_prefix="jtet")
+            _pool = ThreadPoolExecutor(WORKERS, thread_name_prefix="jtet", initializer=_mark_worker)
     return list(_pool.map(fn, items))
+
+
+def _mark_worker() -> None:
+    _worker.busy = True
 
 
 def bucket_capacity(n: int, minimum: int = 256) -> int:

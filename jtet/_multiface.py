@@ -58,10 +58,10 @@ for _e, (_i, _j) in enumerate([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]):
 # faces: measured, a batch of such trees costs 7-10x less at capacity 4 than at 16 (the
 # slot qualities and the padded arrays scale with the capacity), worth one more compile.
 _TREE_CAPS = (4, 16, 64, 256)
-# Batches larger than this are solved in chunks of this size: at most three batch shapes
-# per tree capacity (256, 512, 1024) ever compile, instead of one per power of two. A
-# 1024-tree call takes ~1 ms at capacity 4, so the extra calls cost little.
-_CHUNK = 1024
+# Trees per kernel call: every call has this many (the last one of a group padded), so one
+# batch shape per tree capacity compiles (it was one per power of two, 256..1024: three
+# shapes and ~2.5 s more compile in a fresh process). A call takes ~0.3 ms at capacity 4.
+_CHUNK = 256
 
 
 def _local(tets: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -369,8 +369,8 @@ def solve_forest(
     """Run the tree DP on every tree: ``(q_old (P,), q_new (P,), chosen (P, N))``.
 
     Trees are grouped by size into the capacities ``_tree_caps(N)``, cut into chunks of
-    ``_CHUNK`` and padded to ``_config.bucket_capacity`` trees, so the kernel compiles once
-    per (capacity, batch size, measure). Bad trees get ``q_new = -inf``.
+    ``_CHUNK`` trees (the last one padded), so the kernel compiles once per (capacity,
+    measure). Bad trees get ``q_new = -inf``.
     """
     nt, N = forest.face.shape
     q_old = np.full(nt, np.inf)
@@ -387,7 +387,7 @@ def solve_forest(
 
     def solve(task):
         cap, sel = task
-        bcap = _config.bucket_capacity(len(sel))
+        bcap = _CHUNK
         pad = np.concatenate([sel, np.full(bcap - len(sel), sel[0])])
         real = np.arange(bcap) < len(sel)
         f = forest.face[pad, :cap]

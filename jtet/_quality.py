@@ -25,6 +25,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from . import _config
+from ._aot import cached_call
 from ._errors import JtetError
 
 Vec = tuple[Array, Array, Array]  # SoA point: (x, y, z), each of the same shape
@@ -282,14 +283,12 @@ def soa_corners(points: Float[np.ndarray, "n 3"], tets: np.ndarray) -> tuple[Vec
     return tuple(tuple(xyz[c][tets[:, i]] for c in range(3)) for i in range(4))
 
 
-@functools.partial(jax.jit, static_argnames=("name",))
-def _quality_soa(corners, name: str):
-    return MEASURES[name](*corners)
+def _quality_soa(*xyz, name: str):
+    return MEASURES[name](*(xyz[3 * i : 3 * i + 3] for i in range(4)))
 
 
-@jax.jit
-def _dihedral_soa(corners):
-    angles = dihedral_angles(*corners)
+def _dihedral_soa(*xyz):
+    angles = dihedral_angles(*(xyz[3 * i : 3 * i + 3] for i in range(4)))
     lo = angles[0]
     hi = angles[0]
     for a in angles[1:]:
@@ -298,13 +297,27 @@ def _dihedral_soa(corners):
     return jnp.stack(angles, axis=-1), lo, hi
 
 
-def _padded_corners(points: np.ndarray, tets: np.ndarray) -> tuple[tuple, int]:
+# Tets per kernel call: every call has this shape whatever the number of tets, so each
+# kernel compiles (or loads from the cache) once per process, not once per power-of-two
+# size; calls run on the worker threads.
+TET_CHUNK = 1 << 14
+
+
+def _per_tet(name: str, settings: tuple, fn, points: np.ndarray, tets: np.ndarray):
+    """``fn`` over the SoA corners of ``tets`` in calls of ``TET_CHUNK`` tets (padding
+    repeats the first tet); the outputs cut back to ``len(tets)`` rows."""
     m = len(tets)
-    cap = _config.bucket_capacity(m, 1024)
+    cap = max(1, -(-m // TET_CHUNK)) * TET_CHUNK
     if cap != m:
         pad = np.broadcast_to(tets[:1] if m else np.zeros((1, 4), np.int64), (cap - m, 4))
         tets = np.concatenate([tets, pad]) if m else np.zeros((cap, 4), np.int64)
-    return soa_corners(points, tets), m
+    xyz = [c for corner in soa_corners(points, tets) for c in corner]
+    parts = [[c[i : i + TET_CHUNK] for c in xyz] for i in range(0, cap, TET_CHUNK)]
+    outs = _config.parallel_map(
+        lambda part: jax.device_get(cached_call(name, settings, fn, *part)), parts
+    )
+    outs = [o if isinstance(o, tuple) else (o,) for o in outs]
+    return tuple(np.concatenate(o)[:m] for o in zip(*outs, strict=True))
 
 
 def tet_quality(points: np.ndarray, tets: np.ndarray, measure: str = "min_sine") -> np.ndarray:
@@ -312,14 +325,12 @@ def tet_quality(points: np.ndarray, tets: np.ndarray, measure: str = "min_sine")
     get_measure(measure)
     if len(points) == 0:
         return np.zeros(len(tets))
-    corners, m = _padded_corners(points, tets)
-    return np.asarray(_quality_soa(corners, measure))[:m]
+    fn = functools.partial(_quality_soa, name=measure)
+    return _per_tet("tet_quality", (measure,), fn, points, tets)[0]
 
 
 def tet_dihedrals(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, ...]:
     """(angles (m, 6), min (m,), max (m,)) dihedral angles of every tet, in degrees."""
     if len(points) == 0:
         return np.zeros((0, 6)), np.zeros(0), np.zeros(0)
-    corners, m = _padded_corners(points, tets)
-    angles, lo, hi = _dihedral_soa(corners)
-    return np.asarray(angles)[:m], np.asarray(lo)[:m], np.asarray(hi)[:m]
+    return _per_tet("tet_dihedrals", (), _dihedral_soa, points, tets)

@@ -51,7 +51,7 @@ batch and solved exactly by stage 2. (A cheaper signed-volume screen, dropping r
 which some polygon edge has no candidate with two positive tets, is kept as
 ``prune="volume"``: realistic rings have no inverted candidates, so it rarely prunes.) A
 successful ring always survives and gets bitwise the unpruned answer: batch capacities are
-at least two chunks, so every batch size runs the same compiled loop body.
+two chunks per kernel call, so every batch runs the same compiled kernel.
 """
 
 from __future__ import annotations
@@ -82,6 +82,9 @@ MIN_M = 3
 MAX_M = 64  # K holds t = k - i in int8; compile time grows ~m^2 long before this bound
 # Rings per chunk of the batch entries: the DP tables of one chunk stay in L1/L2.
 CHUNK = 256
+# Chunks per kernel call: every call has this many (two: with one, XLA drops the loop of
+# ``lax.map`` and compiles a different body, which could round differently).
+CALL_CHUNKS = 2
 # prune=True screens only rings of at least this size: below it the screen (half the
 # quality work plus a DP, and a second host round trip) drops too few rings to pay
 # (benchmark on realistic rings: m = 3, 4, 5 keep 100, 93, 29 % and run 1.3-3x slower
@@ -447,25 +450,34 @@ def to_chunks(
 
 
 def _parallel_chunks(kernel, arrays: list[np.ndarray], **static):
-    """``kernel(*arrays, **static)`` with the chunk axis (0) split evenly over
-    ``_config.WORKERS`` threads (XLA runs one call on one core). The parts keep
-    power-of-two chunk counts, so they hit the same compiled shapes as whole batches."""
+    """``kernel(*arrays, **static)`` in calls of ``CALL_CHUNKS`` chunks each (the chunk axis
+    0 holds a multiple of it), spread over the ``_config.WORKERS`` threads (XLA runs one
+    call on one core).
+
+    Every call has the same shape whatever the batch size and the number of workers: the
+    kernel is compiled (or loaded from the cache) once per ring size and settings, not
+    once per power-of-two batch size (cube, empty cache: 14 -> 7 Klincsek shapes).
+    """
     nc = arrays[0].shape[0]
-    w = _config.WORKERS
-    while w > 1 and nc % w:
-        w -= 1
+    assert nc % CALL_CHUNKS == 0, nc
     # traced once per shape and settings, then reloaded from disk by later processes
     name, settings = kernel.__name__, tuple(sorted(static.items()))
     fn = functools.partial(kernel, **static)
-    if w == 1:
-        return cached_call(name, settings, fn, *arrays)
-    parts = [[x[i * nc // w : (i + 1) * nc // w] for x in arrays] for i in range(w)]
+    parts = [[x[i : i + CALL_CHUNKS] for x in arrays] for i in range(0, nc, CALL_CHUNKS)]
     outs = _config.parallel_map(
         lambda part: jax.device_get(cached_call(name, settings, fn, *part)), parts
     )
+    if len(outs) == 1:
+        return outs[0]
     if isinstance(outs[0], tuple):
         return tuple(np.concatenate(o) for o in zip(*outs, strict=True))
     return np.concatenate(outs)
+
+
+def _capacity(n: int) -> int:
+    """Rings of a padded batch: ``n`` rounded up to whole calls of ``CALL_CHUNKS``."""
+    call = CALL_CHUNKS * CHUNK
+    return max(1, -(-n // call)) * call
 
 
 def _unchunk_q(q, n: int) -> np.ndarray:
@@ -526,8 +538,8 @@ def solve_rings(
     replace. Returns NumPy ``(q_new (B,), tris (B, m-2, 3) int32)``, ``tris[r, k-1] =
     (i, k, j)`` in ring indices.
 
-    Batches are padded to ``_config.bucket_capacity`` (a multiple of ``CHUNK``) so repeated
-    calls do not recompile. ``prune=False``: every ring solved exactly. ``prune=True``:
+    Batches are padded to whole kernel calls of ``CALL_CHUNKS * CHUNK`` rings, so every
+    call of one ring size has the same shape. ``prune=False``: every ring solved exactly. ``prune=True``:
     ``"quality"`` for ``m >= PRUNE_MIN_M``, no pruning below. ``prune="quality"``: stage 1
     evaluates the a-side tets and bounds ``q_new`` by the DP on them alone, stage 2
     solves only the rings whose bound beats ``q_old``; ``prune="volume"``:
@@ -553,7 +565,7 @@ def solve_rings(
     _plan(m)
     if n == 0:
         return np.zeros(0), np.zeros((0, m - 2, 3), np.int32)
-    cap = _config.bucket_capacity(n, 2 * CHUNK)
+    cap = _capacity(n)
     soa = to_chunks(a, b, ring, cap)
     if not prune or (prune is True and m < PRUNE_MIN_M):
         q_new, tris = _parallel_chunks(solve_chunks, soa, measure=measure)
@@ -569,7 +581,7 @@ def solve_rings(
     q_new = np.full(n, -np.inf)
     tris = np.broadcast_to(_fan(m), (n, m - 2, 3)).copy()
     if idx.size:
-        sub = to_chunks(a[idx], b[idx], ring[idx], _config.bucket_capacity(idx.size, 2 * CHUNK))
+        sub = to_chunks(a[idx], b[idx], ring[idx], _capacity(idx.size))
         q2, t2 = _parallel_chunks(solve_chunks, sub, measure=measure)
         q_new[idx] = _unchunk_q(q2, idx.size)
         tris[idx] = _unchunk_tris(t2, idx.size)
