@@ -7,9 +7,17 @@ kernel is exported once per (name, settings, input shapes) with ``jax.export`` a
 serialized StableHLO is stored next to the compilation cache; later processes deserialize it
 (milliseconds), and its compilation then hits the persistent cache.
 
-Keys include a hash of jtet's own source and the JAX version, so an edited kernel is never
-served stale. Any failure (read-only or corrupt cache, an export JAX cannot do) falls back
-to the plain jitted function: the cache only ever costs time, never correctness.
+Kernels are compiled when first requested (``cached_call``) or ahead of use (``prefetch``,
+several at once on the worker threads: XLA compiles and loads binaries without the GIL,
+so two kernels compile in the time of one on two cores). Each kernel is built by one
+thread; other threads asking for the same kernel wait for it, those asking for other
+kernels do not.
+
+Files live in ``jtet-aot/<version>/`` where the version hashes jtet's own source and the
+JAX version, so an edited kernel is never served stale; directories of other versions
+beyond the ``KEEP_VERSIONS`` most recently used are deleted when a new kernel is written.
+Any failure (read-only or corrupt cache, an export JAX cannot do) falls back to the plain
+jitted function: the cache only ever costs time, never correctness.
 """
 
 from __future__ import annotations
@@ -17,15 +25,24 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+import shutil
 import threading
+import time
 from pathlib import Path
 
 import jax
 
 from . import _config
 
-_memo: dict[tuple, object] = {}  # (name, settings, shapes) -> jitted call
+KEEP_VERSIONS = 3  # source versions whose kernels stay on disk (the current one included)
+
+_memo: dict[tuple, object] = {}  # (name, settings, shapes) -> compiled call
+_building: dict[tuple, threading.Event] = {}  # kernels some thread is building right now
 _lock = threading.Lock()
+_pruned = False  # old versions are pruned at most once per process
+# Kernels built by this process: exported (traced + lowered + written) or loaded from disk,
+# and seconds spent on both, summed over threads (experiments/bench_improve.py --compile).
+STATS = {"exported": 0, "loaded": 0, "export_s": 0.0, "compile_s": 0.0}
 
 
 @functools.cache
@@ -37,41 +54,141 @@ def _source_hash() -> str:
     return h.hexdigest()[:16]
 
 
-def _directory() -> Path | None:
+def _root() -> Path | None:
     return None if _config.CACHE_DIR is None else Path(_config.CACHE_DIR) / "jtet-aot"
+
+
+def _directory() -> Path | None:
+    root = _root()
+    return None if root is None else root / _source_hash()
+
+
+def _key(name: str, settings: tuple, args) -> tuple:
+    return (name, settings, tuple((tuple(a.shape), str(a.dtype)) for a in args))
 
 
 def cached_call(name: str, settings: tuple, fn, *args):
     """``jax.jit(fn)(*args)``, with the traced ``fn`` for these argument shapes exported to
     and reloaded from the on-disk cache. ``settings`` must name everything ``fn`` closes
     over (static options); ``name`` the kernel."""
-    key = (name, settings, tuple((a.shape, str(a.dtype)) for a in args))
+    key = _key(name, settings, args)
     call = _memo.get(key)
     if call is None:
-        with _lock:  # one thread exports / loads a kernel; the others wait for it
-            call = _memo.get(key)
-            if call is None:
-                call = _load_or_export(key, fn, args)
-                _memo[key] = call
+        call = _get(key, fn, args)
     return call(*args)
 
 
-def _load_or_export(key: tuple, fn, args):
+def prefetch(specs: list[tuple]) -> None:
+    """Build the kernels ``(name, settings, fn, args)`` that are not built yet, on the
+    worker threads (``args``: arrays or ``jax.ShapeDtypeStruct``s of the call's shapes)."""
+    todo = {}
+    for name, settings, fn, args in specs:
+        key = _key(name, settings, args)
+        if key not in _memo:
+            todo[key] = (fn, args)
+    if todo:
+        _config.parallel_map(lambda item: _get(item[0], *item[1]), list(todo.items()))
+
+
+def _get(key: tuple, fn, args):
+    """The compiled call of ``key``, built by this thread or by the one already on it."""
+    while True:
+        with _lock:
+            call = _memo.get(key)
+            if call is not None:
+                return call
+            event = _building.get(key)
+            if event is None:
+                event = _building[key] = threading.Event()
+                break
+        event.wait()  # another thread builds it; if that failed, the loop retries
+    try:
+        call = _build(key, fn, args)
+        with _lock:
+            _memo[key] = call
+        return call
+    finally:
+        with _lock:
+            del _building[key]
+        event.set()
+
+
+def _compile(f, structs):
+    return jax.jit(f).lower(*structs).compile()
+
+
+def _build(key: tuple, fn, args):
+    """Load the exported kernel (or export it), then compile it (a persistent-cache hit
+    when warm). Falls back to ``jax.jit(fn)`` on any cache problem."""
+    structs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args]
     directory = _directory()
-    jitted = jax.jit(fn)
     if directory is None:
-        return jitted
-    digest = hashlib.sha256(repr((key, _source_hash())).encode()).hexdigest()
+        return jax.jit(fn)
+    digest = hashlib.sha256(repr(key).encode()).hexdigest()
     path = directory / f"{digest}.bin"
     try:
-        if path.exists():
-            return jax.jit(jax.export.deserialize(bytearray(path.read_bytes())).call)
-        structs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args]
-        exported = jax.export.export(jitted)(*structs)
-        directory.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
-        tmp.write_bytes(exported.serialize())
-        os.replace(tmp, path)  # atomic: a reader never sees half a file
-        return jax.jit(exported.call)
+        t0 = time.perf_counter()
+        loaded = path.exists()
+        if loaded:
+            exported = jax.export.deserialize(bytearray(path.read_bytes()))
+            os.utime(directory)  # recently used: pruning keeps it
+        else:
+            exported = jax.export.export(jax.jit(fn))(*structs)
+            directory.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
+            tmp.write_bytes(exported.serialize())
+            os.replace(tmp, path)  # atomic: a reader never sees half a file
+            _prune_once()
+        t1 = time.perf_counter()
+        call = _compile(exported.call, structs)
+        with _lock:
+            STATS["loaded" if loaded else "exported"] += 1
+            STATS["export_s"] += t1 - t0
+            STATS["compile_s"] += time.perf_counter() - t1
+        return call
     except Exception:  # noqa: BLE001  (any cache problem: trace as usual)
-        return jitted
+        return jax.jit(fn)
+
+
+def _prune_once() -> None:
+    global _pruned
+    with _lock:
+        if _pruned:
+            return
+        _pruned = True
+    prune()
+
+
+def prune(keep: int = KEEP_VERSIONS) -> list[Path]:
+    """Delete the exported kernels of all but the ``keep`` most recently used source
+    versions (the current one always stays), and files of the old flat layout. Returns
+    the deleted paths. Safe against concurrent processes: a kernel deleted under a reader
+    is only re-exported."""
+    root = _root()
+    if root is None or not root.is_dir():
+        return []
+    current = _source_hash()
+    versions, files = [], []
+    for p in root.iterdir():
+        try:
+            if p.is_dir() and p.name != current:
+                versions.append((p.stat().st_mtime, p))
+            elif p.is_file() and p.suffix in (".bin", ".tmp"):  # the old flat layout
+                files.append((p.stat().st_mtime, p))
+        except OSError:  # removed meanwhile by another process
+            pass
+    versions.sort(reverse=True)
+    removed = []
+    for _, p in versions[max(keep - 1, 0) :]:
+        shutil.rmtree(p, ignore_errors=True)
+        removed.append(p)
+    cutoff = time.time() - 3600  # a young .tmp may be an export in flight
+    for mtime, p in files:
+        if p.suffix == ".tmp" and mtime > cutoff:
+            continue
+        try:
+            p.unlink()
+            removed.append(p)
+        except OSError:
+            pass
+    return removed

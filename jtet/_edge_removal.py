@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._apply import nonconforming_owners, replace_tets, worse_orientation_owners
+from ._kernels.klincsek import prefetch as prefetch_rings
 from ._kernels.klincsek import solve_rings
 from ._mesh import TetMesh
 from ._select import select_conflict_free
@@ -180,6 +181,8 @@ def edge_removal_pass(
     a_all = T.edges[edges[ch.cand], 0]
     b_all = T.edges[edges[ch.cand], 1]
     pts = mesh.points
+    sizes = np.unique(clen[valid[ch.cand]])
+    prefetch_rings([int(k) for k in sizes if 3 <= k <= max_ring], measure, prune)
     for k in range(3, max_ring + 1):
         sel = np.flatnonzero((clen == k) & valid[ch.cand])
         if len(sel) == 0:

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import _config
-from ._aot import cached_call
+from ._aot import cached_call, prefetch
 from ._apply import nonconforming_owners, replace_tets
 from ._edge_removal import PassStats, _segments
 from ._kernels.multiface import solve_trees
@@ -385,7 +385,7 @@ def solve_forest(
         lo = cap
         tasks += [(cap, group[s : s + _CHUNK]) for s in range(0, len(group), _CHUNK)]
 
-    def solve(task):
+    def arguments(task):
         cap, sel = task
         bcap = _CHUNK
         pad = np.concatenate([sel, np.full(bcap - len(sel), sel[0])])
@@ -396,14 +396,21 @@ def solve_forest(
         pa, pb = P[forest.a[pad]], P[forest.b[pad]]
         qt = np.minimum(quality[forest.ta[pad, :cap]], quality[forest.tb[pad, :cap]])
         child = np.where(valid[:, :, None], forest.child[pad, :cap], -1)
-        out = cached_call(
-            "solve_trees", (measure,), functools.partial(solve_trees, measure=measure),
+        return (
             pa[:, 0], pa[:, 1], pa[:, 2], pb[:, 0], pb[:, 1], pb[:, 2],
             xyz[..., 0], xyz[..., 1], xyz[..., 2],
             np.maximum(forest.parent[pad, :cap], 0), forest.pslot[pad, :cap], child,
             qt, valid, np.asarray(forest.count[sel].max(), np.int32),
         )  # fmt: skip
-        return [np.asarray(x)[: len(sel)] for x in out]
+
+    kernel = functools.partial(solve_trees, measure=measure)
+    # every tree capacity's kernel compiled (or loaded) at once on the worker threads
+    first = {cap: (cap, sel) for cap, sel in reversed(tasks)}
+    prefetch([("solve_trees", (measure,), kernel, arguments(t)) for t in first.values()])
+
+    def solve(task):
+        out = cached_call("solve_trees", (measure,), kernel, *arguments(task))
+        return [np.asarray(x)[: len(task[1])] for x in out]
 
     # the trees' chunks are independent: solved on the worker threads, in order
     for (cap, sel), (qo, qn, ch) in zip(tasks, _config.parallel_map(solve, tasks), strict=True):

@@ -22,9 +22,11 @@ def _kernel(x, y):
 
 @pytest.fixture
 def cache(tmp_path, monkeypatch):
+    """A fresh cache directory; returns the directory of this source version's kernels."""
     monkeypatch.setattr(_config, "CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(_aot, "_memo", {})
-    return tmp_path / "jtet-aot"
+    monkeypatch.setattr(_aot, "_pruned", False)
+    return tmp_path / "jtet-aot" / _aot._source_hash()
 
 
 ARGS = (np.linspace(0, 1, 12).reshape(4, 3), np.arange(15.0).reshape(3, 5))
@@ -66,3 +68,125 @@ def test_no_cache_directory_means_plain_jit(tmp_path, monkeypatch):
     out = _aot.cached_call("k", (1,), _kernel, *ARGS)
     assert np.isfinite(np.asarray(out)).all()
     assert not any(tmp_path.iterdir())
+
+
+def test_prefetch_builds_each_kernel_once_and_calls_reuse_it(cache, monkeypatch):
+    import jax
+
+    built = []
+    real = _aot._build
+    monkeypatch.setattr(
+        _aot, "_build", lambda key, fn, args: built.append(key) or real(key, fn, args)
+    )
+    structs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in ARGS]
+    specs = [("k", (s,), _kernel, structs) for s in (1, 2, 3)]
+    _aot.prefetch(specs + specs)  # duplicates are built once
+    assert len(built) == 3 and len(list(cache.iterdir())) == 3
+    out = np.asarray(_aot.cached_call("k", (2,), _kernel, *ARGS))
+    _aot.prefetch(specs)  # all built: nothing to do
+    assert len(built) == 3
+    assert np.array_equal(out, np.asarray(jax.jit(_kernel)(*ARGS)))
+
+
+def test_threads_asking_for_one_kernel_share_one_build(cache, monkeypatch):
+    import threading
+
+    calls = []
+    real = _aot._build
+    gate = threading.Event()
+
+    def slow_build(key, fn, args):
+        calls.append(key)
+        gate.wait(5)
+        return real(key, fn, args)
+
+    monkeypatch.setattr(_aot, "_build", slow_build)
+    outs = []
+    threads = [
+        threading.Thread(target=lambda: outs.append(_aot.cached_call("k", (1,), _kernel, *ARGS)))
+        for _ in range(3)
+    ]
+    for t in threads:
+        t.start()
+    gate.set()
+    for t in threads:
+        t.join()
+    assert len(calls) == 1 and len(outs) == 3
+    assert all(np.array_equal(np.asarray(o), np.asarray(outs[0])) for o in outs)
+
+
+def test_failed_build_is_retried_by_the_next_caller(cache, monkeypatch):
+    real = _aot._build
+    monkeypatch.setattr(_aot, "_build", lambda *a: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        _aot.cached_call("k", (1,), _kernel, *ARGS)
+    assert not _aot._building  # nobody waits for the failed build
+    monkeypatch.setattr(_aot, "_build", real)
+    assert np.isfinite(np.asarray(_aot.cached_call("k", (1,), _kernel, *ARGS))).all()
+
+
+def test_prune_keeps_recent_versions_and_the_current_one(cache):
+    import os
+
+    root = cache.parent
+    _aot.cached_call("k", (1,), _kernel, *ARGS)  # the current version's directory
+    for i in range(5):  # older versions, version0 the oldest
+        d = root / f"version{i}"
+        d.mkdir()
+        (d / "x.bin").write_bytes(b"x")
+        os.utime(d, (1000.0 + i, 1000.0 + i))
+    (root / "flat.bin").write_bytes(b"old layout")
+    os.utime(cache, (10.0, 10.0))  # the current one stays even when oldest
+    removed = _aot.prune(keep=3)
+    left = sorted(p.name for p in root.iterdir())
+    assert left == sorted([cache.name, "version3", "version4"])
+    assert len(removed) == 4
+
+
+def test_new_export_prunes_old_versions_once(cache, monkeypatch):
+    root = cache.parent
+    root.mkdir(parents=True)
+    for i in range(_aot.KEEP_VERSIONS + 2):
+        (root / f"version{i}").mkdir()
+    _aot.cached_call("k", (1,), _kernel, *ARGS)
+    assert len(list(root.iterdir())) == _aot.KEEP_VERSIONS
+    assert _aot._pruned
+
+
+def test_parallel_map_inside_a_worker_runs_serially():
+    if _config.WORKERS < 2:
+        pytest.skip("one worker thread")
+    out = _config.parallel_map(lambda i: _config.parallel_map(lambda j: i * 10 + j, [0, 1]), [1, 2])
+    assert out == [[10, 11], [20, 21]]
+
+
+def test_ring_prefetch_builds_what_solve_rings_uses(cache):
+    from jtet._kernels import klincsek as kl
+
+    kl.prefetch([4, 6], "min_sine", prune=True)
+    built = set(_aot._memo)
+    assert {k[0] for k in built} == {"solve_chunks", "screen_chunks"} and len(built) == 3
+    rng = np.random.default_rng(0)
+    for m in (4, 6):  # three kernel calls per size, pruned at m = 6
+        n = kl.CALL_CHUNKS * kl.CHUNK * 2 + 5
+        ring = rng.random((n, m, 3))
+        kl.solve_rings(rng.random((n, 3)), rng.random((n, 3)), ring, np.full(n, -1.0))
+    assert set(_aot._memo) == built
+
+
+def test_quality_in_fixed_calls_matches_one_evaluation(monkeypatch):
+    import jax
+
+    from jtet import _quality
+
+    monkeypatch.setattr(_quality, "TET_CHUNK", 8)
+    rng = np.random.default_rng(1)
+    points = rng.random((30, 3))
+    tets = rng.integers(0, 30, (21, 4))  # three calls, the last one padded
+    corners = _quality.soa_corners(points, tets)
+    expected = np.asarray(jax.jit(_quality.radius_ratio)(*corners))
+    assert np.array_equal(_quality.tet_quality(points, tets, "radius_ratio"), expected)
+    angles, lo, hi = _quality.tet_dihedrals(points, tets)
+    assert angles.shape == (21, 6) and np.array_equal(lo, angles.min(axis=1))
+    assert np.array_equal(hi, angles.max(axis=1))
+    assert _quality.tet_quality(points, tets[:0]).shape == (0,)

@@ -67,11 +67,13 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .. import _config
 from .._aot import cached_call
+from .._aot import prefetch as prefetch_kernels
 from .._errors import JtetError
 from .._quality import Vec, get_measure, signed_volume
 
 __all__ = [
     "CHUNK",
+    "prefetch",
     "candidate_triangles",
     "ring_kernel",
     "solve_ring",
@@ -472,6 +474,25 @@ def _parallel_chunks(kernel, arrays: list[np.ndarray], **static):
     if isinstance(outs[0], tuple):
         return tuple(np.concatenate(o) for o in zip(*outs, strict=True))
     return np.concatenate(outs)
+
+
+def prefetch(ms, measure: str = "min_sine", prune: bool | str = True) -> None:
+    """Compile (or load) the kernels ``solve_rings`` needs for the ring sizes ``ms``, all
+    at once on the worker threads, instead of one after the other as the sizes come."""
+    f64 = np.dtype(np.float64)
+    specs = []
+    for m in ms:
+        apex = [jax.ShapeDtypeStruct((CALL_CHUNKS, CHUNK), f64)] * 6
+        soa = apex + [jax.ShapeDtypeStruct((CALL_CHUNKS, m, CHUNK), f64)] * 3
+        static = {"measure": measure}
+        specs.append(("solve_chunks", (("measure", measure),), solve_chunks, soa, static))
+        if prune and not (prune is True and m < PRUNE_MIN_M):
+            static = {"measure": measure, "mode": "quality" if prune is True else prune}
+            specs.append(("screen_chunks", tuple(sorted(static.items())), screen_chunks,
+                          [*soa, apex[0]], static))  # fmt: skip
+    prefetch_kernels(
+        [(name, settings, functools.partial(k, **st), a) for name, settings, k, a, st in specs]
+    )
 
 
 def _capacity(n: int) -> int:
