@@ -40,6 +40,7 @@ _memo: dict[tuple, object] = {}  # (name, settings, shapes) -> compiled call
 _building: dict[tuple, threading.Event] = {}  # kernels some thread is building right now
 _lock = threading.Lock()
 _pruned = False  # old versions are pruned at most once per process
+_groups_seen: set[tuple] = set()  # (name, settings) whose siblings were loaded
 # Kernels built by this process: exported (traced + lowered + written) or loaded from disk,
 # and seconds spent on both, summed over threads (experiments/bench_improve.py --compile).
 STATS = {"exported": 0, "loaded": 0, "export_s": 0.0, "compile_s": 0.0}
@@ -67,15 +68,53 @@ def _key(name: str, settings: tuple, args) -> tuple:
     return (name, settings, tuple((tuple(a.shape), str(a.dtype)) for a in args))
 
 
-def cached_call(name: str, settings: tuple, fn, *args):
+def cached_call(name: str, settings: tuple, fn, *args, siblings: bool = False):
     """``jax.jit(fn)(*args)``, with the traced ``fn`` for these argument shapes exported to
     and reloaded from the on-disk cache. ``settings`` must name everything ``fn`` closes
-    over (static options); ``name`` the kernel."""
+    over (static options); ``name`` the kernel.
+
+    ``siblings=True``: when this kernel is first built in the process, the other shapes of
+    the same (name, settings) that earlier processes exported are loaded at the same time
+    on background threads (a run needs the shapes the last one needed, e.g. the star
+    capacities of smoothing), instead of one after the other as calls first need them.
+    """
     key = _key(name, settings, args)
     call = _memo.get(key)
     if call is None:
+        if siblings:
+            _load_siblings(key, fn)
         call = _get(key, fn, args)
     return call(*args)
+
+
+def _load_siblings(key: tuple, fn) -> None:
+    """Start loading the exported shapes of ``key``'s (name, settings) other than ``key``
+    on background threads (only once per (name, settings) and process)."""
+    group = key[:2]
+    with _lock:
+        if group in _groups_seen:
+            return
+        _groups_seen.add(group)
+    directory = _directory()
+    if directory is None:
+        return
+    try:
+        paths = sorted(directory.glob(f"{_group_prefix(group)}-*.bin"))
+    except OSError:
+        return
+    for path in paths:
+        threading.Thread(target=_load_sibling, args=(group, fn, path), daemon=True).start()
+
+
+def _load_sibling(group: tuple, fn, path: Path) -> None:
+    try:
+        exported = jax.export.deserialize(bytearray(path.read_bytes()))
+        structs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in exported.in_avals]
+        key = (*group, tuple((tuple(s.shape), str(s.dtype)) for s in structs))
+        if key not in _memo and path.name == _filename(key):
+            _get(key, fn, structs)
+    except Exception:  # noqa: BLE001  (only a head start: the call itself builds it)
+        pass
 
 
 def prefetch(specs: list[tuple]) -> None:
@@ -113,6 +152,16 @@ def _get(key: tuple, fn, args):
         event.set()
 
 
+def _group_prefix(group: tuple) -> str:
+    return hashlib.sha256(repr(group).encode()).hexdigest()[:16]
+
+
+def _filename(key: tuple) -> str:
+    """``<hash of (name, settings)>-<hash of the whole key>.bin``: the shapes exported for
+    one (name, settings) can be listed (``siblings``)."""
+    return f"{_group_prefix(key[:2])}-{hashlib.sha256(repr(key).encode()).hexdigest()}.bin"
+
+
 def _compile(f, structs):
     return jax.jit(f).lower(*structs).compile()
 
@@ -124,8 +173,7 @@ def _build(key: tuple, fn, args):
     directory = _directory()
     if directory is None:
         return jax.jit(fn)
-    digest = hashlib.sha256(repr(key).encode()).hexdigest()
-    path = directory / f"{digest}.bin"
+    path = directory / _filename(key)
     try:
         t0 = time.perf_counter()
         loaded = path.exists()

@@ -441,7 +441,9 @@ def batched_smoother(measure: str, solver: str, max_iters: int, **options):
         smooth_star, measure=measure, solver=solver, max_iters=max_iters, **options
     )
     settings = (measure, solver, max_iters, tuple(sorted(options.items())))
-    return functools.partial(cached_call, "smooth_star", settings, jax.vmap(fn))
+    # siblings: the first call also starts loading the other star capacities an earlier
+    # process exported, so the capacities load side by side, not one after the other
+    return functools.partial(cached_call, "smooth_star", settings, jax.vmap(fn), siblings=True)
 
 
 # ---------------------------------------------------------------------------------------

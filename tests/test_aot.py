@@ -26,6 +26,7 @@ def cache(tmp_path, monkeypatch):
     monkeypatch.setattr(_config, "CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(_aot, "_memo", {})
     monkeypatch.setattr(_aot, "_pruned", False)
+    monkeypatch.setattr(_aot, "_groups_seen", set())
     return tmp_path / "jtet-aot" / _aot._source_hash()
 
 
@@ -190,3 +191,20 @@ def test_quality_in_fixed_calls_matches_one_evaluation(monkeypatch):
     assert angles.shape == (21, 6) and np.array_equal(lo, angles.min(axis=1))
     assert np.array_equal(hi, angles.max(axis=1))
     assert _quality.tet_quality(points, tets[:0]).shape == (0,)
+
+
+def test_siblings_load_the_other_exported_shapes_in_the_background(cache):
+    import time
+
+    small = (ARGS[0][:2], ARGS[1])
+    _aot.cached_call("k", (1,), _kernel, *ARGS)
+    _aot.cached_call("k", (1,), _kernel, *small)
+    _aot.cached_call("k", (2,), _kernel, *small)  # another group: not a sibling
+    _aot._memo.clear()  # a new process
+    _aot.cached_call("k", (1,), _kernel, *ARGS, siblings=True)
+    other = _aot._key("k", (1,), small)
+    deadline = time.monotonic() + 60
+    while other not in _aot._memo and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert set(_aot._memo) == {_aot._key("k", (1,), ARGS), other}
+    assert _aot.STATS["loaded"] >= 2
