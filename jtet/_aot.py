@@ -129,6 +129,14 @@ def prefetch(specs: list[tuple]) -> None:
         _config.parallel_map(lambda item: _get(item[0], *item[1]), list(todo.items()))
 
 
+def prefetch_calls(call: functools.partial, args_list: list) -> None:
+    """``prefetch`` for a ``functools.partial(cached_call, name, settings, fn)`` (as
+    ``_smooth.batched_smoother`` returns): the kernel for every argument list in
+    ``args_list`` (arrays or ``jax.ShapeDtypeStruct``s), built at once."""
+    name, settings, fn = call.args[:3]
+    prefetch([(name, settings, fn, args) for args in args_list])
+
+
 def _get(key: tuple, fn, args):
     """The compiled call of ``key``, built by this thread or by the one already on it."""
     while True:

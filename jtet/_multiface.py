@@ -60,8 +60,9 @@ for _e, (_i, _j) in enumerate([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]):
 _TREE_CAPS = (4, 16, 64, 256)
 # Trees per kernel call: every call has this many (the last one of a group padded), so one
 # batch shape per tree capacity compiles (it was one per power of two, 256..1024: three
-# shapes and ~2.5 s more compile in a fresh process). A call takes ~0.3 ms at capacity 4.
-_CHUNK = 256
+# shapes and ~2.5 s more compile in a fresh process). A 1024-tree call takes ~1 ms at
+# capacity 4, so a padded small group costs little; large groups run as before.
+_CHUNK = 1024
 
 
 def _local(tets: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -208,3 +208,16 @@ def test_siblings_load_the_other_exported_shapes_in_the_background(cache):
         time.sleep(0.05)
     assert set(_aot._memo) == {_aot._key("k", (1,), ARGS), other}
     assert _aot.STATS["loaded"] >= 2
+
+
+def test_prefetch_calls_takes_a_cached_call_partial(cache):
+    import functools
+
+    import jax
+
+    call = functools.partial(_aot.cached_call, "k", (1,), _kernel, siblings=True)
+    structs = [[jax.ShapeDtypeStruct((n, 3), np.float64), jax.ShapeDtypeStruct((3, 5), np.float64)]
+               for n in (2, 4)]  # fmt: skip
+    _aot.prefetch_calls(call, structs)
+    assert set(_aot._memo) == {_aot._key("k", (1,), s) for s in structs}
+    assert np.array_equal(np.asarray(call(*ARGS)), np.asarray(jax.jit(_kernel)(*ARGS)))
