@@ -13,6 +13,7 @@ times and the kernel builds (experiments/results/compile.md).
     python experiments/bench_improve.py --big 165000          # + a ~1M-tet Delaunay mesh
     python experiments/bench_improve.py --meshes gmsh:cube:0.03   # Gmsh cube, h = 0.03 (~200k)
     python experiments/bench_improve.py --smooth-effort 15x6,8x3,4x4   # smoothing effort table
+    python experiments/bench_improve.py --settings min_sine:0.7,biased_min_sine:0.6
 
 Mesh names: a file of ../shared/meshes, ``demo``, ``delaunay:N`` (random points in a cube,
 worst quality limited by its fixed flat-hull boundary) or ``gmsh:SHAPE:H`` (an unoptimized
@@ -70,10 +71,12 @@ def load_mesh(name: str) -> jtet.TetMesh:
     return jtet.load(SHARED / f"{name}.vtu")
 
 
-def run_one(name: str, ops: tuple[str, ...], time_limit: float | None, mesh=None) -> dict:
+def run_one(
+    name: str, ops: tuple[str, ...], time_limit: float | None, mesh=None, **options
+) -> dict:
     mesh = load_mesh(name) if mesh is None else mesh
     t0 = time.perf_counter()
-    r = jtet.improve(mesh, ops=ops, time_limit=time_limit)
+    r = jtet.improve(mesh, ops=ops, time_limit=time_limit, **options)
     wall = time.perf_counter() - t0
     smooth_s = sum(h["seconds"] for h in r.history if h["op"] == "smooth")
     b, a = r.stats_before, r.stats_after
@@ -124,6 +127,22 @@ def smooth_effort(names: list[str], ops: tuple[str, ...], efforts: list[str]) ->
     finally:
         smooth.smooth_pass = original
     print_table(rows, f"smoothing effort (iterations x trial steps per pass), ops={ops}")
+
+
+def quality_settings(names: list[str], ops: tuple[str, ...], settings: list[str]) -> None:
+    """The same improve runs under several (quality measure, good_quality) settings, each
+    after a warm-up run of the same setting on the same mesh (steady state)."""
+    rows = []
+    for name in names:
+        mesh = load_mesh(name)
+        for setting in settings:
+            measure, good = setting.split(":")
+            options = {"quality": measure, "good_quality": None if good == "none" else float(good)}
+            run_one(name, ops, None, mesh, **options)
+            row = run_one(name, ops, None, mesh, **options)
+            row["mesh"] = f"{name} {setting}"
+            rows.append(row)
+    print_table(rows, f"quality measure : good_quality, ops={ops}")
 
 
 def print_table(rows: list[dict], title: str) -> None:
@@ -278,6 +297,12 @@ def main() -> None:
     p.add_argument("--repeat", type=int, default=2, help="--compile: pairs of processes")
     p.add_argument("--compile-worker", default=None, help=argparse.SUPPRESS)
     p.add_argument(
+        "--settings",
+        default="",
+        help="comma list of MEASURE:GOOD_QUALITY settings to compare, "
+        "e.g. min_sine:0.7,biased_min_sine:0.6",
+    )
+    p.add_argument(
         "--smooth-effort",
         default="",
         help="comma list of ITERSxTRIALS smoothing settings to compare, e.g. 15x6,8x3",
@@ -297,6 +322,9 @@ def main() -> None:
         return
     if args.smooth_effort:
         smooth_effort(names, ops, args.smooth_effort.split(","))
+        return
+    if args.settings:
+        quality_settings(names, ops, args.settings.split(","))
         return
     rows = []
     for name in names:

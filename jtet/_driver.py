@@ -338,6 +338,10 @@ def _updated_tet_measures(step: StepResult, measure: str, q, lo, hi):
     from ._quality import tet_dihedrals, tet_quality
 
     mesh = step.mesh
+    if step.keep is not None and (len(step.keep) != len(q) or step.keep.sum() > mesh.n_tets):
+        # not "kept tets first, then new ones" (a broken step): evaluate everything
+        _, lo, hi = tet_dihedrals(mesh.points, mesh.tets)
+        return tet_quality(mesh.points, mesh.tets, measure), lo, hi
     if step.keep is not None:  # kept tets first, in order, then the new ones
         start = int(step.keep.sum())
         redo = np.arange(start, mesh.n_tets)

@@ -246,7 +246,7 @@ def test_bad_option_values_raise(demo, kw, match):
 
 
 def test_good_quality_accepted_values():
-    assert jtet.Options().good_quality == 0.7
+    assert jtet.Options().good_quality == 0.6
     assert jtet.Options(good_quality=1.0).good_quality == 1.0
     assert jtet.Options(good_quality=None).good_quality is None
     assert jtet.Options(good_quality=0.01).good_quality == 0.01
