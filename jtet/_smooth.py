@@ -579,15 +579,26 @@ def motion_bases(
     return basis, movable, pinned
 
 
-def star_faces(mesh) -> tuple[np.ndarray, np.ndarray]:
+def star_faces(mesh, verts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(ptr (n+1,), opp (S, 3)): for every vertex v, rows ptr[v]:ptr[v+1] of ``opp`` list
     the star faces of v (the other three vertices of each tet containing v, in the order
-    of ``STAR_PERM``, so that (v, f0, f1, f2) is positively oriented like the tet)."""
+    of ``STAR_PERM``, so that (v, f0, f1, f2) is positively oriented like the tet).
+
+    ``verts`` (optional (n,) bool mask): only these vertices get their star; the others
+    get an empty one. A late pass smooths a few hundred vertices of a large mesh, and
+    the whole-mesh gather cost more than their kernel calls (0.09 s at 182k tets).
+    """
     topo = mesh.topology
-    ptr = np.asarray(topo.vert_tets_ptr)
-    vt = np.asarray(topo.vert_tets)
-    owner = np.repeat(np.arange(mesh.n_points), np.diff(ptr))
-    tv = mesh.tets[vt]
+    vptr = np.asarray(topo.vert_tets_ptr)
+    sizes = np.diff(vptr)
+    if verts is not None:
+        sizes = np.where(np.asarray(verts, bool), sizes, 0)
+    ptr = np.zeros(mesh.n_points + 1, np.int64)
+    np.cumsum(sizes, out=ptr[1:])
+    owner = np.repeat(np.arange(mesh.n_points), sizes)
+    # rows of vert_tets for the selected vertices: each vertex's run, concatenated
+    rows = vptr[owner] + (np.arange(len(owner)) - ptr[owner])
+    tv = mesh.tets[np.asarray(topo.vert_tets)[rows]]
     local = np.argmax(tv == owner[:, None], axis=1)
     opp = np.take_along_axis(tv, STAR_PERM[local], axis=1)
     return ptr, opp
@@ -713,7 +724,7 @@ def smooth_pass(
         cand &= c
     if threshold is not None:
         cand &= vq < threshold
-    ptr, opp_ids = star_faces(mesh)
+    ptr, opp_ids = star_faces(mesh, cand)
     size = np.diff(ptr)
     cand &= size > 0
     too_big = cand & (size > capacities[-1])

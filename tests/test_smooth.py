@@ -145,6 +145,12 @@ def test_star_faces_match_brute_force():
         assert sorted(map(canon, got)) == sorted(map(canon, ref))
         p = np.concatenate([np.broadcast_to(m.points[v], (len(got), 1, 3)), m.points[got]], 1)
         assert (np_min_sine(p) > 0).all()
+    # restricted to some vertices: the same rows for them, empty stars for the others
+    some = np.random.default_rng(0).random(m.n_points) < 0.3
+    ptr_s, opp_s = star_faces(m, some)
+    for v in range(m.n_points):
+        got = opp_s[ptr_s[v] : ptr_s[v + 1]]
+        assert np.array_equal(got, opp[ptr[v] : ptr[v + 1]] if some[v] else opp[:0])
 
 
 @pytest.mark.parametrize("solver", ["active_set", pytest.param("bfgs", marks=pytest.mark.slow)])
