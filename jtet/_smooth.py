@@ -27,18 +27,15 @@ Coordinates inside the kernel are relative to ``v0`` (quality is translation inv
 from __future__ import annotations
 
 import functools
-import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from ._aot import cached_call
+from ._aot import cached_call, prefetch_calls
 from ._config import parallel_map
 from ._errors import JtetError
 from ._predicates import orient3d_tets
@@ -59,27 +56,6 @@ STAR_PERM = np.array([[1, 2, 3], [0, 3, 2], [3, 0, 1], [2, 1, 0]], dtype=np.int6
 
 SOLVERS = ("bfgs", "ncg", "bfgs_tr", "active_set", "hybrid")
 DEFAULT_CAPACITIES = (32, 64, 128)
-
-# Below this quality the log in the surrogate is continued linearly (C1), so inverted and
-# degenerate tets give a finite, steep penalty instead of log(<= 0).
-_LOG_FLOOR = 1e-4
-
-
-def _quiet(**kwargs) -> None:
-    return None
-
-
-class _BFGSTrustRegion(optx.AbstractBFGS):
-    """BFGS Hessian approximation, dogleg steps, classical trust region (optimistix)."""
-
-    rtol: float
-    atol: float
-    norm: object = optx.max_norm
-    use_inverse: bool = False
-    descent: optx.AbstractDescent = optx.DoglegDescent()
-    search: optx.AbstractSearch = optx.ClassicalTrustRegion()
-    verbose: Callable[..., None] = _quiet
-
 
 # ---------------------------------------------------------------------------------------
 # Quality of a star as a function of the moving vertex.
@@ -131,61 +107,6 @@ def star_qualities(
     """TRUE quality (``jtet.MEASURES[measure]``) of every star tet with the vertex at ``x``;
     +inf in padded slots. ``x`` and ``rel`` in the same frame."""
     return jnp.where(mask, get_measure(measure)(*_corners(x, rel)), jnp.inf)
-
-
-def _soft_min_objective(t, args):
-    """Surrogate to MINIMISE: (1/p) log sum exp(-p log c) = -log(soft-min of c).
-
-    The log makes the temperature relative (a sliver at 0.01 and a good tet at 0.5 are
-    weighted by their ratio, not their difference), so one sharpness ``p`` suits every star.
-    """
-    B, rel, mask, measure, p = args
-    c = star_components(B @ t, rel, measure)
-    phi = jnp.where(
-        c >= _LOG_FLOOR,
-        jnp.log(jnp.maximum(c, _LOG_FLOOR)),
-        math.log(_LOG_FLOOR) + (c - _LOG_FLOOR) / _LOG_FLOOR,
-    )
-    z = jnp.where(mask[:, None], -p * phi, -jnp.inf)
-    return jax.nn.logsumexp(z) / p
-
-
-def _scaled_objective(t, args):
-    scale, inner = args
-    return scale * _soft_min_objective(t, inner)
-
-
-def _make_solver(solver: str, rtol: float, atol: float):
-    if solver == "bfgs":
-        return optx.BFGS(rtol=rtol, atol=atol)
-    if solver == "ncg":
-        return optx.NonlinearCG(rtol=rtol, atol=atol)
-    if solver == "bfgs_tr":
-        return _BFGSTrustRegion(rtol=rtol, atol=atol)
-    raise JtetError(f"unknown smoothing solver {solver!r}; choose one of {SOLVERS}")
-
-
-def _solve_surrogate(t0, B, rel, mask, measure, solver, sharpness, max_iters, rtol, atol):
-    """Minimise the soft-min surrogate with optimistix, one stage per sharpness value."""
-    opt = _make_solver(solver, rtol, atol)
-    t = t0
-    for p in sharpness:  # continuation: a blunt stage finds the basin, a sharp one refines
-        args = (B, rel, mask, measure, p)
-        # Scale so the first (identity-Hessian) step is h/4 long: the raw gradient is
-        # ~|grad q|/q, i.e. 100 for a sliver star and 1e4 in the linear continuation of an
-        # inverted one, and Armijo backtracking from step 1 wasted the iteration budget.
-        g0 = jax.grad(_soft_min_objective)(t, args)
-        scale = 0.25 / jnp.maximum(jnp.sqrt(g0 @ g0), 1e-12)
-        sol = optx.minimise(
-            _scaled_objective,
-            opt,
-            t,
-            args=(scale, args),
-            max_steps=max_iters,
-            throw=False,
-        )
-        t = jnp.where(jnp.all(jnp.isfinite(sol.value)), sol.value, t)
-    return t
 
 
 def _subsets(a: int) -> tuple[np.ndarray, ...]:
@@ -401,6 +322,10 @@ def smooth_star(
     q0 = star_qualities(v0, opp, mask, measure)
     q_old = jnp.min(q0)
     t0 = jnp.zeros(3)
+    if solver != "active_set":
+        # optimistix (and equinox, lineax) only for the surrogate solvers: ~0.5 s of
+        # imports the default active-set path does not pay
+        from ._surrogate import _solve_surrogate
     if solver == "active_set":
         t_star = _solve_active_set(t0, B, rel, mask, measure, max_iters, n_trials, active_rel)
     elif solver == "hybrid":  # a blunt BFGS stage finds the basin, the active set polishes
@@ -752,16 +677,16 @@ def smooth_pass(
         )
         for K in capacities
     }
+    plan = [_colour_tasks(verts, size, capacities, batch_sizes) for verts in sets]
+    attempts = sum(len(task[2]) for tasks in plan for task in tasks)
+    # every (capacity, batch) shape the pass will call, built at once on the worker
+    # threads: a new process compiles them side by side instead of one per first call
+    # (cold: ~10 s each for the smoothing kernel)
+    shapes = sorted({(K, batch) for tasks in plan for K, batch, _ in tasks})
+    for K in {K for K, _ in shapes}:
+        prefetch_calls(kernels[K], [_kernel_structs(K, b) for k, b in shapes if k == K])
     moved_all = []
-    attempts = 0
-    for verts in sets:
-        # bucket by star size: the smallest capacity holding the star
-        bucket = np.searchsorted(np.asarray(capacities), size[verts], side="left")
-        tasks = []
-        for bi, K in enumerate(capacities):
-            vb = verts[bucket == bi]
-            attempts += len(vb)
-            tasks += [(K, size_b, vb[chunk]) for chunk, size_b in _chunks(len(vb), *batch_sizes)]
+    for tasks in plan:
         # one colour's vertices share no tet: its batches are independent, solved in
         # parallel, and every batch reads only points no other batch of it writes
         results = parallel_map(
@@ -794,6 +719,28 @@ def smooth_pass(
         seconds=time.perf_counter() - t_start,
     )
     return new, stats
+
+
+def _colour_tasks(verts, size, capacities, batch_sizes) -> list[tuple]:
+    """Kernel calls (capacity K, padded batch size, vertex ids) of one colour: each
+    vertex goes to the smallest capacity holding its star."""
+    bucket = np.searchsorted(np.asarray(capacities), size[verts], side="left")
+    tasks = []
+    for bi, K in enumerate(capacities):
+        vb = verts[bucket == bi]
+        tasks += [(K, size_b, vb[chunk]) for chunk, size_b in _chunks(len(vb), *batch_sizes)]
+    return tasks
+
+
+def _kernel_structs(K: int, batch: int) -> list:
+    """Argument shapes of a ``batched_smoother`` call: v0, basis, opp, mask."""
+    f64 = np.float64
+    return [
+        jax.ShapeDtypeStruct((batch, 3), f64),
+        jax.ShapeDtypeStruct((batch, 3, 3), f64),
+        jax.ShapeDtypeStruct((batch, K, 3, 3), f64),
+        jax.ShapeDtypeStruct((batch, K), np.bool_),
+    ]
 
 
 def _chunks(b: int, small: int, large: int):
