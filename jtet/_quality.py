@@ -297,6 +297,13 @@ def _dihedral_soa(*xyz):
     return jnp.stack(angles, axis=-1), lo, hi
 
 
+def _all_measures_soa(*xyz, names: tuple[str, ...]):
+    # One kernel shares the corners and face normals between the measures: min_sine and
+    # biased_min_sine may differ from the one-measure kernels' by an ulp (different fusion)
+    corners = tuple(xyz[3 * i : 3 * i + 3] for i in range(4))
+    return (*_dihedral_soa(*xyz), *(MEASURES[name](*corners) for name in names))
+
+
 # Tets per kernel call: every call has this shape whatever the number of tets, so each
 # kernel compiles (or loads from the cache) once per process, not once per power-of-two
 # size; calls run on the worker threads. Small: the driver re-evaluates only the few
@@ -333,20 +340,45 @@ def tet_quality(points: np.ndarray, tets: np.ndarray, measure: str = "min_sine")
     return _per_tet("tet_quality", (measure,), fn, points, tets)[0]
 
 
+def tet_all_measures(
+    points: np.ndarray, tets: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """(angles (m, 6), min (m,), max (m,) dihedral angles in degrees, {measure: (m,)})
+    of every tet, for every measure of ``MEASURES``: one kernel and one gather of the
+    corners (statistics and output arrays need them all; six separate kernels took 3.6x
+    as long at 182k tets and loaded six executables in a new process). Values equal
+    ``tet_quality`` / ``tet_dihedrals`` to the last bit or within 1 ulp (min-sine
+    measures: the fused kernel orders some operations differently)."""
+    names = tuple(MEASURES)
+    if len(points) == 0:
+        empty = np.zeros(len(tets))
+        return np.zeros((len(tets), 6)), empty, empty, {name: empty for name in names}
+    if not _kernels_prefetched:
+        _prefetch_kernels()
+    fn = functools.partial(_all_measures_soa, names=names)
+    angles, lo, hi, *qs = _per_tet("tet_all_measures", names, fn, points, tets)
+    return angles, lo, hi, dict(zip(names, qs, strict=True))
+
+
 _kernels_prefetched = False
 
 
 def _prefetch_kernels() -> None:
-    """Build the kernels of every measure and of the dihedral angles at once on the worker
-    threads: jtet's statistics (``improve``'s before / after, ``jtet stats``) evaluate all
-    of them, one after the other, so a new process built them one at a time (cube, empty
-    cache: ~2 s; warm: ~0.6 s)."""
+    """Build the statistics kernel (every measure and the dihedral angles), the dihedral
+    kernel and the optimizer's default measure at once on the worker threads: a run needs
+    all three, and a new process built them one at a time."""
+    from ._options import Options
+
     global _kernels_prefetched
     _kernels_prefetched = True
     xyz = [jax.ShapeDtypeStruct((TET_CHUNK,), np.float64)] * 12
-    specs = [("tet_dihedrals", (), _dihedral_soa, xyz)]
-    for name in MEASURES:
-        specs.append(("tet_quality", (name,), functools.partial(_quality_soa, name=name), xyz))
+    names = tuple(MEASURES)
+    default = Options().quality
+    specs = [
+        ("tet_dihedrals", (), _dihedral_soa, xyz),
+        ("tet_all_measures", names, functools.partial(_all_measures_soa, names=names), xyz),
+        ("tet_quality", (default,), functools.partial(_quality_soa, name=default), xyz),
+    ]
     prefetch(specs)
 
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from ._errors import MeshFileError
 from ._mesh import TetMesh
-from ._quality import MEASURES, tet_dihedrals, tet_quality
+from ._quality import tet_all_measures
 
 
 def quality_cell_data(mesh: TetMesh) -> dict[str, np.ndarray]:
@@ -20,8 +20,8 @@ def quality_cell_data(mesh: TetMesh) -> dict[str, np.ndarray]:
     Named so ParaView lists them plainly: ``quality_min_sine``, ..., ``min_dihedral``,
     ``max_dihedral`` (degrees), ``volume``.
     """
-    _, lo, hi = tet_dihedrals(mesh.points, mesh.tets)
-    data = {f"quality_{name}": tet_quality(mesh.points, mesh.tets, name) for name in MEASURES}
+    _, lo, hi, qualities = tet_all_measures(mesh.points, mesh.tets)
+    data = {f"quality_{name}": q for name, q in qualities.items()}
     data["min_dihedral"] = lo
     data["max_dihedral"] = hi
     data["volume"] = np.asarray(mesh.volumes)

@@ -1,9 +1,8 @@
 """Mesh quality statistics: ``mesh_stats(mesh) -> MeshStats`` and a before/after table.
 
-Angles are in degrees, volumes in the mesh's length unit cubed. Dihedral angles come from
-``jtet._quality.tet_dihedrals`` and the quality measures from ``jtet._quality.tet_quality``
-(one jitted SoA pass each over the whole mesh); orientation signs come from the robust
-predicate used by the validity check.
+Angles are in degrees, volumes in the mesh's length unit cubed. Dihedral angles and every
+quality measure come from ``jtet._quality.tet_all_measures`` (one jitted SoA pass over the
+whole mesh); orientation signs come from the robust predicate used by the validity check.
 """
 
 from __future__ import annotations
@@ -14,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._quality import MEASURES, get_measure, tet_dihedrals, tet_quality
+from ._quality import MEASURES, get_measure, tet_all_measures
 from ._validity import orientation_signs
 
 SMALL_ANGLES = (5, 10, 20, 30)  # count tets whose smallest dihedral angle is below these
@@ -75,10 +74,10 @@ def mesh_stats(mesh, measures: Iterable[str] | None = None) -> MeshStats:
     for name in names:
         get_measure(name)  # unknown names fail here, with the list of valid ones
     points, tets = mesh.points, mesh.tets
-    angles, lo, hi = tet_dihedrals(points, tets)
+    angles, lo, hi, qualities = tet_all_measures(points, tets)
     qmin, qmean, qhist = {}, {}, {}
     for name in names:
-        q = tet_quality(points, tets, name)
+        q = qualities[name]
         qmin[name] = float(q.min())
         qmean[name] = float(q.mean())
         qhist[name] = np.histogram(np.clip(q, -1.0, 1.0), QUALITY_BINS, (-1.0, 1.0))[0]

@@ -110,7 +110,10 @@ def test_demo_stats_match_jtet_stats(demo, demo_run):
     assert r.stats_before.as_dict() == jtet.stats(demo).as_dict()
     assert r.stats_after.as_dict() == jtet.stats(r.mesh).as_dict()
     assert r.stats_after.n_tets == r.mesh.n_tets
-    assert r.stats_after.quality_min["min_sine"] == r.mesh.quality("min_sine").min()
+    # statistics evaluate all measures in one fused kernel: equal up to an ulp
+    assert r.stats_after.quality_min["min_sine"] == pytest.approx(
+        r.mesh.quality("min_sine").min(), rel=1e-15, abs=1e-300
+    )
 
 
 def test_demo_history(demo, demo_run):

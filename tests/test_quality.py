@@ -35,6 +35,7 @@ from jtet._quality import (
     dihedral_angles,
     get_measure,
     signed_volume,
+    tet_all_measures,
     tet_dihedrals,
     tet_quality,
 )
@@ -341,6 +342,24 @@ def test_host_helpers_on_a_mesh(rng):
     np.testing.assert_array_equal(angles, dihedrals(corners))
     np.testing.assert_array_equal(lo, angles.min(1))
     np.testing.assert_array_equal(hi, angles.max(1))
+
+
+def test_all_measures_kernel_matches_the_single_ones(rng):
+    """The statistics kernel (every measure + dihedrals, one fused call) against the
+    one-measure kernels: equal, or within an ulp where fusion reorders operations."""
+    P = random_tets(rng, 700)
+    points = P.reshape(-1, 3)
+    tets = rng.permutation(len(points)).reshape(-1, 4)
+    angles, lo, hi, qs = tet_all_measures(points, tets)
+    ref_angles, ref_lo, ref_hi = tet_dihedrals(points, tets)
+    np.testing.assert_allclose(angles, ref_angles, rtol=2 * EPS, atol=0)
+    np.testing.assert_allclose(lo, ref_lo, rtol=2 * EPS, atol=0)
+    np.testing.assert_allclose(hi, ref_hi, rtol=2 * EPS, atol=0)
+    assert sorted(qs) == NAMES
+    for name in NAMES:
+        # measures are O(1) (regular tet = 1): a reordered sum is off by ~eps absolutely,
+        # also for slivers whose quality is tiny
+        np.testing.assert_allclose(qs[name], tet_quality(points, tets, name), rtol=0, atol=2 * EPS)
 
 
 def test_unknown_measure():
