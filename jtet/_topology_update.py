@@ -189,6 +189,31 @@ def _merge(old_keys, survive, cand_keys):
     return keys, gmap, src, add_src
 
 
+def _touched(old_tet_ids, removed, old_keys, new_keys):
+    """Sorted ids of the old faces (edges) the step touches: those of removed tets and
+    those a new tet also has. ``old_tet_ids`` (m0, w) per-tet ids, ``new_keys`` the keys
+    of the new tets' faces (edges)."""
+    hit = _lookup(old_keys, new_keys)
+    return np.unique(np.concatenate([old_tet_ids[removed].reshape(-1), hit[hit >= 0]]))
+
+
+def _merged(old_rows, old_keys, survive, new_rows, new_keys, old_tet_ids, keep_idx):
+    """The new mesh's faces (edges) and every tet's face (edge) ids.
+
+    Merges the surviving old entities with the new tets' ``new_rows`` (keys
+    ``new_keys``, w per new tet) as ``_merge``. Returns (keys, gmap, src, add_src) of
+    ``_merge``, the rows (G1, k) and the per-tet ids (K + A_tets, w): kept tets
+    renumbered through ``gmap``, new tets looked up.
+    """
+    keys, gmap, src, add_src = _merge(old_keys, survive, new_keys)
+    rows = _take_rows(old_rows, new_rows[add_src], src)
+    w = old_tet_ids.shape[1]
+    tet_ids = np.empty((len(keep_idx) + len(new_keys) // w, w), np.int64)
+    tet_ids[: len(keep_idx)] = gmap[np.take(old_tet_ids, keep_idx, axis=0)]
+    tet_ids[len(keep_idx) :] = np.searchsorted(keys, new_keys).reshape(-1, w)
+    return keys, gmap, src, add_src, rows, tet_ids
+
+
 def _take_rows(old_rows, add_rows, src):
     """Rows ``concat(old_rows, add_rows)[src]``; np.take along axis 0 is several times
     faster than fancy or boolean row indexing on large arrays."""
@@ -251,18 +276,15 @@ def _update_faces(old: Topology, tets, keep, keep_idx, removed, renum, n):
     nk = row_keys(nf, n)
     fk0 = row_keys(old.faces, n)  # sorted: faces come from a sort by key
     # old faces touched: faces of removed tets and old faces a new tet also has
-    hit = _lookup(fk0, nk)
-    touched = np.unique(np.concatenate([old.tet_faces[removed].reshape(-1), hit[hit >= 0]]))
+    touched = _touched(old.tet_faces, removed, fk0, nk)
     ft = old.face_tets[touched]  # (T, 2)
     kept_slot = (ft >= 0) & keep[np.maximum(ft, 0)]
     survive = np.ones(len(fk0), bool)
     survive[touched[~kept_slot.any(axis=1)]] = False
-    fkeys, fmap, src, add_src = _merge(fk0, survive, nk)
+    fkeys, fmap, src, add_src, faces, tet_faces = _merged(
+        old.faces, fk0, survive, nf, nk, old.tet_faces, keep_idx
+    )
     A = len(add_src)
-    faces = _take_rows(old.faces, nf[add_src], src)
-    tet_faces = np.empty((m1, 4), np.int64)
-    tet_faces[:K] = fmap[np.take(old.tet_faces, keep_idx, axis=0)]
-    tet_faces[K:] = np.searchsorted(fkeys, nk).reshape(-1, 4)
 
     # carried faces: renumbered tets, same slots (regrouped ones are overwritten below)
     none = np.full((A, 2), -1, np.int64)
@@ -327,20 +349,17 @@ def _update_edges(old: Topology, tets, keep, keep_idx, removed, renum, n):
     ne = np.sort(added[:, TET_EDGES], axis=2).reshape(-1, 2)  # (6A, 2)
     nk = ne[:, 0] * np.int64(n) + ne[:, 1]
     ek0 = old.edges[:, 0] * np.int64(n) + old.edges[:, 1]  # sorted: edges come from a sort
-    hit = _lookup(ek0, nk)
-    touched = np.unique(np.concatenate([old.tet_edges[removed].reshape(-1), hit[hit >= 0]]))
+    touched = _touched(old.tet_edges, removed, ek0, nk)
     pos, owner = _csr_take(old.edge_tets_ptr, touched)
     rt = old.edge_tets[pos]
     kept = keep[rt]
     alive = np.bincount(owner[kept], minlength=len(touched)) > 0
     survive = np.ones(len(ek0), bool)
     survive[touched[~alive]] = False
-    ekeys, emap, src, add_src = _merge(ek0, survive, nk)
+    ekeys, emap, _, _, edges, tet_edges = _merged(
+        old.edges, ek0, survive, ne, nk, old.tet_edges, keep_idx
+    )
     E = len(ekeys)
-    edges = _take_rows(old.edges, ne[add_src], src)
-    tet_edges = np.empty((m1, 6), np.int64)
-    tet_edges[:K] = emap[np.take(old.tet_edges, keep_idx, axis=0)]
-    tet_edges[K:] = np.searchsorted(ekeys, nk).reshape(-1, 6)
 
     # entries (edge, slot = tet * 6 + local edge) of the redone edges, in build's order
     kt, ke = rt[kept], touched[owner[kept]]
