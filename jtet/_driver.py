@@ -168,13 +168,14 @@ def improve(
             it, or its extent is outside [1e-30, 1e30] (float64 quality would overflow).
             Inverted and degenerate tets and a non-manifold boundary are fine.
     """
-    from ._quality import tet_dihedrals
+    from ._quality import prefetch_kernels, tet_dihedrals
     from ._stats import mesh_stats
 
     opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
     t0 = time.perf_counter()
     _require_conforming(mesh)
     _require_scale(mesh)
+    prefetch_kernels(opts.quality)  # statistics and per-tet kernels, built side by side
     stats_before = mesh_stats(mesh)
     history: list[dict] = []
     status = "converged"

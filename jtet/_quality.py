@@ -335,7 +335,7 @@ def tet_quality(points: np.ndarray, tets: np.ndarray, measure: str = "min_sine")
     if len(points) == 0:
         return np.zeros(len(tets))
     if not _kernels_prefetched:
-        _prefetch_kernels()
+        prefetch_kernels()
     fn = functools.partial(_quality_soa, name=measure)
     return _per_tet("tet_quality", (measure,), fn, points, tets)[0]
 
@@ -354,7 +354,7 @@ def tet_all_measures(
         empty = np.zeros(len(tets))
         return np.zeros((len(tets), 6)), empty, empty, {name: empty for name in names}
     if not _kernels_prefetched:
-        _prefetch_kernels()
+        prefetch_kernels()
     fn = functools.partial(_all_measures_soa, names=names)
     angles, lo, hi, *qs = _per_tet("tet_all_measures", names, fn, points, tets)
     return angles, lo, hi, dict(zip(names, qs, strict=True))
@@ -363,22 +363,24 @@ def tet_all_measures(
 _kernels_prefetched = False
 
 
-def _prefetch_kernels() -> None:
+def prefetch_kernels(measure: str | None = None) -> None:
     """Build the statistics kernel (every measure and the dihedral angles), the dihedral
-    kernel and the optimizer's default measure at once on the worker threads: a run needs
-    all three, and a new process built them one at a time."""
-    from ._options import Options
-
+    kernel and, if given, the one-measure kernel of ``measure`` at once on the worker
+    threads: a new process built them one at a time as calls first needed them.
+    ``jtet.improve`` asks for its measure; the first evaluation of anything else builds
+    the two shared kernels."""
     global _kernels_prefetched
     _kernels_prefetched = True
     xyz = [jax.ShapeDtypeStruct((TET_CHUNK,), np.float64)] * 12
     names = tuple(MEASURES)
-    default = Options().quality
     specs = [
         ("tet_dihedrals", (), _dihedral_soa, xyz),
         ("tet_all_measures", names, functools.partial(_all_measures_soa, names=names), xyz),
-        ("tet_quality", (default,), functools.partial(_quality_soa, name=default), xyz),
     ]
+    if measure is not None:
+        specs.append(
+            ("tet_quality", (measure,), functools.partial(_quality_soa, name=measure), xyz)
+        )
     prefetch(specs)
 
 
@@ -387,5 +389,5 @@ def tet_dihedrals(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, ...
     if len(points) == 0:
         return np.zeros((0, 6)), np.zeros(0), np.zeros(0)
     if not _kernels_prefetched:
-        _prefetch_kernels()
+        prefetch_kernels()
     return _per_tet("tet_dihedrals", (), _dihedral_soa, points, tets)
