@@ -168,15 +168,19 @@ def _min_norm_in_hull(G: Float[Array, "A 3"], valid: Bool[Array, " A"]) -> Float
 
 
 def _smallest(c: Float[Array, " N"], k: int) -> Int[Array, " k"]:
-    """Indices of the k smallest entries (k small), ties to the lowest index: k passes of
-    a min and a min-index (two plain reductions vectorize on CPU; ``argmin``, a variadic
-    reduction, measured 1.5x slower, ``lax.top_k`` and sorts ~10x slower under vmap)."""
+    """Indices of the k smallest entries (k <= N, small), ties to the lowest index, each
+    index once (also among +inf entries, e.g. padded slots): k passes of a min and a
+    min-index over the entries not taken yet (two plain reductions vectorize on CPU;
+    ``argmin``, a variadic reduction, measured 1.5x slower, ``lax.top_k`` and sorts ~10x
+    slower under vmap)."""
     out = []
     idx = jnp.arange(c.shape[0])
+    free = jnp.ones(c.shape[0], bool)
     for _ in range(k):
-        i = jnp.min(jnp.where(c == jnp.min(c), idx, c.shape[0]))
+        rest = jnp.where(free, c, jnp.inf)
+        i = jnp.min(jnp.where(free & (rest == jnp.min(rest)), idx, c.shape[0]))
         out.append(i)
-        c = jnp.where(idx == i, jnp.inf, c)
+        free = free & (idx != i)
     return jnp.stack(out)
 
 

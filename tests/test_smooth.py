@@ -17,6 +17,7 @@ from jtet._invariants import InvariantChecker
 from jtet._predicates import orient3d_tets
 from jtet._smooth import (
     STAR_PERM,
+    _smallest_pieces,
     batched_smoother,
     gather_stars,
     independent_sets,
@@ -429,3 +430,40 @@ def test_slide_keeps_vertices_on_their_plane_and_line(seed):
     assert bad.sum() <= (orient3d_tets(mesh.points, mesh.tets) <= 0).sum()
     assert m.is_valid().conforming
     InvariantChecker(mesh).check(m, 0, "smooth")
+
+
+def test_smallest_pieces_match_a_sort():
+    """The k smallest entries of a (K, C) array, found tet minima first, against a full
+    NumPy sort of the flattened array (distinct values: no ties to order)."""
+    rng = np.random.default_rng(3)
+    for K, k in ((32, 5), (8, 5), (5, 5)):
+        c = rng.permutation(K * 6).reshape(K, 6).astype(np.float64)
+        c[rng.random(K) < 0.3] = np.inf  # padded tets
+        got = np.asarray(_smallest_pieces(jax.numpy.asarray(c), k))
+        ref = np.argsort(c.reshape(-1), kind="stable")[:k]
+        finite = np.isfinite(c.reshape(-1)[ref])
+        assert np.array_equal(got[finite], ref[finite])
+
+
+def test_pass_prefetches_exactly_the_shapes_it_calls(monkeypatch):
+    """smooth_pass builds its kernel shapes up front; every (capacity, batch) it then
+    calls was among them (a missed shape would compile one at a time again)."""
+    import jtet._smooth as sm
+
+    prefetched, called = set(), set()
+
+    def record_prefetch(call, args_list):
+        prefetched.update((a[2].shape[1], a[0].shape[0]) for a in args_list)
+
+    real_solve = sm._solve_batch
+
+    def record_call(kernel, K, batch, *rest):
+        called.add((K, batch))
+        return real_solve(kernel, K, batch, *rest)
+
+    monkeypatch.setattr(sm, "prefetch_calls", record_prefetch)
+    monkeypatch.setattr(sm, "_solve_batch", record_call)
+    mesh = delaunay_mesh(300, seed=2)
+    _, stats = smooth_pass(mesh, capacities=(16, 32, 64))
+    assert stats.attempts > 0
+    assert called and called == prefetched
