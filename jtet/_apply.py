@@ -35,7 +35,9 @@ def replace_tets(
         keep = np.ones(len(protected), bool)
         keep[idx[hit]] = False
         protected = np.concatenate([protected[keep], np.sort(new_protected[hit], axis=1)])
-    out = TetMesh(mesh.points, tets, region, protected, mesh.protected_edges)
+    # only the new tets are checked: the kept ones come from a checked mesh
+    changes = {} if protected is mesh.protected_faces else {"protected_faces": protected}
+    out = mesh._derive(tets=tets, region=region, tets_checked=len(kept), **changes)
     if "topology" in mesh.__dict__:  # cached_property already computed on the old mesh
         from ._topology_update import update_topology
 
@@ -87,7 +89,7 @@ def nonconforming_owners(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarra
     n_par = _parity3(nf)
     nf = np.sort(nf, axis=1)
     # kept old tets on the faces the new tets touch
-    fid = match_rows(T.faces, nf, n)
+    fid = T.face_ids(nf)
     hit = np.unique(fid[fid >= 0])
     kt, ka = T.face_tets[hit].reshape(-1), T.face_apex[hit].reshape(-1)
     ok = kt >= 0

@@ -300,7 +300,8 @@ MIN_EXTENT, MAX_EXTENT = 1e-30, 1e30
 
 def _require_scale(mesh: TetMesh) -> None:
     """Raise ``MeshInputError`` if the mesh is too large or too small for float64 quality."""
-    used = np.unique(mesh.tets)
+    used = np.zeros(mesh.n_points, bool)  # a mask, not np.unique: no sort of 4m ids
+    used[mesh.tets.reshape(-1)] = True
     extent = float(np.ptp(mesh.points[used], axis=0).max())
     if not MIN_EXTENT <= extent <= MAX_EXTENT:
         raise MeshInputError(

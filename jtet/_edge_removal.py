@@ -23,7 +23,6 @@ from ._kernels.klincsek import prefetch as prefetch_rings
 from ._kernels.klincsek import solve_rings
 from ._mesh import TetMesh
 from ._select import select_conflict_free
-from ._topology import match_rows
 
 
 @dataclass
@@ -93,7 +92,6 @@ def edge_candidates(
 def _build_chains(mesh: TetMesh, edges: np.ndarray) -> _Chains:
     """Chains (polygons) of the candidate ``edges`` with their region."""
     T = mesh.topology
-    n = mesh.n_points
     rp, tp = T.edge_ring_ptr, T.edge_tets_ptr
     surface = (T.edge_n_subfacets[edges] == 2) & ~T.edge_boundary[edges]
     single = np.flatnonzero(~surface)
@@ -110,7 +108,7 @@ def _build_chains(mesh: TetMesh, edges: np.ndarray) -> _Chains:
     own2, off2 = _segments(rp, e2)
     ring2 = T.edge_ring[rp[e2][own2] + off2]
     ab = T.edges[e2][own2]
-    fid = match_rows(T.faces, np.column_stack([ab, ring2]), n)
+    fid = T.face_ids(np.column_stack([ab, ring2]))
     is_sub = T.subfacet[fid]
     # positions (offsets) of the two subfacet vertices x (first) and y (second) per edge
     sub_off = off2[is_sub].reshape(-1, 2)
@@ -344,7 +342,7 @@ def _protected_updates(mesh: TetMesh, edges: np.ndarray):
     ring = T.edge_ring[rp[surf][own] + off]
     ab = T.edges[surf][own]
     tri = np.sort(np.column_stack([ab, ring]), axis=1)
-    fid = match_rows(T.faces, tri, mesh.n_points)
+    fid = T.face_ids(tri)
     xs = ring[T.subfacet[fid]].reshape(-1, 2)
     a, b = T.edges[surf, 0], T.edges[surf, 1]
     old = np.concatenate([np.column_stack([a, b, xs[:, 0]]), np.column_stack([a, b, xs[:, 1]])])

@@ -26,6 +26,58 @@ def _orient_volumes6(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", p1 - p0, np.cross(p2 - p0, p3 - p0))
 
 
+def _checked_points(points) -> np.ndarray:
+    """(n, 3) float64 points, or ``MeshInputError`` (shape, dtype, NaN / inf)."""
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise MeshInputError(f"points must have shape (n, 3), got {points.shape}")
+    if not (np.issubdtype(points.dtype, np.floating) or np.issubdtype(points.dtype, np.integer)):
+        raise MeshInputError(f"points must be real numbers, got dtype {points.dtype}")
+    points = points.astype(np.float64, copy=False)
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise MeshInputError(
+            f"{int(bad.sum())} point(s) have NaN or infinite coordinates "
+            f"(first: point {i} = {points[i].tolist()})"
+        )
+    return points
+
+
+def _checked_tets(tets, n_points: int, start: int = 0) -> np.ndarray:
+    """(m, 4) int64 tets, or ``MeshInputError`` (shape, dtype, empty, index range,
+    repeated vertex). Rows before ``start`` are trusted (taken from a checked mesh)."""
+    tets = np.asarray(tets)
+    if tets.size == 0:
+        tets = tets.reshape(0, 4)
+    if tets.ndim != 2 or tets.shape[1] != 4:
+        raise MeshInputError(f"tets must have shape (m, 4), got {tets.shape}")
+    if not np.issubdtype(tets.dtype, np.integer):
+        if np.issubdtype(tets.dtype, np.floating) and np.all(tets == np.round(tets)):
+            tets = tets.astype(np.int64)
+        else:
+            raise MeshInputError(f"tets must hold integer indices, got dtype {tets.dtype}")
+    tets = tets.astype(np.int64, copy=False)
+    if len(tets) == 0:
+        raise MeshInputError("the mesh is empty: it has no tetrahedra")
+    new = tets[start:]
+    out = (new < 0) | (new >= n_points)
+    if out.any():
+        t = start + int(np.flatnonzero(out.any(axis=1))[0])
+        raise MeshInputError(
+            f"tet {t} has vertex indices {tets[t].tolist()} out of range "
+            f"[0, {n_points}) ({int(out.any(axis=1).sum())} such tet(s))"
+        )
+    s = np.sort(new, axis=1)
+    rep = (s[:, 1:] == s[:, :-1]).any(axis=1)
+    if rep.any():
+        t = start + int(np.flatnonzero(rep)[0])
+        raise MeshInputError(
+            f"tet {t} repeats a vertex: {tets[t].tolist()} ({int(rep.sum())} such tet(s))"
+        )
+    return tets
+
+
 # faces of tet (v0, v1, v2, v3) opposite v0..v3, outward for a positively oriented tet
 _OUT_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
 
@@ -78,48 +130,8 @@ class TetMesh:
     protected_edges: Int[np.ndarray, "k 2"] = field(default=None)
 
     def __post_init__(self):
-        points = np.asarray(self.points)
-        tets = np.asarray(self.tets)
-        if points.ndim != 2 or points.shape[1] != 3:
-            raise MeshInputError(f"points must have shape (n, 3), got {points.shape}")
-        if not (
-            np.issubdtype(points.dtype, np.floating) or np.issubdtype(points.dtype, np.integer)
-        ):
-            raise MeshInputError(f"points must be real numbers, got dtype {points.dtype}")
-        points = points.astype(np.float64, copy=False)
-        if tets.size == 0:
-            tets = tets.reshape(0, 4)
-        if tets.ndim != 2 or tets.shape[1] != 4:
-            raise MeshInputError(f"tets must have shape (m, 4), got {tets.shape}")
-        if not np.issubdtype(tets.dtype, np.integer):
-            if np.issubdtype(tets.dtype, np.floating) and np.all(tets == np.round(tets)):
-                tets = tets.astype(np.int64)
-            else:
-                raise MeshInputError(f"tets must hold integer indices, got dtype {tets.dtype}")
-        tets = tets.astype(np.int64, copy=False)
-        if len(tets) == 0:
-            raise MeshInputError("the mesh is empty: it has no tetrahedra")
-        bad = ~np.isfinite(points).all(axis=1)
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise MeshInputError(
-                f"{int(bad.sum())} point(s) have NaN or infinite coordinates "
-                f"(first: point {i} = {points[i].tolist()})"
-            )
-        out = (tets < 0) | (tets >= len(points))
-        if out.any():
-            t = int(np.flatnonzero(out.any(axis=1))[0])
-            raise MeshInputError(
-                f"tet {t} has vertex indices {tets[t].tolist()} out of range "
-                f"[0, {len(points)}) ({int(out.any(axis=1).sum())} such tet(s))"
-            )
-        s = np.sort(tets, axis=1)
-        rep = (s[:, 1:] == s[:, :-1]).any(axis=1)
-        if rep.any():
-            t = int(np.flatnonzero(rep)[0])
-            raise MeshInputError(
-                f"tet {t} repeats a vertex: {tets[t].tolist()} ({int(rep.sum())} such tet(s))"
-            )
+        points = _checked_points(self.points)
+        tets = _checked_tets(self.tets, len(points))
         region = self._labels(self.region, len(tets))
         if region.shape != (len(tets),):
             raise MeshInputError(
@@ -132,6 +144,55 @@ class TetMesh:
         object.__setattr__(self, "region", _readonly(region))
         object.__setattr__(self, "protected_faces", _readonly(pf))
         object.__setattr__(self, "protected_edges", _readonly(pe))
+
+    def _derive(self, *, tets_checked: int = 0, **changes) -> TetMesh:
+        """``replace(**changes)`` checking only what is new.
+
+        This mesh's arrays were checked when it was made and are read-only, so fields not
+        in ``changes`` are reused as they are, and the first ``tets_checked`` rows of new
+        ``tets`` are trusted to be rows of a checked mesh over the same points (a flip
+        step keeps most tets: checking only the appended ones keeps its cost with the
+        change, not the mesh). The same errors as the constructor otherwise.
+        """
+        unknown = set(changes) - {f for f in self.__dataclass_fields__}
+        if unknown:
+            raise TypeError(f"unknown TetMesh field(s): {sorted(unknown)}")
+        points = self.points
+        if "points" in changes:
+            points = _checked_points(changes["points"])
+            if len(points) != self.n_points:
+                tets_checked = 0
+        tets = self.tets
+        if "tets" in changes:
+            tets = _checked_tets(changes["tets"], len(points), tets_checked)
+        elif len(points) != self.n_points:
+            tets = _checked_tets(tets, len(points))
+        region = self.region
+        if "region" in changes or len(tets) != self.n_tets:
+            region = self._labels(changes.get("region", region), len(tets))
+            if region.shape != (len(tets),):
+                raise MeshInputError(
+                    f"region must have one label per tet ({len(tets)}), got {region.shape}"
+                )
+        pf, pe = self.protected_faces, self.protected_edges
+        if "protected_faces" in changes or len(points) != self.n_points:
+            pf = self._entity_array(
+                changes.get("protected_faces", pf), 3, "protected_faces", len(points)
+            )
+        if "protected_edges" in changes or len(points) != self.n_points:
+            pe = self._entity_array(
+                changes.get("protected_edges", pe), 2, "protected_edges", len(points)
+            )
+        out = object.__new__(type(self))
+        for name, value in (
+            ("points", points),
+            ("tets", tets),
+            ("region", region),
+            ("protected_faces", pf),
+            ("protected_edges", pe),
+        ):
+            object.__setattr__(out, name, _readonly(value))
+        return out
 
     @staticmethod
     def _labels(region, m: int) -> np.ndarray:
@@ -249,16 +310,10 @@ class TetMesh:
         return cls.from_arrays(*grid_to_arrays(grid, source), source=source)
 
     def replace(self, **changes) -> TetMesh:
-        """A copy with some fields replaced (the constructor's checks run again)."""
-        kw = dict(
-            points=self.points,
-            tets=self.tets,
-            region=self.region,
-            protected_faces=self.protected_faces,
-            protected_edges=self.protected_edges,
-        )
-        kw.update(changes)
-        return TetMesh(**kw)
+        """A copy with some fields replaced; the constructor's checks run on the replaced
+        fields (and on whatever depends on them: the tets again for new points of another
+        count, the labels for tets of another count)."""
+        return self._derive(**changes)
 
     # ------------------------------------------------------------------ properties
     @property

@@ -11,6 +11,7 @@ permutation. On the exterior boundary the ring is an open chain of m + 1 vertice
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,6 +73,14 @@ def match_rows(table: np.ndarray, queries: np.ndarray, n: int) -> np.ndarray:
     pos = np.minimum(pos, len(tk) - 1)
     found = tk[order][pos] == qk
     return np.where(found, order[pos], -1)
+
+
+def sorted_lookup(sorted_keys: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """(q,) index of every query in the increasing unique ``sorted_keys`` (G,), or -1."""
+    if len(sorted_keys) == 0:
+        return np.full(len(queries), -1, np.int64)
+    pos = np.minimum(np.searchsorted(sorted_keys, queries), len(sorted_keys) - 1)
+    return np.where(sorted_keys[pos] == queries, pos, -1)
 
 
 def _stable_sort(keys: np.ndarray, key_bits: int) -> tuple[np.ndarray, np.ndarray]:
@@ -161,6 +170,36 @@ class Topology:
     def edge_ring_size(self) -> np.ndarray:
         """(E,) number of tets around each edge."""
         return np.diff(self.edge_tets_ptr)
+
+    @property
+    def n_points(self) -> int:
+        return len(self.vert_tets_ptr) - 1
+
+    @functools.cached_property
+    def face_keys(self) -> np.ndarray | None:
+        """(F,) ``row_keys`` of ``faces``, increasing (faces are numbered in key order);
+        None when the mesh has too many points for keys that compare across calls."""
+        n = self.n_points
+        return row_keys(self.faces, n) if float(n) ** 3 < 2.0**62 else None
+
+    @functools.cached_property
+    def edge_keys(self) -> np.ndarray:
+        """(E,) keys a * n + b of ``edges`` (a < b), increasing (edge numbering order)."""
+        return self.edges[:, 0] * np.int64(self.n_points) + self.edges[:, 1]
+
+    def face_ids(self, rows: np.ndarray) -> np.ndarray:
+        """(q,) index in ``faces`` of every vertex triple ``rows`` (q, 3), any vertex
+        order, or -1. A binary search of the sorted face keys (``match_rows`` would sort
+        the whole face table on every call)."""
+        rows = np.sort(np.asarray(rows, np.int64).reshape(-1, 3), axis=1)
+        if self.face_keys is None:
+            return match_rows(self.faces, rows, self.n_points)
+        return sorted_lookup(self.face_keys, row_keys(rows, self.n_points))
+
+    def edge_ids(self, pairs: np.ndarray) -> np.ndarray:
+        """(q,) index in ``edges`` of every vertex pair ``pairs`` (q, 2), or -1."""
+        pairs = np.sort(np.asarray(pairs, np.int64).reshape(-1, 2), axis=1)
+        return sorted_lookup(self.edge_keys, pairs[:, 0] * np.int64(self.n_points) + pairs[:, 1])
 
     @classmethod
     def build(cls, mesh, feature_angle: float = 0.0) -> Topology:

@@ -5,7 +5,7 @@ import pytest
 from helpers import delaunay_mesh, grid_mesh
 
 import jtet
-from jtet._topology import CORNER, FREE, SEGMENT, SURFACE, Topology
+from jtet._topology import CORNER, FREE, SEGMENT, SURFACE, Topology, match_rows
 
 
 def _volume6(p):
@@ -152,3 +152,19 @@ def test_nonconforming_mesh_is_rejected():
     tets = np.array([[0, 1, 2, 3], [0, 2, 1, 4], [0, 1, 2, 5]])
     with pytest.raises(jtet.MeshInputError, match="shared by 3 tets"):
         Topology.build(jtet.TetMesh(pts, tets))
+
+
+def test_face_and_edge_ids_match_match_rows(mesh):
+    """Lookups by the topology's sorted keys agree with match_rows (any vertex order,
+    rows that are not faces / edges give -1)."""
+    T = mesh.topology
+    n = mesh.n_points
+    rng = np.random.default_rng(0)
+    faces = rng.permuted(T.faces[rng.choice(len(T.faces), 40)], axis=1)
+    rows = np.concatenate([faces, rng.integers(0, n, (40, 3))])
+    assert np.array_equal(T.face_ids(rows), match_rows(T.faces, rows, n))
+    assert (T.face_ids(faces) >= 0).all()
+    edges = T.edges[rng.choice(len(T.edges), 40)][:, ::-1]
+    pairs = np.concatenate([edges, rng.integers(0, n, (40, 2))])
+    assert np.array_equal(T.edge_ids(pairs), match_rows(T.edges, pairs, n))
+    assert len(T.face_ids(np.zeros((0, 3), np.int64))) == 0

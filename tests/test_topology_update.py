@@ -226,3 +226,36 @@ def test_fallbacks():
 @pytest.mark.slow
 def test_demo_mesh_passes():
     assert run_passes(jtet.demo_mesh(), n_passes=3) > 0
+
+
+def test_replace_tets_checks_the_new_tets():
+    """replace_tets trusts the kept tets (rows of a checked mesh) and checks the new
+    ones with the constructor's errors; its mesh equals the constructor's."""
+    mesh = random_labels(delaunay_mesh(100, seed=1), np.random.default_rng(1))
+    remove = np.zeros(mesh.n_tets, bool)
+    remove[:3] = True
+    start = mesh.n_tets - 3
+    bad = mesh.tets[:3].copy()
+    bad[1, 2] = bad[1, 0]
+    with pytest.raises(MeshInputError, match=f"tet {start + 1} repeats a vertex"):
+        replace_tets(mesh, remove, bad, mesh.region[:3])
+    bad[1, 2] = mesh.n_points
+    with pytest.raises(MeshInputError, match=f"tet {start + 1} has vertex indices"):
+        replace_tets(mesh, remove, bad, mesh.region[:3])
+    out, k = replace_tets(mesh, remove, mesh.tets[:3], mesh.region[:3])
+    assert k == start
+    ref = jtet.TetMesh(out.points, out.tets, out.region, out.protected_faces, out.protected_edges)
+    for f in dataclasses.fields(jtet.TetMesh):
+        a, b = getattr(out, f.name), getattr(ref, f.name)
+        assert a.dtype == b.dtype and np.array_equal(a, b) and not a.flags.writeable, f.name
+    # replace(): the replaced fields are checked, and what depends on them
+    pts = mesh.points.copy()
+    pts[0, 1] = np.nan
+    with pytest.raises(MeshInputError, match="NaN or infinite"):
+        mesh.replace(points=pts)
+    with pytest.raises(MeshInputError, match="out of range"):
+        mesh.replace(points=mesh.points[:-1])
+    with pytest.raises(MeshInputError, match="one label per tet"):
+        mesh.replace(tets=mesh.tets[:-1])
+    moved = mesh.replace(points=mesh.points + 1.0)
+    assert moved.tets is mesh.tets and np.array_equal(moved.points, mesh.points + 1.0)
