@@ -451,3 +451,27 @@ def test_peer_table_markdown(tmp_path):
     assert lines[0] == "# title"
     assert "| m | input | 10 | 1.00 |" in text
     assert text.strip().endswith("- m / x: x failed")
+
+
+def test_worst_tets_ring_angles_close_around_edges():
+    """worst_tets.ring_angle against closed forms on a cube: the dihedral angles around an
+    interior edge sum to 360 degrees, around an edge inside a face to 180, around a cube
+    edge (a subsegment) to 90; report() lists the smallest angle first."""
+    import worst_tets
+
+    from jtet._quality import tet_dihedrals
+
+    mesh = meshgen.gmsh_shape("cube", h=0.4)
+    topo = mesh.topology
+    angles = tet_dihedrals(mesh.points, mesh.tets)[0]
+    sums = np.array([worst_tets.ring_angle(mesh, angles, e)[0] for e in range(len(topo.edges))])
+    interior = ~topo.edge_boundary
+    # round-off of the atan2 angles: ~1e-13 degrees per tet, at most ~10 tets per ring
+    np.testing.assert_allclose(sums[interior], 360.0, atol=1e-9)
+    np.testing.assert_allclose(sums[topo.subsegment], 90.0, atol=1e-9)
+    np.testing.assert_allclose(sums[topo.edge_boundary & ~topo.subsegment], 180.0, atol=1e-9)
+    lines = worst_tets.report(mesh, 3, "fixed")
+    worst = [float(line.split()[0]) for line in lines]
+    smallest = tet_dihedrals(mesh.points, mesh.tets)[1].min()
+    assert worst == sorted(worst)
+    assert worst[0] == pytest.approx(smallest, abs=0.006)  # printed with two decimals
