@@ -327,16 +327,32 @@ def _face_flags(face_tets, region, protected):
     ``protected`` (F,) bool user-protected faces. Shared by ``Topology.build`` and the
     incremental update so both give identical arrays.
     """
+    boundary_face, interface_face, subfacet = _face_kinds(face_tets, region, protected)
+    surface_id = _surface_ids(face_tets, region, boundary_face, interface_face, protected)
+    return boundary_face, interface_face, subfacet, surface_id
+
+
+def _face_kinds(face_tets, region, protected):
+    """(boundary, interface, subfacet) flags, each (F,), of faces ``face_tets`` (F, 2)."""
     two = face_tets[:, 1] >= 0
     boundary_face = ~two
     r0 = region[face_tets[:, 0]]
     r1 = np.where(two, region[np.maximum(face_tets[:, 1], 0)], r0)
     interface_face = two & (r0 != r1)
-    subfacet = boundary_face | interface_face | protected
+    return boundary_face, interface_face, boundary_face | interface_face | protected
+
+
+def _surface_ids(face_tets, region, boundary_face, interface_face, protected):
+    """(F,) id of the bounding surface of every subfacet (-1 elsewhere): the rank of its
+    surface kind among the kinds present, so it depends on the subfacets only."""
     # Surface identity: the (region, region) pair it separates; user-protected faces
     # inside one region form surfaces of their own kind.
-    sub = np.flatnonzero(subfacet)
-    rmin, rmax = np.minimum(r0[sub], r1[sub]), np.maximum(r0[sub], r1[sub])
+    sub = np.flatnonzero(boundary_face | interface_face | protected)
+    ft = face_tets[sub]
+    two = ft[:, 1] >= 0
+    r0 = region[ft[:, 0]]
+    r1 = np.where(two, region[np.maximum(ft[:, 1], 0)], r0)
+    rmin, rmax = np.minimum(r0, r1), np.maximum(r0, r1)
     c0 = np.where(boundary_face[sub], -1, rmin)
     c2 = protected[sub] & ~interface_face[sub] & ~boundary_face[sub]
     # rank of the row (c0, rmax, c2) among the distinct rows, as np.unique(axis=0) would
@@ -347,7 +363,7 @@ def _face_flags(face_tets, region, protected):
     _, surface_code = np.unique(code, return_inverse=True)
     surface_id = np.full(len(face_tets), -1, np.int64)
     surface_id[sub] = surface_code.reshape(-1)
-    return boundary_face, interface_face, subfacet, surface_id
+    return surface_id
 
 
 def _subsegments(points, faces, subfacet, surface_id, edges, edge_manifold, feature_angle):
@@ -373,13 +389,20 @@ def _subsegments(points, faces, subfacet, surface_id, edges, edge_manifold, feat
         optr, oorder = _csr(sf_edge, E)
         f1 = sf_face[oorder[optr[pair_edges]]]
         f2 = sf_face[oorder[optr[pair_edges] + 1]]
-        diff_surface = surface_id[f1] != surface_id[f2]
-        a, b = edges[pair_edges, 0], edges[pair_edges, 1]
-        third1 = faces[f1].sum(1) - a - b
-        third2 = faces[f2].sum(1) - a - b
-        bent = _bent(points, a, b, third1, third2, feature_angle)
-        subsegment[pair_edges] |= diff_surface | bent
+        subsegment[pair_edges] |= _pair_bent(
+            points, faces, surface_id, edges[pair_edges], f1, f2, feature_angle
+        )
     return edge_n_subfacets, subsegment
+
+
+def _pair_bent(points, faces, surface_id, ab, f1, f2, feature_angle):
+    """(k,) bool: edges ``ab`` (k, 2) whose two subfacets ``f1`` < ``f2`` (face ids) lie
+    on different surfaces or are not coplanar (within ``feature_angle``)."""
+    diff_surface = surface_id[f1] != surface_id[f2]
+    a, b = ab[:, 0], ab[:, 1]
+    third1 = faces[f1].sum(1) - a - b
+    third2 = faces[f2].sum(1) - a - b
+    return diff_surface | _bent(points, a, b, third1, third2, feature_angle)
 
 
 def _order_rings(ptr, c, d, entry_tet):
@@ -501,5 +524,50 @@ def _vertex_kinds(points, faces, subfacet, edges, subsegment, n):
         direction[two[straight]] = _unit(u1[straight] + u2[straight])
     # a surface vertex whose subfacets are not all coplanar is held by subsegments
     # (flatness is decided edge by edge above); SURFACE keeps its normal only.
+    normal[kind != SURFACE] = 0.0
+    return kind, normal, direction
+
+
+def _vertex_kinds_at(points, vids, vf, faces, ve, edges):
+    """``_vertex_kinds`` of the vertices ``vids`` (V,) only, from their incidences.
+
+    ``vf`` (k, 2): pairs (index into ``vids``, id of a subfacet at that vertex) and ``ve``
+    (l, 2): pairs (index into ``vids``, id of a subsegment at that vertex), each sorted
+    by vertex then id: the order in which ``_vertex_kinds`` meets them, so the normals
+    are summed in the same order (bit-identical). Returns (kind, normal, direction).
+    """
+    V = len(vids)
+    kind = np.zeros(V, np.int8)
+    normal = np.zeros((V, 3))
+    direction = np.zeros((V, 3))
+    on_surface = np.zeros(V, bool)
+    on_surface[vf[:, 0]] = True
+    kind[on_surface] = SURFACE
+    if len(vf):
+        p = points[faces[vf[:, 1]]]
+        fn = _unit(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]))
+        first = np.flatnonzero(np.r_[True, vf[1:, 0] != vf[:-1, 0]])
+        ref = np.zeros((V, 3))
+        ref[vf[first, 0]] = fn[first]
+        sgn = np.sign(np.einsum("ij,ij->i", fn, ref[vf[:, 0]]))
+        sgn[sgn == 0] = 1.0
+        np.add.at(normal, vf[:, 0], fn * sgn[:, None])
+        normal = _unit(normal)
+    nseg = np.bincount(ve[:, 0], minlength=V)
+    kind[nseg > 2] = CORNER
+    kind[nseg == 1] = CORNER
+    two = np.flatnonzero(nseg == 2)
+    if len(two):
+        at = np.searchsorted(ve[:, 0], two)
+        v = vids[two]
+        o1 = edges[ve[at, 1]].sum(1) - v
+        o2 = edges[ve[at + 1, 1]].sum(1) - v
+        u1 = points[o1] - points[v]
+        u2 = points[v] - points[o2]
+        cr = np.linalg.norm(np.cross(u1, u2), axis=1)
+        scale = np.linalg.norm(u1, axis=1) * np.linalg.norm(u2, axis=1)
+        straight = (cr <= 1e-12 * scale) & (np.einsum("ij,ij->i", u1, u2) > 0)
+        kind[two] = np.where(straight, SEGMENT, CORNER)
+        direction[two[straight]] = _unit(u1[straight] + u2[straight])
     normal[kind != SURFACE] = 0.0
     return kind, normal, direction

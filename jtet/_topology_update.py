@@ -14,6 +14,8 @@ tets plus appended ones, an error the full build would report) the full build ru
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from ._topology import (
@@ -21,11 +23,13 @@ from ._topology import (
     TET_EDGES,
     TET_FACES,
     Topology,
-    _face_flags,
+    _face_kinds,
     _order_rings,
-    _subsegments,
-    _vertex_kinds,
+    _pair_bent,
+    _surface_ids,
+    _vertex_kinds_at,
     row_keys,
+    sorted_lookup,
 )
 
 # Above this fraction of changed tets (removed + added, relative to the old count) the
@@ -92,54 +96,70 @@ def _update(old: Topology, old_mesh, new_mesh, keep, feature_angle) -> Topology 
     renum = np.full(m0 + 1, -1, np.int64)
     renum[keep_idx] = np.arange(K)
 
-    faces = _update_faces(old, tets, keep, keep_idx, removed, renum, n)
-    if faces is None:
+    fu = _update_faces(old, tets, keep, keep_idx, removed, renum, n)
+    if fu is None:
         return None
-    face_arrays, tet_faces, face_tets = faces[0], faces[1], faces[2]
-    fkeys = faces[3]
-    protected = np.zeros(len(face_arrays), bool)
-    if len(new_mesh.protected_faces):
-        idx = _lookup(fkeys, row_keys(new_mesh.protected_faces, n))
-        if (idx < 0).any():
-            return None  # the full build reports the missing face
-        protected[idx] = True
-    boundary_face, interface_face, subfacet, surface_id = _face_flags(face_tets, region, protected)
+    flags = _update_face_flags(old, old_mesh, new_mesh, fu, region)
+    if flags is None:
+        return None  # the full build reports the missing face
+    boundary_face, interface_face, subfacet, surface_id, prot_changed = flags
 
-    edges, tet_edges, edge_tets_ptr, edge_tets, ring_ptr, ring, bnd, manifold = _update_edges(
-        old, tets, keep, keep_idx, removed, renum, n
+    eu = _update_edges(old, tets, keep, keep_idx, removed, renum, n)
+    pe = new_mesh.protected_edges
+    pe_ids = _lookup(eu.keys, pe[:, 0] * np.int64(n) + pe[:, 1])
+    if (pe_ids < 0).any():
+        return None
+    # edges whose subfacets may have changed: the regrouped ones (every edge of a
+    # regrouped face is one) and those of faces whose user protection changed
+    fe = fu.faces[prot_changed][:, [[0, 1], [0, 2], [1, 2]]].reshape(-1, 2)
+    affected = np.union1d(eu.redo, _lookup(eu.keys, fe[:, 0] * np.int64(n) + fe[:, 1]))
+    edge_n_subfacets = np.take(old.edge_n_subfacets, np.minimum(eu.src, len(old.edges) - 1))
+    subsegment = np.take(old.subsegment, np.minimum(eu.src, len(old.edges) - 1))
+    cnt, seg = _edge_subsegments(
+        points, tets, fu, subfacet, surface_id, eu, affected, feature_angle, n
     )
-    edge_n_subfacets, subsegment = _subsegments(
-        points, face_arrays, subfacet, surface_id, edges, manifold, feature_angle
-    )
-    if len(new_mesh.protected_edges):
-        pe = new_mesh.protected_edges
-        idx = _lookup(edges[:, 0] * np.int64(n) + edges[:, 1], pe[:, 0] * np.int64(n) + pe[:, 1])
-        if (idx < 0).any():
-            return None
-        subsegment[idx] = True
+    edge_n_subfacets[affected] = cnt
+    subsegment[affected] = seg
+    subsegment[pe_ids] = True
 
     vert_tets_ptr, vert_tets = _update_vertices(old, old_mesh.tets, tets, keep, removed, renum)
-    vertex_kind, surface_normal, segment_direction = _vertex_kinds(
-        points, face_arrays, subfacet, edges, subsegment, n
+    # vertices whose subfacets or subsegments may have changed
+    vf = np.concatenate(
+        [
+            fu.faces[fu.redo[subfacet[fu.redo]]].reshape(-1),
+            old.faces[fu.touched[old.subfacet[fu.touched]]].reshape(-1),
+            fu.faces[prot_changed].reshape(-1),
+        ]
     )
-    return Topology(
-        faces=face_arrays,
-        tet_faces=tet_faces,
-        face_tets=face_tets,
-        face_apex=faces[4],
-        tet_neighbors=faces[5],
+    vs = np.concatenate(
+        [
+            eu.edges[affected[subsegment[affected]]].reshape(-1),
+            old.edges[eu.touched[old.subsegment[eu.touched]]].reshape(-1),
+            eu.edges[affected].reshape(-1) if len(prot_changed) else np.zeros(0, np.int64),
+        ]
+    )
+    vids = np.unique(np.concatenate([vf, vs]))
+    vertex_kind, surface_normal, segment_direction = _update_vertex_kinds(
+        old, points, tets, fu, subfacet, eu, subsegment, vert_tets_ptr, vert_tets, vids
+    )
+    topo = Topology(
+        faces=fu.faces,
+        tet_faces=fu.tet_faces,
+        face_tets=fu.face_tets,
+        face_apex=fu.face_apex,
+        tet_neighbors=fu.tet_neighbors,
         boundary_face=boundary_face,
         interface_face=interface_face,
         subfacet=subfacet,
         surface_id=surface_id,
-        edges=edges,
-        tet_edges=tet_edges,
-        edge_tets_ptr=edge_tets_ptr,
-        edge_tets=edge_tets,
-        edge_ring_ptr=ring_ptr,
-        edge_ring=ring,
-        edge_boundary=bnd,
-        edge_manifold=manifold,
+        edges=eu.edges,
+        tet_edges=eu.tet_edges,
+        edge_tets_ptr=eu.edge_tets_ptr,
+        edge_tets=eu.edge_tets,
+        edge_ring_ptr=eu.ring_ptr,
+        edge_ring=eu.ring,
+        edge_boundary=eu.boundary,
+        edge_manifold=eu.manifold,
         edge_n_subfacets=edge_n_subfacets,
         subsegment=subsegment,
         vert_tets_ptr=vert_tets_ptr,
@@ -148,15 +168,110 @@ def _update(old: Topology, old_mesh, new_mesh, keep, feature_angle) -> Topology 
         surface_normal=surface_normal,
         segment_direction=segment_direction,
     )
+    # the sorted keys are known: the next step's lookups need not recompute them
+    topo.__dict__["face_keys"] = fu.keys
+    topo.__dict__["edge_keys"] = eu.keys
+    return topo
+
+
+def _update_face_flags(old: Topology, old_mesh, new_mesh, fu, region):
+    """(boundary, interface, subfacet, surface_id) of the new faces, and the (new) ids of
+    the faces whose user protection changed; None if a protected face is missing.
+
+    Carried faces keep their tets and regions, hence their flags; regrouped faces and
+    those whose protection changed are recomputed. Surface ids rank the surface kinds
+    present, so they are recomputed over all subfacets (a few percent of the faces).
+    """
+    n = new_mesh.n_points
+    F1 = len(fu.faces)
+    p_new = _lookup(fu.keys, row_keys(new_mesh.protected_faces, n))
+    if (p_new < 0).any():
+        return None
+    p_old = fu.fmap[_lookup(old.face_keys, row_keys(old_mesh.protected_faces, n))]
+    prot_changed = np.setxor1d(p_new, p_old[p_old >= 0])
+    protected = np.zeros(F1, bool)
+    protected[p_new] = True
+    src = np.minimum(fu.src, len(old.faces) - 1)  # added faces are all regrouped
+    boundary_face = np.take(old.boundary_face, src)
+    interface_face = np.take(old.interface_face, src)
+    subfacet = np.take(old.subfacet, src)
+    redo = np.union1d(fu.redo, prot_changed)
+    b, i, sf = _face_kinds(fu.face_tets[redo], region, protected[redo])
+    boundary_face[redo], interface_face[redo], subfacet[redo] = b, i, sf
+    surface_id = _surface_ids(fu.face_tets, region, boundary_face, interface_face, protected)
+    return boundary_face, interface_face, subfacet, surface_id, prot_changed
+
+
+def _edge_subsegments(points, tets, fu, subfacet, surface_id, eu, eids, feature_angle, n):
+    """(number of subfacets, subsegment flag) of the edges ``eids`` (k,), as
+    ``_subsegments`` computes them (user-protected edges are added by the caller).
+
+    The faces around an edge are (a, b, o) for the two other vertices o of each of its
+    tets; their subfacets, in face id order, are the ones ``_subsegments`` pairs up.
+    """
+    pos, owner = _csr_take(eu.edge_tets_ptr, eids)
+    t = tets[eu.edge_tets[pos]]  # (q, 4)
+    ab = eu.edges[eids][owner]
+    other = (t != ab[:, :1]) & (t != ab[:, 1:])
+    o = t[other].reshape(-1, 2)
+    own2 = np.repeat(owner, 2)
+    rows = np.sort(np.column_stack([np.repeat(ab, 2, axis=0), o.reshape(-1)]), axis=1)
+    fid = _lookup(fu.keys, row_keys(rows, n))
+    on = subfacet[np.maximum(fid, 0)] & (fid >= 0)
+    key = np.unique(own2[on] * np.int64(len(fu.faces)) + fid[on])  # (edge, face) sorted
+    e_loc, f = key // len(fu.faces), key % len(fu.faces)
+    cnt = np.bincount(e_loc, minlength=len(eids))
+    seg = ((cnt != 0) & (cnt != 2)) | ~eu.manifold[eids]
+    pair = np.flatnonzero(cnt == 2)
+    if len(pair):
+        at = np.searchsorted(e_loc, pair)
+        seg[pair] |= _pair_bent(
+            points, fu.faces, surface_id, eu.edges[eids[pair]], f[at], f[at + 1], feature_angle
+        )
+    return cnt, seg
+
+
+def _update_vertex_kinds(old, points, tets, fu, subfacet, eu, subsegment, vptr, vtets, vids):
+    """(vertex_kind, surface_normal, segment_direction): the old ones, with the vertices
+    ``vids`` recomputed from their subfacets and subsegments (found through their tets).
+
+    A vertex's kind, normal and direction depend only on the subfacets and subsegments
+    at it, met in face / edge id order, i.e. in key order, which renumbering keeps.
+    """
+    kind = old.vertex_kind.copy()
+    normal = old.surface_normal.copy()
+    direction = old.segment_direction.copy()
+    if len(vids) == 0:
+        return kind, normal, direction
+    pos, owner = _csr_take(vptr, vids)
+    t = vtets[pos]
+    v = vids[owner]
+    # faces of t that contain v: those opposite the other three vertices
+    tf = fu.tet_faces[t]
+    hasv = tets[t] != v[:, None]
+    f_own = np.broadcast_to(owner[:, None], tf.shape)[hasv]
+    f_id = tf[hasv]
+    on = subfacet[f_id]
+    F = np.int64(len(fu.faces))
+    vf = np.unique(f_own[on] * F + f_id[on])
+    vf = np.column_stack([vf // F, vf % F])
+    # edges of t that contain v
+    te = eu.tet_edges[t]
+    lv = tets[t] == v[:, None]  # (q, 4)
+    hase = lv[:, TET_EDGES[:, 0]] | lv[:, TET_EDGES[:, 1]]
+    e_own = np.broadcast_to(owner[:, None], te.shape)[hase]
+    e_id = te[hase]
+    on = subsegment[e_id]
+    E = np.int64(len(eu.edges))
+    ve = np.unique(e_own[on] * E + e_id[on])
+    ve = np.column_stack([ve // E, ve % E])
+    k, nrm, d = _vertex_kinds_at(points, vids, vf, fu.faces, ve, eu.edges)
+    kind[vids], normal[vids], direction[vids] = k, nrm, d
+    return kind, normal, direction
 
 
 # -------------------------------------------------------------------------- helpers
-def _lookup(sorted_keys: np.ndarray, queries: np.ndarray) -> np.ndarray:
-    """(q,) index of every query in the sorted unique ``sorted_keys`` (G,), or -1."""
-    if len(sorted_keys) == 0:
-        return np.full(len(queries), -1, np.int64)
-    pos = np.minimum(np.searchsorted(sorted_keys, queries), len(sorted_keys) - 1)
-    return np.where(sorted_keys[pos] == queries, pos, -1)
+_lookup = sorted_lookup
 
 
 def _merge(old_keys, survive, cand_keys):
@@ -263,6 +378,21 @@ def _regroup(group, slot, n_slots):
 
 
 # -------------------------------------------------------------------------- faces
+class _Faces(NamedTuple):
+    """The new mesh's faces (F1 of them) and how they relate to the old ones."""
+
+    faces: np.ndarray  # (F1, 3)
+    keys: np.ndarray  # (F1,) increasing row keys
+    tet_faces: np.ndarray  # (m1, 4)
+    face_tets: np.ndarray  # (F1, 2)
+    face_apex: np.ndarray  # (F1, 2)
+    tet_neighbors: np.ndarray  # (m1, 4)
+    redo: np.ndarray  # new ids of the faces regrouped from their tets (sorted)
+    src: np.ndarray  # (F1,) old id of each face, >= F0 for an added one
+    fmap: np.ndarray  # (F0,) new id of each old face, -1 if gone
+    touched: np.ndarray  # old ids of the faces of removed tets and those new tets share
+
+
 def _update_faces(old: Topology, tets, keep, keep_idx, removed, renum, n):
     """Faces, tet_faces, face_tets, face keys, face_apex, tet_neighbors of the new mesh.
 
@@ -274,7 +404,7 @@ def _update_faces(old: Topology, tets, keep, keep_idx, removed, renum, n):
     added = tets[K:]
     nf = np.sort(added[:, TET_FACES], axis=2).reshape(-1, 3)  # (4A, 3)
     nk = row_keys(nf, n)
-    fk0 = row_keys(old.faces, n)  # sorted: faces come from a sort by key
+    fk0 = old.face_keys  # increasing: faces are numbered in key order
     # old faces touched: faces of removed tets and old faces a new tet also has
     touched = _touched(old.tet_faces, removed, fk0, nk)
     ft = old.face_tets[touched]  # (T, 2)
@@ -321,10 +451,29 @@ def _update_faces(old: Topology, tets, keep, keep_idx, removed, renum, n):
     tet_neighbors[rows] = np.where(
         face_tets[tf, 0] == rows[:, None], face_tets[tf, 1], face_tets[tf, 0]
     )
-    return faces, tet_faces, face_tets, fkeys, face_apex, tet_neighbors
+    return _Faces(
+        faces, fkeys, tet_faces, face_tets, face_apex, tet_neighbors, redo, src, fmap, touched
+    )
 
 
 # -------------------------------------------------------------------------- edges
+class _Edges(NamedTuple):
+    """The new mesh's edges (E1 of them) and how they relate to the old ones."""
+
+    edges: np.ndarray  # (E1, 2)
+    keys: np.ndarray  # (E1,) increasing keys a * n + b
+    tet_edges: np.ndarray  # (m1, 6)
+    edge_tets_ptr: np.ndarray  # (E1+1,)
+    edge_tets: np.ndarray
+    ring_ptr: np.ndarray  # (E1+1,)
+    ring: np.ndarray
+    boundary: np.ndarray  # (E1,)
+    manifold: np.ndarray  # (E1,)
+    redo: np.ndarray  # new ids of the edges regrouped from their tets (sorted)
+    src: np.ndarray  # (E1,) old id of each edge, >= E0 for an added one
+    touched: np.ndarray  # old ids of the edges of removed tets and those new tets share
+
+
 def _ring_steps(tets, tet, local):
     """Ring step c -> d (each (q,)) of entries (tet, local edge), as ``Topology.build``:
     v_k -> v_l for local edge (i, j), reversed when tets[i] > tets[j]."""
@@ -348,7 +497,7 @@ def _update_edges(old: Topology, tets, keep, keep_idx, removed, renum, n):
     added = tets[K:]
     ne = np.sort(added[:, TET_EDGES], axis=2).reshape(-1, 2)  # (6A, 2)
     nk = ne[:, 0] * np.int64(n) + ne[:, 1]
-    ek0 = old.edges[:, 0] * np.int64(n) + old.edges[:, 1]  # sorted: edges come from a sort
+    ek0 = old.edge_keys  # increasing: edges are numbered in key order
     touched = _touched(old.tet_edges, removed, ek0, nk)
     pos, owner = _csr_take(old.edge_tets_ptr, touched)
     rt = old.edge_tets[pos]
@@ -356,7 +505,7 @@ def _update_edges(old: Topology, tets, keep, keep_idx, removed, renum, n):
     alive = np.bincount(owner[kept], minlength=len(touched)) > 0
     survive = np.ones(len(ek0), bool)
     survive[touched[~alive]] = False
-    ekeys, emap, _, _, edges, tet_edges = _merged(
+    ekeys, emap, src, _, edges, tet_edges = _merged(
         old.edges, ek0, survive, ne, nk, old.tet_edges, keep_idx
     )
     E = len(ekeys)
@@ -390,7 +539,10 @@ def _update_edges(old: Topology, tets, keep, keep_idx, removed, renum, n):
     ring_ptr, ring = _splice(
         old.edge_ring, np.diff(old.edge_ring_ptr), carry, lens1 + bnd, redo, r_ring
     )
-    return edges, tet_edges, edge_tets_ptr, edge_tets, ring_ptr, ring, bnd, man
+    return _Edges(
+        edges, ekeys, tet_edges, edge_tets_ptr, edge_tets, ring_ptr, ring, bnd, man,
+        redo_ids, src, touched,
+    )  # fmt: skip
 
 
 # -------------------------------------------------------------------------- vertices
