@@ -670,31 +670,30 @@ def smooth_pass(
     sets = independent_sets(cand, topo.edges, priority)
 
     pts = np.array(mesh.points, dtype=np.float64)
-    kernels = {
-        K: batched_smoother(
-            measure,
-            solver,
-            int(max_iters),
-            min_gain=float(min_gain),
-            sharpness=tuple(sharpness),
-            n_trials=int(n_trials),
-        )
-        for K in capacities
-    }
+    # one partial serves every capacity (the shapes of its arguments pick the executable)
+    kernel = batched_smoother(
+        measure,
+        solver,
+        int(max_iters),
+        min_gain=float(min_gain),
+        sharpness=tuple(sharpness),
+        n_trials=int(n_trials),
+    )
     plan = [_colour_tasks(verts, size, capacities, batch_sizes) for verts in sets]
     attempts = sum(len(task[2]) for tasks in plan for task in tasks)
     # every (capacity, batch) shape the pass will call, built at once on the worker
     # threads: a new process compiles them side by side instead of one per first call
     # (cold: ~10 s each for the smoothing kernel)
+    # (one prefetch for all capacities: one per capacity built K = 32 and K = 64 one
+    # after the other, as each prefetch of a single shape runs on the calling thread)
     shapes = sorted({(K, batch) for tasks in plan for K, batch, _ in tasks})
-    for K in {K for K, _ in shapes}:
-        prefetch_calls(kernels[K], [_kernel_structs(K, b) for k, b in shapes if k == K])
+    prefetch_calls(kernel, [_kernel_structs(K, b) for K, b in shapes])
     moved_all = []
     for tasks in plan:
         # one colour's vertices share no tet: its batches are independent, solved in
         # parallel, and every batch reads only points no other batch of it writes
         results = parallel_map(
-            lambda task: _solve_batch(kernels[task[0]], *task, pts, basis, ptr, opp_ids), tasks
+            lambda task: _solve_batch(kernel, *task, pts, basis, ptr, opp_ids), tasks
         )
         for ids, positions in results:
             pts[ids] = positions

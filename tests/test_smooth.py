@@ -446,13 +446,15 @@ def test_smallest_pieces_match_a_sort():
 
 
 def test_pass_prefetches_exactly_the_shapes_it_calls(monkeypatch):
-    """smooth_pass builds its kernel shapes up front; every (capacity, batch) it then
+    """smooth_pass builds its kernel shapes up front, all capacities in ONE prefetch
+    (one per capacity built them one after the other); every (capacity, batch) it then
     calls was among them (a missed shape would compile one at a time again)."""
     import jtet._smooth as sm
 
-    prefetched, called = set(), set()
+    prefetched, called, prefetches = set(), set(), []
 
     def record_prefetch(call, args_list):
+        prefetches.append(len(args_list))
         prefetched.update((a[2].shape[1], a[0].shape[0]) for a in args_list)
 
     real_solve = sm._solve_batch
@@ -467,3 +469,4 @@ def test_pass_prefetches_exactly_the_shapes_it_calls(monkeypatch):
     _, stats = smooth_pass(mesh, capacities=(16, 32, 64))
     assert stats.attempts > 0
     assert called and called == prefetched
+    assert len({K for K, _ in called}) > 1 and len(prefetches) == 1
