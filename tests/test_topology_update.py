@@ -28,12 +28,25 @@ def assert_same(got: Topology, want: Topology):
         assert np.array_equal(a, b), f.name
 
 
+def direct_updates(T, old_mesh, new_mesh, keep):
+    """``U._update`` with the local recomputation of edge protection and vertex kinds
+    forced, then the global one (the size switch picks either on real meshes)."""
+    out = []
+    for fraction in (1.0, 0.0):
+        saved, U.LOCAL_FRACTION = U.LOCAL_FRACTION, fraction
+        try:
+            out.append(U._update(T, old_mesh, new_mesh, np.asarray(keep, bool), 0.0))
+        finally:
+            U.LOCAL_FRACTION = saved
+    return out
+
+
 def check_step(old_mesh, new_mesh, keep):
     """The incremental path itself (no size fallback) and the public entry point."""
     want = Topology.build(new_mesh)
-    direct = U._update(old_mesh.topology, old_mesh, new_mesh, np.asarray(keep, bool), 0.0)
-    assert direct is not None
-    assert_same(direct, want)
+    for direct in direct_updates(old_mesh.topology, old_mesh, new_mesh, keep):
+        assert direct is not None
+        assert_same(direct, want)
     assert_same(U.update_topology(old_mesh.topology, old_mesh, new_mesh, keep), want)
 
 
@@ -192,11 +205,12 @@ def test_random_23_flips(seed):
     try:
         want = Topology.build(out)
     except MeshInputError:
-        assert U._update(T, mesh, out, ~remove, 0.0) is None
+        assert direct_updates(T, mesh, out, ~remove) == [None, None]
         assert U.update_topology(T, mesh, out, ~remove, fallback=False) is None
         assert seed % 2 == 1
         return
-    assert_same(U._update(T, mesh, out, ~remove, 0.0), want)
+    for got in direct_updates(T, mesh, out, ~remove):
+        assert_same(got, want)
 
 
 def test_fallbacks():
