@@ -314,12 +314,11 @@ def _require_conforming(mesh: TetMesh) -> None:
     """Raise ``MeshInputError`` unless every face lies in at most two tets, on opposite
     sides (consistent vertex orders) and no tet is repeated. Inverted and degenerate
     tets and a non-manifold boundary are accepted (never made worse)."""
-    from ._mesh import face_conflicts
+    from ._mesh import topology_face_conflicts
 
-    mesh.topology  # noqa: B018  (faces in > 2 tets, protected entities missing: MeshInputError)
-    over, mis, dup = face_conflicts(mesh.tets, mesh.n_points)
-    if over:
-        raise MeshInputError(f"the mesh is not conforming: {over} face(s) lie in more than 2 tets")
+    # faces in > 2 tets, protected entities missing: the build raises MeshInputError;
+    # the orientation and duplicate checks then read its faces (no second face sort)
+    mis, dup = topology_face_conflicts(mesh.tets, mesh.topology)
     if len(dup):
         i, j = dup[0].tolist()
         raise MeshInputError(f"the mesh has {len(dup)} duplicate tet(s): tets {i} and {j}")

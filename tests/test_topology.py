@@ -168,3 +168,22 @@ def test_face_and_edge_ids_match_match_rows(mesh):
     pairs = np.concatenate([edges, rng.integers(0, n, (40, 2))])
     assert np.array_equal(T.edge_ids(pairs), match_rows(T.edges, pairs, n))
     assert len(T.face_ids(np.zeros((0, 3), np.int64))) == 0
+
+
+def test_topology_face_conflicts_equal_face_conflicts():
+    """Misoriented and duplicate pairs read from the topology equal face_conflicts'."""
+    from jtet._mesh import face_conflicts, topology_face_conflicts
+
+    mesh = delaunay_mesh(150, seed=4)
+    rng = np.random.default_rng(0)
+    tets = mesh.tets.copy()
+    flip = rng.choice(len(tets), 12, replace=False)
+    tets[flip] = tets[flip][:, [1, 0, 2, 3]]  # listed inside out: misoriented pairs
+    for t in (mesh.tets, tets, np.array([[0, 1, 2, 3], [0, 1, 2, 3]])):
+        m = jtet.TetMesh(mesh.points, t)
+        T = Topology.build(m)
+        _, mis, dup = face_conflicts(m.tets, m.n_points)
+        got_mis, got_dup = topology_face_conflicts(m.tets, T)
+        assert np.array_equal(got_mis, mis) and np.array_equal(got_dup, dup)
+        assert len(mis) > 0 or t is not tets
+    assert len(mis) == 0 and np.array_equal(dup, [[0, 1]])
