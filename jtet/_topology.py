@@ -429,8 +429,13 @@ def _order_rings(ptr, c, d, entry_tet):
         slots = ptr[es][:, None] + np.arange(k)  # (E_k, k)
         cc, dd = c[slots], d[slots]
         eq = dd[:, :, None] == cc[:, None, :]  # eq[e, i, j]: step j follows step i
-        n_next = eq.sum(axis=2)
-        n_prev = eq.sum(axis=1)
+        # successors / predecessors per step, summed over the k positions in a loop
+        # (uint8: ~4x faster than a strided bool sum over an axis of (E_k, k, k))
+        e8 = eq.view(np.uint8) if k < 256 else eq.astype(np.int64)  # counts <= k
+        n_next, n_prev = e8[:, :, 0].copy(), e8[:, 0, :].copy()
+        for j in range(1, k):
+            n_next += e8[:, :, j]
+            n_prev += e8[:, j, :]
         succ = np.where(n_next == 1, eq.argmax(axis=2), -1)
         starts = n_prev == 0
         n_starts = starts.sum(axis=1)
@@ -444,12 +449,14 @@ def _order_rings(ptr, c, d, entry_tet):
             pos = np.where(pos >= 0, succ[rows, np.maximum(pos, 0)], -1)
             ok &= (pos >= 0) | (step == k - 1)
         # a visit of every step exactly once (cycles close on the start)
-        seen = np.zeros((len(es), k), np.int64)
-        np.add.at(seen, (rows[:, None], np.maximum(order, 0)), 1)
-        ok &= (seen == 1).all(axis=1)
+        seen = np.bincount(
+            (rows[:, None] * k + np.maximum(order, 0)).reshape(-1), minlength=k * len(es)
+        )
+        ok &= (seen.reshape(-1, k) == 1).all(axis=1)
         order = np.where(ok[:, None], order, np.arange(k))
-        edge_tets[slots] = entry_tet[np.take_along_axis(slots, order, 1)]
-        ring_c[slots] = c[np.take_along_axis(slots, order, 1)]
+        src = np.take_along_axis(slots, order, 1)
+        edge_tets[slots] = entry_tet[src]
+        ring_c[slots] = c[src]
         bnd = ok & (n_starts == 1)
         edge_boundary[es] = n_starts >= 1
         edge_manifold[es] = ok

@@ -527,12 +527,14 @@ class _Edges(NamedTuple):
 def _ring_steps(tets, tet, local):
     """Ring step c -> d (each (q,)) of entries (tet, local edge), as ``Topology.build``:
     v_k -> v_l for local edge (i, j), reversed when tets[i] > tets[j]."""
-    lo = tets[tet, TET_EDGES[local, 0]]
-    hi = tets[tet, TET_EDGES[local, 1]]
-    ck = tets[tet, _EDGE_OTHERS[local, 0]]
-    cl = tets[tet, _EDGE_OTHERS[local, 1]]
+    # one row gather, then the four local columns of each entry's edge
+    cols = _STEP_COLUMNS[local]  # (q, 4): i, j, k, l
+    lo, hi, ck, cl = np.take_along_axis(np.take(tets, tet, axis=0), cols, axis=1).T
     swap = lo > hi
     return np.where(swap, cl, ck), np.where(swap, ck, cl)
+
+
+_STEP_COLUMNS = np.concatenate([TET_EDGES, _EDGE_OTHERS], axis=1)
 
 
 def _update_edges(old: Topology, tets, keep, keep_idx, removed, renum, n):
