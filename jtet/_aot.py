@@ -13,6 +13,11 @@ so two kernels compile in the time of one on two cores). Each kernel is built by
 thread; other threads asking for the same kernel wait for it, those asking for other
 kernels do not.
 
+A process that will run the optimizer calls ``warm_start()`` first: the kernels that
+earlier processes used most recently are then loaded from disk on background threads while
+the caller builds its mesh topology and runs its first passes, instead of one group at a
+time as the passes first need them.
+
 Files live in ``jtet-aot/<version>/`` where the version hashes jtet's own source and the
 JAX version, so an edited kernel is never served stale; directories of other versions
 beyond the ``KEEP_VERSIONS`` most recently used are deleted when a new kernel is written.
@@ -22,6 +27,7 @@ jitted function: the cache only ever costs time, never correctness.
 
 from __future__ import annotations
 
+import ast
 import functools
 import hashlib
 import os
@@ -35,12 +41,14 @@ import jax
 from . import _config
 
 KEEP_VERSIONS = 3  # source versions whose kernels stay on disk (the current one included)
+WARM_START_KERNELS = 32  # most recently used kernels warm_start() loads (a cube run: 13)
 
 _memo: dict[tuple, object] = {}  # (name, settings, shapes) -> compiled call
 _building: dict[tuple, threading.Event] = {}  # kernels some thread is building right now
 _lock = threading.Lock()
 _pruned = False  # old versions are pruned at most once per process
 _groups_seen: set[tuple] = set()  # (name, settings) whose siblings were loaded
+_warm_started = False  # warm_start() runs at most once per process
 # Kernels built by this process: exported (traced + lowered + written) or loaded from disk,
 # and seconds spent on both, summed over threads (experiments/bench_improve.py --compile).
 STATS = {"exported": 0, "loaded": 0, "export_s": 0.0, "compile_s": 0.0}
@@ -117,6 +125,61 @@ def _load_sibling(group: tuple, fn, path: Path) -> None:
         pass
 
 
+def warm_start(limit: int = WARM_START_KERNELS) -> list[tuple]:
+    """Start loading, on ``_config.WORKERS`` background threads, the ``limit`` kernels of
+    this source version that processes used most recently (each kernel file's time
+    stamp is renewed whenever a process builds it), in the order they were last used;
+    only once per process. Returns their keys. A kernel a caller asks for meanwhile is
+    loaded once: the caller waits for the background thread or the thread skips it.
+
+    Warm cube run: 13 kernels, ~2.4 s of loading summed over threads (0.05-0.5 s each),
+    most of the overhead of a first run; loaded behind the topology build and the first
+    passes they cost less wall time (``experiments/results/compile.md``).
+    """
+    global _warm_started
+    with _lock:
+        if _warm_started:
+            return []
+        _warm_started = True
+    directory = _directory()
+    if directory is None:
+        return []
+    try:
+        recent = sorted(directory.glob("*.bin"), key=lambda p: p.stat().st_mtime)[-limit:]
+    except OSError:  # a file pruned meanwhile by another process
+        return []
+    todo = []
+    for path in recent:
+        try:
+            key = ast.literal_eval(path.with_suffix(".key").read_text())
+        except (OSError, ValueError, SyntaxError):  # exported before keys were written
+            continue
+        if path.name == _filename(key):
+            todo.append((key, path))
+    queue = iter(todo)
+    for _ in range(min(_config.WORKERS, len(todo))):
+        threading.Thread(target=_warm_worker, args=(queue,), daemon=True).start()
+    return [key for key, _ in todo]
+
+
+def _warm_worker(queue) -> None:
+    """Load the (key, path) items of ``queue`` (shared by the warm-start threads) that no
+    thread has built or started to build."""
+    while True:
+        with _lock:
+            item = next(queue, None)
+            if item is not None and (item[0] in _memo or item[0] in _building):
+                continue
+        if item is None:
+            return
+        key, path = item
+        try:
+            exported = jax.export.deserialize(bytearray(path.read_bytes()))
+            _get(key, None, [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in exported.in_avals])
+        except Exception:  # noqa: BLE001  (only a head start: the call itself builds it)
+            pass
+
+
 def prefetch(specs: list[tuple]) -> None:
     """Build the kernels ``(name, settings, fn, args)`` that are not built yet, on the
     worker threads (``args``: arrays or ``jax.ShapeDtypeStruct``s of the call's shapes)."""
@@ -176,7 +239,8 @@ def _compile(f, structs):
 
 def _build(key: tuple, fn, args):
     """Load the exported kernel (or export it), then compile it (a persistent-cache hit
-    when warm). Falls back to ``jax.jit(fn)`` on any cache problem."""
+    when warm). Falls back to ``jax.jit(fn)`` on any cache problem; ``fn=None`` (a
+    warm-start load, no function at hand) raises instead."""
     structs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args]
     directory = _directory()
     if directory is None:
@@ -188,12 +252,13 @@ def _build(key: tuple, fn, args):
         if loaded:
             exported = jax.export.deserialize(bytearray(path.read_bytes()))
             os.utime(directory)  # recently used: pruning keeps it
+            os.utime(path)  # and warm_start loads it
         else:
             exported = jax.export.export(jax.jit(fn))(*structs)
             directory.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
-            tmp.write_bytes(exported.serialize())
-            os.replace(tmp, path)  # atomic: a reader never sees half a file
+            # the key first (warm_start reads it to load the kernel without a call)
+            _write_atomic(path.with_suffix(".key"), repr(key).encode())
+            _write_atomic(path, exported.serialize())
             _prune_once()
         t1 = time.perf_counter()
         call = _compile(exported.call, structs)
@@ -203,7 +268,16 @@ def _build(key: tuple, fn, args):
             STATS["compile_s"] += time.perf_counter() - t1
         return call
     except Exception:  # noqa: BLE001  (any cache problem: trace as usual)
+        if fn is None:
+            raise
         return jax.jit(fn)
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    """Write through a temporary file and a rename: a reader never sees half a file."""
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
 
 
 def _prune_once() -> None:

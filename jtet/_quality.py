@@ -25,7 +25,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from . import _config
-from ._aot import cached_call, prefetch
+from ._aot import cached_call, prefetch, warm_start
 from ._errors import JtetError
 
 Vec = tuple[Array, Array, Array]  # SoA point: (x, y, z), each of the same shape
@@ -375,9 +375,16 @@ def prefetch_kernels(measure: str | None = None) -> None:
     kernel and, if given, the one-measure kernel of ``measure`` at once on the worker
     threads: a new process built them one at a time as calls first needed them.
     ``jtet.improve`` asks for its measure; the first evaluation of anything else builds
-    the two shared kernels."""
+    the two shared kernels.
+
+    With a ``measure`` (the optimizer is about to run), the kernels that earlier processes
+    used most recently also start loading in the background (``_aot.warm_start``): a
+    warm first run loaded them one group at a time as its passes first needed them.
+    """
     global _kernels_prefetched
     _kernels_prefetched = True
+    if measure is not None:
+        warm_start()
     xyz = [jax.ShapeDtypeStruct((TET_CHUNK,), np.float64)] * 12
     names = tuple(MEASURES)
     specs = [

@@ -27,6 +27,7 @@ def cache(tmp_path, monkeypatch):
     monkeypatch.setattr(_aot, "_memo", {})
     monkeypatch.setattr(_aot, "_pruned", False)
     monkeypatch.setattr(_aot, "_groups_seen", set())
+    monkeypatch.setattr(_aot, "_warm_started", False)
     return tmp_path / "jtet-aot" / _aot._source_hash()
 
 
@@ -38,8 +39,8 @@ def test_export_then_reload_gives_identical_results(cache):
 
     expected = np.asarray(jax.jit(_kernel)(*ARGS))
     first = np.asarray(_aot.cached_call("k", (1,), _kernel, *ARGS))
-    files = sorted(cache.iterdir())
-    assert len(files) == 1 and files[0].suffix == ".bin"  # no temporary file left
+    files = sorted(cache.iterdir())  # the kernel and its key, no temporary file left
+    assert [f.suffix for f in files] == [".bin", ".key"] and files[0].stem == files[1].stem
     _aot._memo.clear()  # a new process: the kernel comes from the file
     second = np.asarray(_aot.cached_call("k", (1,), _kernel, *ARGS))
     assert np.array_equal(first, expected) and np.array_equal(second, expected)
@@ -49,14 +50,14 @@ def test_settings_and_shapes_make_separate_entries(cache):
     _aot.cached_call("k", (1,), _kernel, *ARGS)
     _aot.cached_call("k", (2,), _kernel, *ARGS)
     _aot.cached_call("k", (1,), _kernel, ARGS[0][:2], ARGS[1])
-    assert len(list(cache.iterdir())) == 3
+    assert len(list(cache.glob("*.bin"))) == 3
 
 
 def test_corrupt_file_falls_back_to_tracing(cache):
     import jax
 
     _aot.cached_call("k", (1,), _kernel, *ARGS)
-    (path,) = cache.iterdir()
+    (path,) = cache.glob("*.bin")
     path.write_bytes(b"not a kernel")
     _aot._memo.clear()
     out = np.asarray(_aot.cached_call("k", (1,), _kernel, *ARGS))
@@ -82,7 +83,7 @@ def test_prefetch_builds_each_kernel_once_and_calls_reuse_it(cache, monkeypatch)
     structs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in ARGS]
     specs = [("k", (s,), _kernel, structs) for s in (1, 2, 3)]
     _aot.prefetch(specs + specs)  # duplicates are built once
-    assert len(built) == 3 and len(list(cache.iterdir())) == 3
+    assert len(built) == 3 and len(list(cache.glob("*.bin"))) == 3
     out = np.asarray(_aot.cached_call("k", (2,), _kernel, *ARGS))
     _aot.prefetch(specs)  # all built: nothing to do
     assert len(built) == 3
@@ -221,3 +222,29 @@ def test_prefetch_calls_takes_a_cached_call_partial(cache):
     _aot.prefetch_calls(call, structs)
     assert set(_aot._memo) == {_aot._key("k", (1,), s) for s in structs}
     assert np.array_equal(np.asarray(call(*ARGS)), np.asarray(jax.jit(_kernel)(*ARGS)))
+
+
+def test_warm_start_loads_the_most_recently_used_kernels(cache, monkeypatch):
+    import os
+    import time
+
+    import jax
+
+    shapes = [(ARGS[0][:n], ARGS[1]) for n in (1, 2, 3, 4)]
+    for i, args in enumerate(shapes):
+        _aot.cached_call("k", (1,), _kernel, *args)
+        path = cache / _aot._filename(_aot._key("k", (1,), args))
+        os.utime(path, (1e9 + i, 1e9 + i))  # used in this order
+    (cache / _aot._filename(_aot._key("k", (1,), shapes[0]))).with_suffix(".key").unlink()
+    _aot._memo.clear()  # a new process
+    loaded = _aot.warm_start(limit=3)  # the three most recent, all with a key file
+    assert loaded == [_aot._key("k", (1,), args) for args in shapes[1:]]
+    assert _aot.warm_start() == []  # once per process
+    deadline = time.monotonic() + 60
+    while len(_aot._memo) < 3 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert set(_aot._memo) == set(loaded)
+    # a call finds its kernel loaded: no tracing (the function would fail if traced)
+    monkeypatch.setattr(_aot, "_build", lambda *a: 1 / 0)
+    out = _aot.cached_call("k", (1,), None, *shapes[3])
+    assert np.array_equal(np.asarray(out), np.asarray(jax.jit(_kernel)(*shapes[3])))
