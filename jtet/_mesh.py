@@ -108,18 +108,21 @@ def face_conflicts(tets: np.ndarray, n_points: int) -> tuple[int, np.ndarray, np
 def topology_face_conflicts(tets: np.ndarray, topology) -> tuple[np.ndarray, np.ndarray]:
     """``face_conflicts(tets, n)[1:]`` (misoriented and duplicate pairs, same order) read
     from a built ``topology`` of ``tets`` (no face in more than two tets then): its faces
-    are grouped already, so no sort of the 4m faces is needed again."""
+    are grouped already, so no sort of the 4m faces is needed again.
+
+    The orientation a tet induces on its face F (sorted) with apex a is the parity of the
+    permutation taking its vertex row to (F, a): the row's own inversions plus the
+    number of F's vertices above a. Two tets on a face must induce different ones.
+    """
     two = np.flatnonzero(topology.face_tets[:, 1] >= 0)
     t = topology.face_tets[two]  # (k, 2): the face's tets, lower slot first
     apex = topology.face_apex[two]
-    par = []
-    for s in (0, 1):  # the two sides of every face
-        rows = tets[t[:, s]]
-        local = np.argmax(rows == apex[:, s, None], axis=1)
-        f = np.take_along_axis(rows, _OUT_FACES[local], axis=1)
-        par.append(
-            ((f[:, 0] > f[:, 1]).astype(np.int8) + (f[:, 0] > f[:, 2]) + (f[:, 1] > f[:, 2])) % 2
-        )
+    f = topology.faces[two]
+    inv = np.zeros(len(tets), np.int8)
+    for i in range(4):  # a loop over the 6 vertex pairs of a row, not over tets
+        for j in range(i + 1, 4):
+            inv += tets[:, i] > tets[:, j]
+    par = [(inv[t[:, s]] + (f > apex[:, s, None]).sum(axis=1, dtype=np.int8)) % 2 for s in (0, 1)]
     dup = apex[:, 0] == apex[:, 1]  # same apex: same vertex set
     mis = (par[0] == par[1]) & ~dup
     return t[mis], np.unique(t[dup], axis=0)
