@@ -40,9 +40,9 @@ from ._topology import (
 LOCAL_FRACTION = 0.05
 # Above this fraction of changed tets (removed + added, relative to the old count) the
 # full build runs. Measured on a 182k-tet cube (same process, loaded machine): the
-# update takes 0.86x the build's time at 47 % changed (the first flip step of an
-# unoptimized mesh), 0.53x at 25 %, 0.1-0.15x below 2 %.
-MAX_CHANGE = 0.6
+# update takes 1.1x the build's time at 47 % changed (the first flip step of an
+# unoptimized mesh), 0.74x at 25 %, 0.2-0.25x below 2 %.
+MAX_CHANGE = 0.4
 
 
 def update_topology(
