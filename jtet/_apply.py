@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._mesh import TetMesh
-from ._topology import _group, match_rows, row_keys
+from ._topology import _group, local_index, match_rows, row_keys
 
 
 def replace_tets(
@@ -95,7 +95,7 @@ def nonconforming_owners(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarra
     ok = kt >= 0
     ok[ok] = ~remove[kt[ok]]
     kf, kt, ka = np.repeat(hit, 2)[ok], kt[ok], ka[ok]
-    local = np.argmax(mesh.tets[kt] == ka[:, None], axis=1)
+    local = local_index(mesh.tets, kt, ka)
     k_par = _parity3(np.take_along_axis(mesh.tets[kt], _OUT_FACES[local], 1))
     faces = np.concatenate([nf, T.faces[kf]])
     par = np.concatenate([n_par, k_par])

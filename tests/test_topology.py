@@ -5,7 +5,7 @@ import pytest
 from helpers import delaunay_mesh, grid_mesh
 
 import jtet
-from jtet._topology import CORNER, FREE, SEGMENT, SURFACE, Topology, match_rows
+from jtet._topology import CORNER, FREE, SEGMENT, SURFACE, Topology, local_index, match_rows
 
 
 def _volume6(p):
@@ -187,3 +187,11 @@ def test_topology_face_conflicts_equal_face_conflicts():
         assert np.array_equal(got_mis, mis) and np.array_equal(got_dup, dup)
         assert len(mis) > 0 or t is not tets
     assert len(mis) == 0 and np.array_equal(dup, [[0, 1]])
+
+
+def test_local_index_equals_argmax(mesh):
+    rng = np.random.default_rng(0)
+    t = rng.integers(0, mesh.n_tets, 500)
+    v = mesh.tets[t, rng.integers(0, 4, 500)]
+    want = np.argmax(mesh.tets[t] == v[:, None], axis=1)
+    assert np.array_equal(local_index(mesh.tets, t, v), want)
