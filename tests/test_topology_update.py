@@ -47,6 +47,9 @@ def check_step(old_mesh, new_mesh, keep):
     for direct in direct_updates(old_mesh.topology, old_mesh, new_mesh, keep):
         assert direct is not None
         assert_same(direct, want)
+        # the key caches the update installs equal the build's own keys
+        assert np.array_equal(direct.face_keys, want.face_keys)
+        assert np.array_equal(direct.edge_keys, want.edge_keys)
     assert_same(U.update_topology(old_mesh.topology, old_mesh, new_mesh, keep), want)
 
 
