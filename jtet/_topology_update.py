@@ -372,7 +372,8 @@ def _merged(old_rows, old_keys, dead, new_rows, nk: _NewKeys, old_tet_ids, keep_
     rows = _take_rows(old_rows, new_rows[add_src], src)
     w = old_tet_ids.shape[1]
     tet_ids = np.empty((len(keep_idx) + len(nk.inverse) // w, w), np.int64)
-    tet_ids[: len(keep_idx)] = gmap[np.take(old_tet_ids, keep_idx, axis=0)]
+    # np.take: ~20 % faster than fancy indexing for these whole-mesh gathers
+    tet_ids[: len(keep_idx)] = np.take(gmap, np.take(old_tet_ids, keep_idx, axis=0))
     tet_ids[len(keep_idx) :] = np.searchsorted(keys, nk.ukeys)[nk.inverse].reshape(-1, w)
     return keys, gmap, src, add_src, rows, tet_ids
 
@@ -413,7 +414,7 @@ def _splice(old_vals, old_lens, old_carry, new_lens, new_redo, redo_vals, mappin
     vals = np.empty(ptr[-1], np.int64)
     carried = old_vals[np.repeat(old_carry, old_lens)]
     redo = np.repeat(new_redo, new_lens)
-    vals[~redo] = carried if mapping is None else mapping[carried]
+    vals[~redo] = carried if mapping is None else np.take(mapping, carried)
     vals[redo] = redo_vals
     return ptr, vals
 
@@ -469,7 +470,7 @@ def _update_faces(old: Topology, tets, keep, keep_idx, removed, renum, n):
 
     # carried faces: renumbered tets, same slots (regrouped ones are overwritten below)
     none = np.full((A, 2), -1, np.int64)
-    face_tets = renum[_take_rows(old.face_tets, none, src)]
+    face_tets = np.take(renum, _take_rows(old.face_tets, none, src))
     face_apex = _take_rows(old.face_apex, none, src)
     # entries (face, slot = tet * 4 + local vertex) of the touched faces, as build sorts them
     kt = renum[ft[kept_slot]]
@@ -496,7 +497,7 @@ def _update_faces(old: Topology, tets, keep, keep_idx, removed, renum, n):
 
     # neighbours: carried, except for tets on a regrouped face (as build computes them)
     tet_neighbors = np.empty((m1, 4), np.int64)
-    tet_neighbors[:K] = renum[np.take(old.tet_neighbors, keep_idx, axis=0)]
+    tet_neighbors[:K] = np.take(renum, np.take(old.tet_neighbors, keep_idx, axis=0))
     rows = _ids(m1, slot // 4)
     tf = tet_faces[rows]
     tet_neighbors[rows] = np.where(
