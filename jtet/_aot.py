@@ -28,6 +28,7 @@ jitted function: the cache only ever costs time, never correctness.
 from __future__ import annotations
 
 import ast
+import atexit
 import functools
 import hashlib
 import os
@@ -46,6 +47,8 @@ WARM_START_KERNELS = 32  # most recently used kernels warm_start() loads (a cube
 _memo: dict[tuple, object] = {}  # (name, settings, shapes) -> compiled call
 _building: dict[tuple, threading.Event] = {}  # kernels some thread is building right now
 _lock = threading.Lock()
+_background: list[threading.Thread] = []  # sibling / warm-start loads, joined at exit
+_stopping = threading.Event()  # set at exit: background loads take no new kernel
 _pruned = False  # old versions are pruned at most once per process
 _groups_seen: set[tuple] = set()  # (name, settings) whose siblings were loaded
 _warm_started = False  # warm_start() runs at most once per process
@@ -111,10 +114,31 @@ def _load_siblings(key: tuple, fn) -> None:
     except OSError:
         return
     for path in paths:
-        threading.Thread(target=_load_sibling, args=(group, fn, path), daemon=True).start()
+        _start_background(_load_sibling, group, fn, path)
+
+
+def _start_background(target, *args) -> None:
+    thread = threading.Thread(target=target, args=args, daemon=True)
+    with _lock:
+        _background.append(thread)
+    thread.start()
+
+
+@atexit.register
+def _join_background() -> None:
+    """Let the background loads that are running finish before the interpreter exits and
+    start no new one: a thread still inside XLA while Python finalizes aborts the process
+    (measured: a short run printed its result, then exited with SIGABRT). A load takes
+    0.05-0.5 s; the timeout only guards against a hang."""
+    _stopping.set()
+    deadline = time.monotonic() + 60.0
+    for thread in list(_background):
+        thread.join(timeout=max(0.0, deadline - time.monotonic()))
 
 
 def _load_sibling(group: tuple, fn, path: Path) -> None:
+    if _stopping.is_set():
+        return
     try:
         exported = jax.export.deserialize(bytearray(path.read_bytes()))
         structs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in exported.in_avals]
@@ -158,14 +182,14 @@ def warm_start(limit: int = WARM_START_KERNELS) -> list[tuple]:
             todo.append((key, path))
     queue = iter(todo)
     for _ in range(min(_config.WORKERS, len(todo))):
-        threading.Thread(target=_warm_worker, args=(queue,), daemon=True).start()
+        _start_background(_warm_worker, queue)
     return [key for key, _ in todo]
 
 
 def _warm_worker(queue) -> None:
     """Load the (key, path) items of ``queue`` (shared by the warm-start threads) that no
     thread has built or started to build."""
-    while True:
+    while not _stopping.is_set():
         with _lock:
             item = next(queue, None)
             if item is not None and (item[0] in _memo or item[0] in _building):

@@ -248,3 +248,24 @@ def test_warm_start_loads_the_most_recently_used_kernels(cache, monkeypatch):
     monkeypatch.setattr(_aot, "_build", lambda *a: 1 / 0)
     out = _aot.cached_call("k", (1,), None, *shapes[3])
     assert np.array_equal(np.asarray(out), np.asarray(jax.jit(_kernel)(*shapes[3])))
+
+
+def test_exit_while_warm_start_loads_is_clean(tmp_path):
+    """A process that exits while warm-start threads are still loading kernels exits
+    normally: a thread inside XLA during interpreter shutdown aborted the process (SIGABRT
+    after a correct result, e.g. a short ``jtet stats``)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "JTET_COMPILATION_CACHE": str(tmp_path)}
+    # exports every kernel of a run, the smoothing kernel too (~0.4 s to load)
+    fill = "import jtet; jtet.improve(jtet.demo_mesh(), max_passes=1)"
+    subprocess.run([sys.executable, "-c", fill], env=env, check=True, capture_output=True)
+    # exit while the loads run (each takes 0.05-0.5 s, inside XLA most of that time)
+    start = "import time; from jtet import _aot; print(len(_aot.warm_start())); time.sleep({})"
+    for pause in (0.1, 0.3, 0.6, 1.0):
+        cmd = [sys.executable, "-c", start.format(pause)]
+        out = subprocess.run(cmd, env=env, capture_output=True)
+        assert out.returncode == 0, out.stderr.decode()[-500:]
+        assert int(out.stdout) > 0  # there were kernels to load
