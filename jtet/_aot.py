@@ -117,11 +117,14 @@ def _load_siblings(key: tuple, fn) -> None:
         _start_background(_load_sibling, group, fn, path)
 
 
-def _start_background(target, *args) -> None:
+def _start_background(target, *args) -> threading.Thread:
+    """Run ``target(*args)`` on a daemon thread that the interpreter's exit waits for
+    (``_join_background``); returns the started thread."""
     thread = threading.Thread(target=target, args=args, daemon=True)
     with _lock:
         _background.append(thread)
     thread.start()
+    return thread
 
 
 @atexit.register

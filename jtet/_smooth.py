@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._aot import cached_call, prefetch_calls
+from ._aot import _start_background, cached_call, prefetch_calls
 from ._config import parallel_map
 from ._errors import JtetError
 from ._predicates import orient3d_tets
@@ -409,7 +409,8 @@ def prefetch_pass(
     For a caller that will smooth later (``jtet.improve`` with ``"smooth"`` in its ops):
     a new process then compiles the smoothing kernel (~10 s of CPU when the cache is
     cold, the largest kernel by far) while its first edge and face passes run, instead of
-    alone at the start of the first smoothing pass. Returns the (daemon) thread.
+    alone at the start of the first smoothing pass. Returns the (daemon) thread; the
+    interpreter's exit waits for it.
     """
     kernel = batched_smoother(
         measure,
@@ -419,11 +420,9 @@ def prefetch_pass(
         sharpness=tuple(sharpness),
         n_trials=int(n_trials),
     )
-    thread = threading.Thread(
-        target=prefetch_calls, args=(kernel, [_kernel_structs(capacity, batch)]), daemon=True
-    )
-    thread.start()
-    return thread
+    # joined at exit like the other background builds: a thread still inside XLA while
+    # the interpreter finalizes aborts the process (an exit during this compile waits)
+    return _start_background(prefetch_calls, kernel, [_kernel_structs(capacity, batch)])
 
 
 # ---------------------------------------------------------------------------------------
