@@ -506,60 +506,38 @@ def _bent(points, a, b, c, d, feature_angle: float) -> np.ndarray:
 
 
 def _vertex_kinds(points, faces, subfacet, edges, subsegment, n):
-    """Classify vertices for smoothing: FREE, SURFACE (flat), SEGMENT (straight), CORNER."""
-    kind = np.zeros(n, np.int8)
-    normal = np.zeros((n, 3))
-    direction = np.zeros((n, 3))
-    sf = faces[subfacet]
-    on_surface = np.zeros(n, bool)
-    on_surface[sf.reshape(-1)] = True
-    kind[on_surface] = SURFACE
-    # surface normal: area-weighted sum of the (consistently unoriented) subfacet normals;
-    # sign-align each normal to the first one seen at the vertex so they do not cancel.
-    if len(sf):
-        p = points[sf]
-        fn = _unit(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]))
-        verts = sf.reshape(-1)
-        fnr = np.repeat(fn, 3, axis=0)
-        vptr, vorder = _csr(verts, n)
-        ref = np.zeros((n, 3))
-        firsts = vorder[vptr[:-1][on_surface]]
-        ref[on_surface] = fnr[firsts]
-        sgn = np.sign(np.einsum("ij,ij->i", fnr, ref[verts]))
-        sgn[sgn == 0] = 1.0
-        np.add.at(normal, verts, fnr * sgn[:, None])
-        normal = _unit(normal)
-    seg = edges[subsegment]
-    nseg = np.bincount(seg.reshape(-1), minlength=n)
-    kind[nseg > 2] = CORNER
-    kind[nseg == 1] = CORNER
-    two = np.flatnonzero(nseg == 2)
-    if len(two):
-        sv = seg.reshape(-1)
-        other = np.stack([seg[:, 1], seg[:, 0]], 1).reshape(-1)
-        sptr, sorder = _csr(sv, n)
-        o1 = other[sorder[sptr[two]]]
-        o2 = other[sorder[sptr[two] + 1]]
-        u1 = points[o1] - points[two]
-        u2 = points[two] - points[o2]
-        cr = np.linalg.norm(np.cross(u1, u2), axis=1)
-        scale = np.linalg.norm(u1, axis=1) * np.linalg.norm(u2, axis=1)
-        straight = (cr <= 1e-12 * scale) & (np.einsum("ij,ij->i", u1, u2) > 0)
-        kind[two] = np.where(straight, SEGMENT, CORNER)
-        direction[two[straight]] = _unit(u1[straight] + u2[straight])
-    # a surface vertex whose subfacets are not all coplanar is held by subsegments
-    # (flatness is decided edge by edge above); SURFACE keeps its normal only.
-    normal[kind != SURFACE] = 0.0
-    return kind, normal, direction
+    """Classify vertices for smoothing: FREE, SURFACE (flat), SEGMENT (straight), CORNER.
+
+    ``_vertex_kinds_at`` of every vertex, from its subfacet and subsegment incidences.
+    """
+    return _vertex_kinds_at(
+        points,
+        np.arange(n),
+        _incidences(faces, subfacet, n),
+        faces,
+        _incidences(edges, subsegment, n),
+        edges,
+    )
+
+
+def _incidences(rows: np.ndarray, selected: np.ndarray, n: int) -> np.ndarray:
+    """(k, 2) pairs (vertex, row id) of the ``selected`` (bool) rows of ``rows`` (r, c),
+    sorted by vertex then row id."""
+    ids = np.flatnonzero(selected)
+    verts = rows[ids].reshape(-1)
+    order, _ = _stable_sort(verts, max(n - 1, 1).bit_length())  # row ids stay ascending
+    return np.column_stack([verts[order], np.repeat(ids, rows.shape[1])[order]])
 
 
 def _vertex_kinds_at(points, vids, vf, faces, ve, edges):
-    """``_vertex_kinds`` of the vertices ``vids`` (V,) only, from their incidences.
+    """Kinds (FREE, SURFACE, SEGMENT, CORNER), surface normals and segment directions of
+    the vertices ``vids`` (V,), from their incidences.
 
     ``vf`` (k, 2): pairs (index into ``vids``, id of a subfacet at that vertex) and ``ve``
     (l, 2): pairs (index into ``vids``, id of a subsegment at that vertex), each sorted
-    by vertex then id: the order in which ``_vertex_kinds`` meets them, so the normals
-    are summed in the same order (bit-identical). Returns (kind, normal, direction).
+    by vertex then id, so a vertex's normals are summed in one fixed order whether all
+    vertices are classified (``_vertex_kinds``) or a few (the incremental update): the
+    results are bit-identical. Returns (kind, normal, direction).
     """
     V = len(vids)
     kind = np.zeros(V, np.int8)
@@ -568,6 +546,8 @@ def _vertex_kinds_at(points, vids, vf, faces, ve, edges):
     on_surface = np.zeros(V, bool)
     on_surface[vf[:, 0]] = True
     kind[on_surface] = SURFACE
+    # surface normal: area-weighted sum of the (consistently unoriented) subfacet normals;
+    # sign-align each normal to the first one seen at the vertex so they do not cancel.
     if len(vf):
         p = points[faces[vf[:, 1]]]
         fn = _unit(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]))
@@ -594,5 +574,7 @@ def _vertex_kinds_at(points, vids, vf, faces, ve, edges):
         straight = (cr <= 1e-12 * scale) & (np.einsum("ij,ij->i", u1, u2) > 0)
         kind[two] = np.where(straight, SEGMENT, CORNER)
         direction[two[straight]] = _unit(u1[straight] + u2[straight])
+    # a surface vertex whose subfacets are not all coplanar is held by subsegments
+    # (flatness is decided edge by edge above); SURFACE keeps its normal only.
     normal[kind != SURFACE] = 0.0
     return kind, normal, direction
