@@ -27,7 +27,6 @@ Coordinates inside the kernel are relative to ``v0`` (quality is translation inv
 from __future__ import annotations
 
 import functools
-import threading
 import time
 from dataclasses import dataclass, field
 
@@ -36,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._aot import _start_background, cached_call, prefetch_calls
+from ._aot import cached_call, prefetch_calls
 from ._config import parallel_map
 from ._errors import JtetError
 from ._predicates import orient3d_tets
@@ -398,39 +397,6 @@ def batched_smoother(measure: str, solver: str, max_iters: int, **options):
     # siblings: the first call also starts loading the other star capacities an earlier
     # process exported, so the capacities load side by side, not one after the other
     return functools.partial(cached_call, "smooth_star", settings, jax.vmap(fn), siblings=True)
-
-
-def prefetch_pass(
-    measure: str,
-    *,
-    capacity: int = DEFAULT_CAPACITIES[0],
-    batch: int = 32,
-    solver: str = "active_set",
-    max_iters: int = 8,
-    n_trials: int = 3,
-    min_gain: float = 1e-9,
-    sharpness: tuple[float, ...] = (20.0, 80.0),
-) -> threading.Thread:
-    """Start building, on a background thread, the kernel shape that ``smooth_pass`` with
-    these settings (its defaults) calls for most stars: (``capacity``, ``batch``).
-
-    For a caller that will smooth later (``jtet.improve`` with ``"smooth"`` in its ops):
-    a new process then compiles the smoothing kernel (~10 s of CPU when the cache is
-    cold, the largest kernel by far) while its first edge and face passes run, instead of
-    alone at the start of the first smoothing pass. Returns the (daemon) thread; the
-    interpreter's exit waits for it.
-    """
-    kernel = batched_smoother(
-        measure,
-        solver,
-        int(max_iters),
-        min_gain=float(min_gain),
-        sharpness=tuple(sharpness),
-        n_trials=int(n_trials),
-    )
-    # joined at exit like the other background builds: a thread still inside XLA while
-    # the interpreter finalizes aborts the process (an exit during this compile waits)
-    return _start_background(prefetch_calls, kernel, [_kernel_structs(capacity, batch)])
 
 
 # ---------------------------------------------------------------------------------------

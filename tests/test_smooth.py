@@ -473,27 +473,6 @@ def test_pass_prefetches_exactly_the_shapes_it_calls(monkeypatch):
     assert len({K for K, _ in called}) > 1 and len(prefetches) == 1
 
 
-def test_prefetch_pass_builds_the_shape_a_default_pass_calls(monkeypatch):
-    """improve can start the smoothing kernel's build early: the shape prefetch_pass
-    builds is the one smooth_pass with the same measure then calls (same kernel)."""
-    import jtet._smooth as sm
-
-    built, called = [], []
-
-    def record_prefetch(call, args_list):
-        built.extend((call, a[2].shape[1], a[0].shape[0]) for a in args_list)
-
-    def record_call(kernel, K, batch, chunk, *rest):
-        called.append((kernel, K, batch))
-        return chunk[:0], np.zeros((0, 3))  # nothing moves: no kernel is compiled
-
-    monkeypatch.setattr(sm, "prefetch_calls", record_prefetch)
-    monkeypatch.setattr(sm, "_solve_batch", record_call)
-    sm.prefetch_pass("radius_ratio").join()
-    smooth_pass(delaunay_mesh(300, seed=2), measure="radius_ratio")
-    assert built[0] in called and built[0] in built[1:]  # the pass prefetched it too
-
-
 def np_biased_min_sine(p: np.ndarray, bias: float = 0.7) -> np.ndarray:
     """NumPy biased min-sine of tets p (m, 4, 3): ``np_min_sine`` with the sine of every
     obtuse dihedral angle times ``bias`` (obtuse: the interior angle between the faces'
