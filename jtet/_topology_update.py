@@ -265,31 +265,32 @@ def _update_vertex_kinds(old, points, tets, fu, subfacet, eu, subsegment, vptr, 
     pos, owner = _csr_take(vptr, vids)
     t = vtets[pos]
     v = vids[owner]
-    # faces of t that contain v: those opposite the other three vertices
-    tf = fu.tet_faces[t]
-    hasv = tets[t] != v[:, None]
-    f_own = np.broadcast_to(owner[:, None], tf.shape)[hasv]
-    f_id = tf[hasv]
-    on = subfacet[f_id]
-    F = np.int64(len(fu.faces))
-    vf = np.unique(f_own[on] * F + f_id[on])
-    vf = np.column_stack([vf // F, vf % F])
-    # edges of t that contain v
-    te = eu.tet_edges[t]
     lv = tets[t] == v[:, None]  # (q, 4)
-    hase = lv[:, TET_EDGES[:, 0]] | lv[:, TET_EDGES[:, 1]]
-    e_own = np.broadcast_to(owner[:, None], te.shape)[hase]
-    e_id = te[hase]
-    on = subsegment[e_id]
-    E = np.int64(len(eu.edges))
-    ve = np.unique(e_own[on] * E + e_id[on])
-    ve = np.column_stack([ve // E, ve % E])
+    # faces of t that contain v (those opposite the other three vertices), edges of t
+    # that contain v
+    vf = _incident_pairs(owner, fu.tet_faces[t], ~lv, subfacet)
+    ve = _incident_pairs(
+        owner, eu.tet_edges[t], lv[:, TET_EDGES[:, 0]] | lv[:, TET_EDGES[:, 1]], subsegment
+    )
     k, nrm, d = _vertex_kinds_at(points, vids, vf, fu.faces, ve, eu.edges)
     kind[vids], normal[vids], direction[vids] = k, nrm, d
     return kind, normal, direction
 
 
 # -------------------------------------------------------------------------- helpers
+
+
+def _incident_pairs(owner, ids, has, selected) -> np.ndarray:
+    """(k, 2) distinct pairs (owner, id), sorted by owner then id, of the entries of
+    ``ids`` (q, c) where ``has`` (q, c) and ``selected[id]``; ``owner`` (q,) per row."""
+    own = np.broadcast_to(owner[:, None], ids.shape)[has]
+    idv = ids[has]
+    on = selected[idv]
+    count = np.int64(len(selected))
+    key = np.unique(own[on] * count + idv[on])
+    return np.column_stack([key // count, key % count])
+
+
 _lookup = sorted_lookup
 
 
