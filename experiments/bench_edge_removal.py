@@ -150,7 +150,8 @@ def table_kernel(ms, n_rings: dict, raw_rate: float, measure: str = "min_sine") 
     print(
         "diag / loop: device-only solve_chunks, unrolled-diagonal vs fori_loop DP (compile,"
         " c.loop: cold compile s); host: solve_rings(prune=False); pruned: prune='quality'"
-        " (a-side quality + DP bound; what prune=True does for m >= 6);"
+        " (a-side quality + DP bound; what prune=True does for m >= PRUNE_MIN_M; below"
+        " that host rows run the padded kernel of rings up to PAD_M, unpruned);"
         " p.vol: prune='volume'; surv / s.vol: fraction of"
         " rings passing each screen; succ: fraction with q_new > q_old; tets/s: 2 C(m,3)"
         " candidate tets per ring x diag rate; /raw: that over the raw quality rate."

@@ -179,23 +179,28 @@ def edge_removal_pass(
     a_all = T.edges[edges[ch.cand], 0]
     b_all = T.edges[edges[ch.cand], 1]
     pts = mesh.points
-    sizes = np.unique(clen[valid[ch.cand]])
-    prefetch_rings([int(k) for k in sizes if 3 <= k <= max_ring], measure, prune)
-    for k in range(3, max_ring + 1):
-        sel = np.flatnonzero((clen == k) & valid[ch.cand])
-        if len(sel) == 0:
-            continue
-        ring_ids = ch.verts[ch.ptr[sel][:, None] + np.arange(k)]
-        qn, tris = solve_rings(
-            pts[a_all[sel]],
-            pts[b_all[sel]],
-            pts[ring_ids],
-            q_old[ch.cand[sel]],
+    solve = np.flatnonzero(valid[ch.cand])  # every chain of a valid candidate, all sizes
+    if len(solve):
+        sizes = clen[solve]
+        prefetch_rings(np.unique(sizes).tolist(), measure, prune)
+        width = int(sizes.max())
+        # (S, width) vertex ids; slots past a chain's end repeat its last vertex
+        ring_all = ch.verts[
+            ch.ptr[solve][:, None] + np.minimum(np.arange(width), sizes[:, None] - 1)
+        ]
+        qn, tris_all = solve_rings(
+            pts[a_all[solve]],
+            pts[b_all[solve]],
+            pts[ring_all],
+            q_old[ch.cand[solve]],
             measure=measure,
             prune=prune,
+            sizes=sizes,
         )
-        np.minimum.at(q_new, ch.cand[sel], np.asarray(qn))
-        tris_of[k] = (sel, ring_ids, np.asarray(tris))
+        np.minimum.at(q_new, ch.cand[solve], qn)
+        for k in np.unique(sizes).tolist():
+            of_k = sizes == k
+            tris_of[k] = (solve[of_k], ring_all[of_k, :k], tris_all[of_k, : k - 2])
     q_new[~valid] = -np.inf
     improves = q_new > q_old + min_improvement
     cand = np.flatnonzero(improves)

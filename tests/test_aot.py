@@ -165,14 +165,19 @@ def test_parallel_map_inside_a_worker_runs_serially():
 def test_ring_prefetch_builds_what_solve_rings_uses(cache):
     from jtet._kernels import klincsek as kl
 
-    kl.prefetch([4, 6], "min_sine", prune=True)
+    kl.prefetch([4, 6, kl.PRUNE_MIN_M], "min_sine", prune=True)
     built = set(_aot._memo)
-    assert {k[0] for k in built} == {"solve_chunks", "screen_chunks"} and len(built) == 3
+    # sizes 4 and 6 share the padded kernel; PRUNE_MIN_M has its own solve and screen
+    names = sorted(k[0] for k in built)
+    assert names == ["screen_chunks", "solve_chunks", "solve_padded_chunks"]
     rng = np.random.default_rng(0)
-    for m in (4, 6):  # three kernel calls per size, pruned at m = 6
-        n = kl.CALL_CHUNKS * kl.CHUNK * 2 + 5
+    n = kl.CALL_CHUNKS * kl.CHUNK * 2 + 5  # three kernel calls per kernel
+    for m in (4, 6, kl.PRUNE_MIN_M):
         ring = rng.random((n, m, 3))
         kl.solve_rings(rng.random((n, 3)), rng.random((n, 3)), ring, np.full(n, -1.0))
+    sizes = rng.integers(3, kl.PRUNE_MIN_M + 1, n)  # one batch of mixed sizes
+    ring = rng.random((n, kl.PRUNE_MIN_M, 3))
+    kl.solve_rings(rng.random((n, 3)), rng.random((n, 3)), ring, np.zeros(n), sizes=sizes)
     assert set(_aot._memo) == built
 
 

@@ -330,6 +330,64 @@ def test_loop_form_matches_diagonal_form():
     assert np.array_equal(np.asarray(tl), np.asarray(td))
 
 
+def mixed_sizes_batch(width: int, n: int, seed: int):
+    """``n`` generic rings of random sizes 3..width, zero-padded to ``width`` vertices."""
+    rng = np.random.default_rng(seed)
+    sizes = rng.integers(3, width + 1, n)
+    a, b, ring = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, width, 3))
+    for r, k in enumerate(sizes.tolist()):
+        a[r], b[r], ring[r, :k] = make_ring(GENERIC[r % len(GENERIC)], k, rng)
+    return a, b, ring, sizes
+
+
+def test_padded_kernel_matches_one_kernel_per_size():
+    # rings of 3..PAD_M vertices share the padded kernel; each size alone through its own
+    # kernel (solve_chunks) must give the same optimum (ATOL: another executable) and the
+    # same triangulation (generic rings have no ties), and the pad rows are -1
+    width = kl.PAD_M + 2  # the two largest sizes take the per-size path
+    a, b, ring, sizes = mixed_sizes_batch(width, 600, seed=13)
+    q_mix, t_mix = kl.solve_rings(a, b, ring, np.zeros(len(a)), prune=False, sizes=sizes)
+    assert t_mix.shape == (len(a), width - 2, 3)
+    for k in np.unique(sizes).tolist():
+        idx = np.flatnonzero(sizes == k)
+        soa = kl.to_chunks(a[idx], b[idx], ring[idx, :k], kl._capacity(len(idx)))
+        q_k, t_k = kl.solve_chunks(*soa, measure="min_sine")
+        q_k, t_k = kl._unchunk_q(q_k, len(idx)), kl._unchunk_tris(t_k, len(idx))
+        np.testing.assert_allclose(q_mix[idx], q_k, rtol=0, atol=ATOL)
+        assert np.array_equal(t_mix[idx, : k - 2], t_k)
+        assert np.all(t_mix[idx, k - 2 :] == -1)
+    for r in np.flatnonzero(sizes <= kl.PAD_M)[:8]:
+        k = sizes[r]
+        best, _ = brute_force(a[r], b[r], ring[r, :k], "min_sine")
+        assert abs(q_mix[r] - best) <= ATOL
+        check_triangulation(t_mix[r, : k - 2], k)
+
+
+def test_padding_slots_do_not_matter():
+    # whatever the kernel finds in the slots past a ring's size (zeros, huge values,
+    # NaN), its result is the same bit for bit
+    a, b, ring, sizes = mixed_sizes_batch(kl.PAD_M, 2 * kl.CHUNK, seed=17)
+    past = np.arange(kl.PAD_M) >= sizes[:, None]
+    size_chunks = sizes.astype(np.int32).reshape(-1, kl.CHUNK)
+    outs = []
+    for fill in (0.0, 1e3, np.nan):
+        padded = ring.copy()
+        padded[past] = fill
+        soa = kl.to_chunks(a, b, padded, 2 * kl.CHUNK)
+        outs.append(
+            [np.asarray(x) for x in kl.solve_padded_chunks(*soa, size_chunks, measure="min_sine")]
+        )
+    for q, t in outs[1:]:
+        assert np.array_equal(q, outs[0][0]) and np.array_equal(t, outs[0][1])
+
+
+def test_bad_sizes_raise():
+    a = np.zeros((2, 3))
+    for sizes in ([3], [2, 4], [3, 6]):
+        with pytest.raises(JtetError, match="sizes"):
+            kl.solve_rings(a, a, np.zeros((2, 5, 3)), np.zeros(2), sizes=np.array(sizes))
+
+
 def realistic(m: int, n: int, seed: int):
     """Jittered regular rings with q_old = the worst old tet (a mix of wins and losses)."""
     rng = np.random.default_rng(seed)

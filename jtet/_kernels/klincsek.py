@@ -28,6 +28,11 @@ Layout and why (numbers from experiments/bench_edge_removal.py, 2-core CPU):
   ``t = k - i`` (int8); ties keep the smallest ``k`` as in Figure 5 (``q > Q[i, j]``).
   The ``lax.fori_loop`` form (``fill_tables_loop``, padded to (m-2)^2 per diagonal) is kept
   as the measured alternative; the unrolled diagonals are faster (see the benchmark).
+* One kernel for small rings: rings of 3 .. ``PAD_M`` vertices are padded to ``PAD_M``
+  and solved together (``padded_candidate_quality`` masks the padding exactly: same
+  optimum, same triangulation). Each compiled shape costs ~0.7-2 s of CPU to build even
+  at m = 3, and the kernels are a few percent of a run, so one padded shape beats one per
+  size (cold compile of the 10k-tet cube 18.8 -> 13.5 s, experiments/results/compile.md).
 * Readback: a fixed-size stack traversal (``m - 2`` steps of a ``fori_loop``) from
   ``(0, m-1)``, popping an interval, reading its ``K`` and pushing its two children. Every
   vertex ``0 < k < m-1`` is the middle vertex of exactly one triangle of any triangulation
@@ -51,7 +56,9 @@ batch and solved exactly by stage 2. (A cheaper signed-volume screen, dropping r
 which some polygon edge has no candidate with two positive tets, is kept as
 ``prune="volume"``: realistic rings have no inverted candidates, so it rarely prunes.) A
 successful ring always survives and gets bitwise the unpruned answer: batch capacities are
-two chunks per kernel call, so every batch runs the same compiled kernel.
+two chunks per kernel call, so every batch runs the same compiled kernel. Pruning applies
+to rings above ``PAD_M`` only (``max_ring > 7``): the padded kernel solves every small ring
+exactly, as one screen shape more would cost more compile time than it saves run time.
 """
 
 from __future__ import annotations
@@ -87,11 +94,19 @@ CHUNK = 256
 # Chunks per kernel call: every call has this many (two: with one, XLA drops the loop of
 # ``lax.map`` and compiles a different body, which could round differently).
 CALL_CHUNKS = 2
-# prune=True screens only rings of at least this size: below it the screen (half the
-# quality work plus a DP, and a second host round trip) drops too few rings to pay
-# (benchmark on realistic rings: m = 3, 4, 5 keep 100, 93, 29 % and run 1.3-3x slower
-# pruned; m = 6 keeps 6 % and runs 1.4-2.5x faster).
-PRUNE_MIN_M = 6
+# Rings of MIN_M .. PAD_M vertices share ONE compiled kernel, each padded to PAD_M
+# vertices (``solve_padded_chunks``). Every shape costs a compile (0.7-2 s of CPU even at
+# m = 3) and a load: one padded kernel instead of five sizes and two screens cut the cold
+# Klincsek build from ~11 to ~2.5 s of CPU, while the kernels' run time is a few percent of
+# a run's (182k-tet cube: 0.23 s of 6.6 s for 103k rings; a padded ring costs what an m = 7
+# ring costs, ~1.6 us). Larger rings get a kernel of their own size.
+PAD_M = 7
+# prune=True screens only rings of at least this size (and above PAD_M, whose rings are
+# always solved exactly): below m = 6 the screen (half the quality work plus a DP, and a
+# second host round trip) drops too few rings to pay (benchmark on realistic rings:
+# m = 3, 4, 5 keep 100, 93, 29 % and run 1.3-3x slower pruned; m = 6 keeps 6 % and runs
+# 1.4-2.5x faster).
+PRUNE_MIN_M = PAD_M + 1
 
 
 # ---------------------------------------------------------------------------------------
@@ -188,6 +203,30 @@ def candidate_quality(
     if side == "b":
         return q(vi, vj, vk, b)
     return jnp.minimum(q(vi, vk, vj, a), q(vi, vj, vk, b))
+
+
+def padded_candidate_quality(
+    a: Vec, b: Vec, ring: Vec, size: Int[Array, "..."], *, m: int, measure: str
+) -> Float[Array, "T ..."]:
+    """Candidate qualities of a ring of ``size <= m`` vertices padded to ``m``: (T, ...).
+
+    The real ring is ``v_0 .. v_{s-1}`` (``s = size``); slots ``s .. m-1`` hold anything
+    finite. The padded polygon is the real one plus the pad polygon ``P = v_0, v_{s-1},
+    v_s, .., v_{m-1}`` across their shared edge ``v_0 v_{s-1}``. Candidates of real
+    vertices keep their quality, those inside ``P`` get +inf and the mixed ones -inf. A
+    triangulation of value > -inf has no mixed triangle, so it is a triangulation of the
+    real polygon plus one of ``P`` (each lies in its own half of the shared edge), and
+    its value is that of its real part: ``Q[0, m-1]`` is the real optimum, reached by the
+    same sub-intervals and ties as the unpadded DP, and the readback's rows ``k - 1``,
+    ``k = 1 .. s-2``, are the real triangles (``P``'s middle vertices are ``s-1 .. m-2``).
+    """
+    p = _plan(m)
+    q = candidate_quality(a, b, ring, m=m, measure=measure)
+    nb = size.ndim
+    ci, ck, cj = (_lift(x, nb) for x in (p.ci, p.ck, p.cj))
+    last = size[None] - 1  # index of v_{s-1}
+    inside_pad = ((ci == 0) | (ci >= last)) & (ck >= last)  # i < k < j, all in P
+    return jnp.where(cj <= last, q, jnp.where(inside_pad, jnp.inf, -jnp.inf))
 
 
 @functools.cache
@@ -403,6 +442,19 @@ def solve_chunks(ax, ay, az, bx, by, bz, rx, ry, rz, *, measure: str, form: str 
     return jax.lax.map(lambda qc: solve_from_quality(qc, m=m, form=form), q)
 
 
+@functools.partial(jax.jit, static_argnames=("measure",))
+def solve_padded_chunks(ax, ay, az, bx, by, bz, rx, ry, rz, size, *, measure: str):
+    """Unpruned solve of a chunked batch of rings padded to ``m = rx.shape[1]`` vertices,
+    ``size`` (nC, C) int32 real vertices each (``padded_candidate_quality``) -> q_new
+    (nC, C), tris (nC, m-2, 3, C) whose rows ``k-1 < size-2`` are the real triangles."""
+    m = rx.shape[1]
+    q = jax.lax.map(
+        lambda x: padded_candidate_quality(x[0:3], x[3:6], x[6:9], x[9], m=m, measure=measure),
+        (ax, ay, az, bx, by, bz, rx, ry, rz, size),
+    )
+    return jax.lax.map(lambda qc: solve_from_quality(qc, m=m), q)
+
+
 @functools.partial(jax.jit, static_argnames=("measure", "mode"))
 def screen_chunks(ax, ay, az, bx, by, bz, rx, ry, rz, q_old, *, measure: str, mode: str):
     """Stage 1 of the pruned solve over a chunked batch -> alive (nC, C) bool.
@@ -480,16 +532,24 @@ def prefetch(ms, measure: str = "min_sine", prune: bool | str = True) -> None:
     """Compile (or load) the kernels ``solve_rings`` needs for the ring sizes ``ms``, all
     at once on the worker threads, instead of one after the other as the sizes come."""
     f64 = np.dtype(np.float64)
+    apex = [jax.ShapeDtypeStruct((CALL_CHUNKS, CHUNK), f64)] * 6
+
+    def soa(m):
+        return apex + [jax.ShapeDtypeStruct((CALL_CHUNKS, m, CHUNK), f64)] * 3
+
     specs = []
-    for m in ms:
-        apex = [jax.ShapeDtypeStruct((CALL_CHUNKS, CHUNK), f64)] * 6
-        soa = apex + [jax.ShapeDtypeStruct((CALL_CHUNKS, m, CHUNK), f64)] * 3
+    if any(m <= PAD_M for m in ms):
+        size = jax.ShapeDtypeStruct((CALL_CHUNKS, CHUNK), np.dtype(np.int32))
         static = {"measure": measure}
-        specs.append(("solve_chunks", (("measure", measure),), solve_chunks, soa, static))
+        specs.append(("solve_padded_chunks", (("measure", measure),), solve_padded_chunks,
+                      [*soa(PAD_M), size], static))  # fmt: skip
+    for m in sorted({m for m in ms if m > PAD_M}):
+        static = {"measure": measure}
+        specs.append(("solve_chunks", (("measure", measure),), solve_chunks, soa(m), static))
         if prune and not (prune is True and m < PRUNE_MIN_M):
             static = {"measure": measure, "mode": "quality" if prune is True else prune}
             specs.append(("screen_chunks", tuple(sorted(static.items())), screen_chunks,
-                          [*soa, apex[0]], static))  # fmt: skip
+                          [*soa(m), apex[0]], static))  # fmt: skip
     prefetch_kernels(
         [(name, settings, functools.partial(k, **st), a) for name, settings, k, a, st in specs]
     )
@@ -551,23 +611,28 @@ def solve_rings(
     q_old: Float[np.ndarray, " B"],
     measure: str = "min_sine",
     prune: bool | str = True,
+    sizes: Int[np.ndarray, " B"] | None = None,
 ) -> tuple[Float[np.ndarray, " B"], Int[np.ndarray, "B m-2 3"]]:
-    """Optimal edge removal of a batch of rings of one size ``m`` (host entry).
+    """Optimal edge removal of a batch of rings (host entry).
 
     ``a``, ``b``: (B, 3) edge endpoints; ``ring``: (B, m, 3) rings ordered as in
     ``solve_ring``; ``q_old``: (B,) the worst quality of the tets each removal would
-    replace. Returns NumPy ``(q_new (B,), tris (B, m-2, 3) int32)``, ``tris[r, k-1] =
-    (i, k, j)`` in ring indices.
+    replace; ``sizes``: (B,) vertices of each ring, in [3, m] (None: all m), ring ``r``
+    being ``ring[r, :sizes[r]]``. Returns NumPy ``(q_new (B,), tris (B, m-2, 3) int32)``,
+    ``tris[r, k-1] = (i, k, j)`` in ring indices for ``k = 1 .. sizes[r]-2``; later rows
+    are -1.
 
-    Batches are padded to whole kernel calls of ``CALL_CHUNKS * CHUNK`` rings, so every
-    call of one ring size has the same shape. ``prune=False``: every ring solved exactly. ``prune=True``:
-    ``"quality"`` for ``m >= PRUNE_MIN_M``, no pruning below. ``prune="quality"``: stage 1
+    Rings of up to ``PAD_M`` vertices are solved exactly by one kernel, padded to
+    ``PAD_M`` (``prune`` does not apply to them). Larger rings are solved per size, in
+    batches padded to whole kernel calls of ``CALL_CHUNKS * CHUNK`` rings, so every call
+    of one size has the same shape. ``prune=False``: every ring solved exactly.
+    ``prune=True``: ``"quality"`` for ``m >= PRUNE_MIN_M``. ``prune="quality"``: stage 1
     evaluates the a-side tets and bounds ``q_new`` by the DP on them alone, stage 2
-    solves only the rings whose bound beats ``q_old``; ``prune="volume"``:
-    stage 1 is the signed-volume screen of ``screen_kernel`` instead. With pruning every
-    ring with ``q_new > q_old`` gets the unpruned result; a dropped ring reports ``q_new =
-    -inf`` and a placeholder fan triangulation, so ``q_new > q_old`` is the success test
-    either way.
+    solves only the rings whose bound beats ``q_old``; ``prune="volume"``: stage 1 is the
+    signed-volume screen of ``screen_kernel`` instead. With pruning every ring with
+    ``q_new > q_old`` gets the unpruned result; a dropped ring reports ``q_new = -inf``
+    and a placeholder fan triangulation, so ``q_new > q_old`` is the success test either
+    way.
     """
     get_measure(measure)
     a = np.asarray(a, np.float64)
@@ -584,8 +649,43 @@ def solve_rings(
         raise JtetError(f"prune must be a bool, 'quality' or 'volume'; got {prune!r}")
     n, m = ring.shape[:2]
     _plan(m)
-    if n == 0:
-        return np.zeros(0), np.zeros((0, m - 2, 3), np.int32)
+    sizes = np.full(n, m) if sizes is None else np.asarray(sizes)
+    if sizes.shape != (n,) or (n and not (MIN_M <= sizes.min() and sizes.max() <= m)):
+        raise JtetError(f"sizes must be (B,) = ({n},) ints in [{MIN_M}, {m}]")
+    q_new = np.full(n, -np.inf)
+    tris = np.full((n, m - 2, 3), -1, np.int32)
+    small = np.flatnonzero(sizes <= PAD_M)
+    if small.size:
+        q_new[small], t = _solve_padded(a[small], b[small], ring[small], sizes[small], measure)
+        keep = min(m, PAD_M) - 2
+        tris[small, :keep] = t[:, :keep]
+        past = np.arange(m - 2) >= sizes[small, None] - 2  # rows of the pad polygon
+        tris[small] = np.where(past[:, :, None], -1, tris[small])
+    for k in np.unique(sizes[sizes > PAD_M]).tolist():
+        idx = np.flatnonzero(sizes == k)
+        q_new[idx], tris[idx, : k - 2] = _solve_size(
+            a[idx], b[idx], ring[idx, :k], q_old[idx], measure, prune
+        )
+    return q_new, tris
+
+
+def _solve_padded(a, b, ring, sizes, measure: str):
+    """``solve_rings`` of rings of at most ``PAD_M`` vertices by the padded kernel."""
+    n = len(a)
+    # pad slots repeat the ring's last vertex: finite, and never part of a real candidate
+    slot = np.minimum(np.arange(PAD_M), sizes[:, None] - 1)
+    padded = ring[np.arange(n)[:, None], slot]
+    cap = _capacity(n)
+    size_pad = np.full(cap, MIN_M, np.int32)  # padding rings: all-zero triangles
+    size_pad[:n] = sizes
+    soa = [*to_chunks(a, b, padded, cap), size_pad.reshape(-1, CHUNK)]
+    q_new, tris = _parallel_chunks(solve_padded_chunks, soa, measure=measure)
+    return _unchunk_q(q_new, n), _unchunk_tris(tris, n)
+
+
+def _solve_size(a, b, ring, q_old, measure: str, prune: bool | str):
+    """``solve_rings`` of rings of one size ``m > PAD_M`` (pruned as ``prune`` says)."""
+    n, m = ring.shape[:2]
     cap = _capacity(n)
     soa = to_chunks(a, b, ring, cap)
     if not prune or (prune is True and m < PRUNE_MIN_M):
