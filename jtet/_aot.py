@@ -227,6 +227,22 @@ def prefetch_calls(call: functools.partial, args_list: list) -> None:
     prefetch([(name, settings, fn, args) for args in args_list])
 
 
+def prefetch_in_background(call: functools.partial, args_list: list) -> None:
+    """``prefetch_calls`` on a background thread that the interpreter's exit joins;
+    returns at once. For a kernel the caller needs later: a new process builds it (the
+    smoothing kernel: ~9 s cold) while the caller does other work."""
+
+    def build() -> None:
+        if _stopping.is_set():
+            return
+        try:
+            prefetch_calls(call, args_list)
+        except Exception:  # noqa: BLE001  (only a head start: the call itself builds it)
+            pass
+
+    _start_background(build)
+
+
 def _get(key: tuple, fn, args):
     """The compiled call of ``key``, built by this thread or by the one already on it."""
     while True:

@@ -168,11 +168,15 @@ def improve(
             it, or its extent is outside [1e-30, 1e30] (float64 quality would overflow).
             Inverted and degenerate tets and a non-manifold boundary are fine.
     """
-    from ._quality import prefetch_kernels, tet_dihedrals
+    from ._quality import prefetch_kernels
     from ._stats import mesh_stats
 
     opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
     t0 = time.perf_counter()
+    if "smooth" in opts.ops:  # the largest kernel: built while the run checks and flips
+        from ._smooth import prefetch_pass
+
+        prefetch_pass(opts.quality)
     _require_conforming(mesh)
     _require_scale(mesh)
     prefetch_kernels(opts.quality)  # statistics and per-tet kernels, built side by side
@@ -180,8 +184,7 @@ def improve(
     history: list[dict] = []
     status = "converged"
     current = mesh
-    q = current.quality(opts.quality)
-    _, lo_t, hi_t = tet_dihedrals(current.points, current.tets)
+    q, lo_t, hi_t = _tet_measures(current.points, current.tets, opts.quality)
     obj = _objective(q, opts.good_quality)
     dirty = {op: None for op in opts.ops}  # None: everything is new to the operation
     stall = 0
@@ -336,13 +339,10 @@ def _updated_tet_measures(step: StepResult, measure: str, q, lo, hi):
     """(quality, min dihedral, max dihedral) per tet (m_new,) of ``step.mesh`` from those
     of the mesh before the step: only the tets the step created or moved are evaluated
     (per-tet values do not depend on the batch they are computed in)."""
-    from ._quality import tet_dihedrals, tet_quality
-
     mesh = step.mesh
     if step.keep is not None and (len(step.keep) != len(q) or step.keep.sum() > mesh.n_tets):
         # not "kept tets first, then new ones" (a broken step): evaluate everything
-        _, lo, hi = tet_dihedrals(mesh.points, mesh.tets)
-        return tet_quality(mesh.points, mesh.tets, measure), lo, hi
+        return _tet_measures(mesh.points, mesh.tets, measure)
     if step.keep is not None:  # kept tets first, in order, then the new ones
         start = int(step.keep.sum())
         redo = np.arange(start, mesh.n_tets)
@@ -351,9 +351,16 @@ def _updated_tet_measures(step: StepResult, measure: str, q, lo, hi):
         redo = np.flatnonzero(step.changed)
         q, lo, hi = q.copy(), lo.copy(), hi.copy()
     if len(redo):
-        q[redo] = tet_quality(mesh.points, mesh.tets[redo], measure)
-        _, lo[redo], hi[redo] = tet_dihedrals(mesh.points, mesh.tets[redo])
+        q[redo], lo[redo], hi[redo] = _tet_measures(mesh.points, mesh.tets[redo], measure)
     return q, lo, hi
+
+
+def _tet_measures(points, tets, measure: str):
+    """(quality ``measure``, min dihedral, max dihedral) of ``tets``, one kernel call."""
+    from ._quality import tet_all_measures
+
+    _, lo, hi, qualities = tet_all_measures(points, tets)
+    return qualities[measure], lo, hi
 
 
 def _log(entry: dict) -> None:

@@ -283,26 +283,20 @@ def soa_corners(points: Float[np.ndarray, "n 3"], tets: np.ndarray) -> tuple[Vec
     return tuple(tuple(xyz[c][tets[:, i]] for c in range(3)) for i in range(4))
 
 
-def _quality_soa(*xyz, name: str):
-    return MEASURES[name](*(xyz[3 * i : 3 * i + 3] for i in range(4)))
-
-
-def _dihedral_soa(*xyz):
-    """(6, m) dihedral angles, one row per edge. The smallest / largest angle of each tet
-    are taken on the host (``_angle_extremes``): with the min / max (and the (m, 6)
-    layout) in the kernel, XLA recomputed the angles in each of its 27 fusions (1.9 s of
-    CPU to compile, 1.4 ms a call; stacked rows alone: 1 fusion, 0.4 s, 0.6 ms, the same
-    angles bit for bit; measured)."""
-    return jnp.stack(dihedral_angles(*(xyz[3 * i : 3 * i + 3] for i in range(4))))
-
-
 def _all_measures_soa(*xyz, names: tuple[str, ...]):
-    # One kernel shares the corners and face normals between the measures: min_sine and
-    # biased_min_sine may differ from the one-measure kernels' by an ulp (different fusion).
-    # Angle extremes on the host, as for _dihedral_soa (3.3 -> 1.0 s CPU to compile,
-    # 2.5 -> 0.9 ms a call, the same values; measured)
+    """((6, m) dihedral angles, one row per edge, then each measure of ``names`` (m,)).
+
+    The one per-tet kernel of the host helpers: statistics need every measure, the
+    optimizer one measure and the angles, and a new process builds (or loads) one
+    executable instead of three (cold compile: 1.9 s of CPU less; a 4096-tet call 0.9 ms
+    against 0.6 + 0.2 ms for separate angle and min-sine kernels; measured). The kernel
+    shares the corners and face normals between the measures. The smallest / largest
+    angle of each tet are taken on the host (``_angle_extremes``): with the min / max
+    (and an (m, 6) layout) in the kernel, XLA recomputed the angles in each of its
+    fusions (3.3 -> 1.0 s of CPU to compile, 2.5 -> 0.9 ms a call, measured)."""
     corners = tuple(xyz[3 * i : 3 * i + 3] for i in range(4))
-    return (_dihedral_soa(*xyz), *(MEASURES[name](*corners) for name in names))
+    rows = jnp.stack(dihedral_angles(*corners))
+    return (rows, *(MEASURES[name](*corners) for name in names))
 
 
 def _angle_extremes(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -339,12 +333,7 @@ def _per_tet(name: str, settings: tuple, fn, points: np.ndarray, tets: np.ndarra
 def tet_quality(points: np.ndarray, tets: np.ndarray, measure: str = "min_sine") -> np.ndarray:
     """Quality ``measure`` of every tet: (m,) float64 NumPy array."""
     get_measure(measure)
-    if len(points) == 0:
-        return np.zeros(len(tets))
-    if not _kernels_prefetched:
-        prefetch_kernels()
-    fn = functools.partial(_quality_soa, name=measure)
-    return _per_tet("tet_quality", (measure,), fn, points, tets)[0]
+    return tet_all_measures(points, tets)[3][measure]
 
 
 def tet_all_measures(
@@ -352,10 +341,8 @@ def tet_all_measures(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """(angles (m, 6), min (m,), max (m,) dihedral angles in degrees, {measure: (m,)})
     of every tet, for every measure of ``MEASURES``: one kernel and one gather of the
-    corners (statistics and output arrays need them all; six separate kernels took 3.6x
-    as long at 182k tets and loaded six executables in a new process). Values equal
-    ``tet_quality`` / ``tet_dihedrals`` to the last bit or within 1 ulp (min-sine
-    measures: the fused kernel orders some operations differently)."""
+    corners (six separate kernels took 3.6x as long at 182k tets). ``tet_quality`` and
+    ``tet_dihedrals`` return parts of this, so every caller sees the same numbers."""
     names = tuple(MEASURES)
     if len(points) == 0:
         empty = np.zeros(len(tets))
@@ -371,37 +358,23 @@ _kernels_prefetched = False
 
 
 def prefetch_kernels(measure: str | None = None) -> None:
-    """Build the statistics kernel (every measure and the dihedral angles), the dihedral
-    kernel and, if given, the one-measure kernel of ``measure`` at once on the worker
-    threads: a new process built them one at a time as calls first needed them.
-    ``jtet.improve`` asks for its measure; the first evaluation of anything else builds
-    the two shared kernels.
-
-    With a ``measure`` (the optimizer is about to run), the kernels that earlier processes
-    used most recently also start loading in the background (``_aot.warm_start``): a
-    warm first run loaded them one group at a time as its passes first needed them.
+    """Build the per-tet kernel (every measure and the dihedral angles) on a worker
+    thread. ``jtet.improve`` passes its ``measure`` (checked): then the kernels that
+    earlier processes used most recently also start loading in the background
+    (``_aot.warm_start``): a warm first run loaded them one group at a time as its
+    passes first needed them.
     """
     global _kernels_prefetched
     _kernels_prefetched = True
     if measure is not None:
+        get_measure(measure)
         warm_start()
     xyz = [jax.ShapeDtypeStruct((TET_CHUNK,), np.float64)] * 12
     names = tuple(MEASURES)
-    specs = [
-        ("tet_dihedrals", (), _dihedral_soa, xyz),
-        ("tet_all_measures", names, functools.partial(_all_measures_soa, names=names), xyz),
-    ]
-    if measure is not None:
-        specs.append(
-            ("tet_quality", (measure,), functools.partial(_quality_soa, name=measure), xyz)
-        )
-    prefetch(specs)
+    fn = functools.partial(_all_measures_soa, names=names)
+    prefetch([("tet_all_measures", names, fn, xyz)])
 
 
 def tet_dihedrals(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, ...]:
     """(angles (m, 6), min (m,), max (m,)) dihedral angles of every tet, in degrees."""
-    if len(points) == 0:
-        return np.zeros((0, 6)), np.zeros(0), np.zeros(0)
-    if not _kernels_prefetched:
-        prefetch_kernels()
-    return _angle_extremes(_per_tet("tet_dihedrals", (), _dihedral_soa, points, tets)[0])
+    return tet_all_measures(points, tets)[:3]

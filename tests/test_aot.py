@@ -274,3 +274,21 @@ def test_exit_while_warm_start_loads_is_clean(tmp_path):
         out = subprocess.run(cmd, env=env, capture_output=True)
         assert out.returncode == 0, out.stderr.decode()[-500:]
         assert int(out.stdout) > 0  # there were kernels to load
+
+
+def test_smoothing_prefetch_builds_what_smooth_pass_uses(cache):
+    import jtet
+    from jtet import _smooth
+
+    _smooth.prefetch_pass("min_sine")  # returns at once; the build runs in the background
+    for thread in list(_aot._background):
+        thread.join()
+    built = set(_aot._memo)
+    assert [k[0] for k in built] == ["smooth_star"]
+    mesh = jtet.demo_mesh()
+    assert np.bincount(mesh.tets.ravel()).max() <= _smooth.DEFAULT_CAPACITIES[0]
+    _, stats = _smooth.smooth_pass(mesh, measure="min_sine")
+    assert stats.successes > 0
+    assert {k for k in _aot._memo if k[0] == "smooth_star"} == built
+    with pytest.raises(jtet.JtetError, match="unknown smoothing options"):
+        _smooth.prefetch_pass("min_sine", n_trails=3)

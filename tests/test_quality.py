@@ -332,34 +332,25 @@ def test_vmap_soa_loop_and_jit_agree(name, rng):
 
 
 def test_host_helpers_on_a_mesh(rng):
+    """The host helpers (one fused kernel for every measure and the dihedral angles, in
+    padded calls) against each function jitted alone on the same tets: equal, or within
+    an ulp where fusion orders operations differently."""
     P = random_tets(rng, 700)  # 1400 tets: not a bucket size, so padding is exercised
     points = P.reshape(-1, 3)
     tets = rng.permutation(len(points)).reshape(-1, 4)
     corners = points[tets]
-    for name in NAMES:
-        np.testing.assert_array_equal(tet_quality(points, tets, name), quality(corners, name))
-    angles, lo, hi = tet_dihedrals(points, tets)
-    np.testing.assert_array_equal(angles, dihedrals(corners))
-    np.testing.assert_array_equal(lo, angles.min(1))
-    np.testing.assert_array_equal(hi, angles.max(1))
-
-
-def test_all_measures_kernel_matches_the_single_ones(rng):
-    """The statistics kernel (every measure + dihedrals, one fused call) against the
-    one-measure kernels: equal, or within an ulp where fusion reorders operations."""
-    P = random_tets(rng, 700)
-    points = P.reshape(-1, 3)
-    tets = rng.permutation(len(points)).reshape(-1, 4)
     angles, lo, hi, qs = tet_all_measures(points, tets)
-    ref_angles, ref_lo, ref_hi = tet_dihedrals(points, tets)
-    np.testing.assert_allclose(angles, ref_angles, rtol=2 * EPS, atol=0)
-    np.testing.assert_allclose(lo, ref_lo, rtol=2 * EPS, atol=0)
-    np.testing.assert_allclose(hi, ref_hi, rtol=2 * EPS, atol=0)
     assert sorted(qs) == NAMES
     for name in NAMES:
         # measures are O(1) (regular tet = 1): a reordered sum is off by ~eps absolutely,
         # also for slivers whose quality is tiny
-        np.testing.assert_allclose(qs[name], tet_quality(points, tets, name), rtol=0, atol=2 * EPS)
+        np.testing.assert_allclose(qs[name], quality(corners, name), rtol=0, atol=2 * EPS)
+        np.testing.assert_array_equal(tet_quality(points, tets, name), qs[name])
+    np.testing.assert_allclose(angles, dihedrals(corners), rtol=2 * EPS, atol=0)
+    np.testing.assert_array_equal(lo, angles.min(1))
+    np.testing.assert_array_equal(hi, angles.max(1))
+    for got, want in zip(tet_dihedrals(points, tets), (angles, lo, hi), strict=True):
+        np.testing.assert_array_equal(got, want)
 
 
 def test_unknown_measure():
