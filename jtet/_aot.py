@@ -227,20 +227,23 @@ def prefetch_calls(call: functools.partial, args_list: list) -> None:
     prefetch([(name, settings, fn, args) for args in args_list])
 
 
-def prefetch_in_background(call: functools.partial, args_list: list) -> None:
-    """``prefetch_calls`` on a background thread that the interpreter's exit joins;
-    returns at once. For a kernel the caller needs later: a new process builds it (the
-    smoothing kernel: ~9 s cold) while the caller does other work."""
+def prefetch_in_background(specs: list[tuple]) -> None:
+    """Build the kernels ``(name, settings, fn, args)`` (as ``prefetch``) on background
+    threads, one per kernel, that the interpreter's exit joins; returns at once. For
+    kernels the caller needs later: a new process builds them (the smoothing kernel:
+    ~9 s cold) while the caller does other work. A caller that asks for one of them
+    meanwhile waits for its thread instead of building it again."""
 
-    def build() -> None:
+    def build(spec) -> None:
         if _stopping.is_set():
             return
         try:
-            prefetch_calls(call, args_list)
+            prefetch([spec])
         except Exception:  # noqa: BLE001  (only a head start: the call itself builds it)
             pass
 
-    _start_background(build)
+    for spec in specs:
+        _start_background(build, spec)
 
 
 def _get(key: tuple, fn, args):

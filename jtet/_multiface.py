@@ -364,6 +364,28 @@ def _tree_caps(max_faces: int) -> list[int]:
     return sorted({c for c in _TREE_CAPS if c < max_faces} | {int(max_faces)})
 
 
+def tree_kernel_specs(measure: str, max_faces: int) -> list[tuple]:
+    """``_aot.prefetch`` spec of the tree DP kernel at the smallest tree capacity, the one
+    every ``multiface_removal_pass(max_faces=max_faces)`` calls (its trees of up to 4
+    faces; larger capacities only where larger trees occur)."""
+    import jax
+
+    cap = _tree_caps(max_faces)[0]
+    f64, i64 = np.dtype(np.float64), np.dtype(np.int64)
+
+    def struct(shape, dtype):
+        return jax.ShapeDtypeStruct(shape, dtype)
+
+    args = (
+        *[struct((_CHUNK,), f64)] * 6,
+        *[struct((_CHUNK, cap, 3), f64)] * 3,
+        struct((_CHUNK, cap), i64), struct((_CHUNK, cap), i64), struct((_CHUNK, cap, 3), i64),
+        struct((_CHUNK, cap), f64), struct((_CHUNK, cap), np.dtype(bool)),
+        struct((), np.dtype(np.int32)),
+    )  # fmt: skip
+    return [("solve_trees", (measure,), functools.partial(solve_trees, measure=measure), args)]
+
+
 def solve_forest(
     mesh: TetMesh, forest: Forest, quality: np.ndarray, measure: str
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._aot import cached_call, prefetch_calls, prefetch_in_background
+from ._aot import cached_call, prefetch_calls
 from ._config import parallel_map
 from ._errors import JtetError
 from ._predicates import orient3d_tets
@@ -759,15 +759,15 @@ def _pass_kernel(measure, solver, max_iters, min_gain, sharpness, n_trials):
 _KERNEL_OPTIONS = ("solver", "max_iters", "min_gain", "sharpness", "n_trials")
 
 
-def prefetch_pass(measure: str = "min_sine", **options) -> None:
-    """Start building the kernel that ``smooth_pass(mesh, measure=measure, **options)``
-    calls for most stars (smallest capacity, small batch) on a background thread, and
-    return at once. ``options``: any of ``smooth_pass``'s solver, max_iters, min_gain,
-    sharpness, n_trials, capacities, batch_sizes (its defaults otherwise).
+def pass_kernel_specs(measure: str = "min_sine", **options) -> list[tuple]:
+    """``_aot.prefetch`` specs of the kernel that ``smooth_pass(mesh, measure=measure,
+    **options)`` calls for most stars (smallest capacity, small batch). ``options``: any
+    of ``smooth_pass``'s solver, max_iters, min_gain, sharpness, n_trials, capacities,
+    batch_sizes (its defaults otherwise).
 
     The smoothing kernel is the largest build of a new process (cold: ~9 s, one core);
-    ``improve`` starts it first, so it compiles while the statistics and the flip passes
-    run instead of alone at the first smoothing pass.
+    ``improve`` builds it in the background from its start, so it compiles while the
+    statistics and the flip passes run instead of alone at the first smoothing pass.
     """
     known = {*_KERNEL_OPTIONS, "capacities", "batch_sizes"}
     if not set(options) <= known:
@@ -775,8 +775,8 @@ def prefetch_pass(measure: str = "min_sine", **options) -> None:
     params = inspect.signature(smooth_pass).parameters
     o = {k: options.get(k, params[k].default) for k in known}
     kernel = _pass_kernel(measure, *(o[k] for k in _KERNEL_OPTIONS))
-    shape = _kernel_structs(min(o["capacities"]), min(o["batch_sizes"]))
-    prefetch_in_background(kernel, [shape])
+    name, settings, fn = kernel.args[:3]
+    return [(name, settings, fn, _kernel_structs(min(o["capacities"]), min(o["batch_sizes"])))]
 
 
 def _colour_tasks(verts, size, capacities, batch_sizes) -> list[tuple]:

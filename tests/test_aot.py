@@ -276,19 +276,30 @@ def test_exit_while_warm_start_loads_is_clean(tmp_path):
         assert int(out.stdout) > 0  # there were kernels to load
 
 
-def test_smoothing_prefetch_builds_what_smooth_pass_uses(cache):
+def test_background_prefetch_builds_what_the_passes_use(cache, monkeypatch):
+    # improve's background builds (one thread per kernel) must be exactly the kernels its
+    # passes then call, or a new process compiles them twice
     import jtet
-    from jtet import _smooth
+    from jtet import _driver, _smooth
 
-    _smooth.prefetch_pass("min_sine")  # returns at once; the build runs in the background
+    opts = jtet.Options(max_ring=5)
+    _driver._prefetch_in_background(opts)  # returns at once
     for thread in list(_aot._background):
         thread.join()
     built = set(_aot._memo)
-    assert [k[0] for k in built] == ["smooth_star"]
+    assert sorted(k[0] for k in built) == ["smooth_star", "solve_padded_chunks", "solve_trees"]
     mesh = jtet.demo_mesh()
     assert np.bincount(mesh.tets.ravel()).max() <= _smooth.DEFAULT_CAPACITIES[0]
-    _, stats = _smooth.smooth_pass(mesh, measure="min_sine")
-    assert stats.successes > 0
-    assert {k for k in _aot._memo if k[0] == "smooth_star"} == built
+    asked = set()
+    key_of = _aot._key
+
+    def recording_key(*args):
+        asked.add(key_of(*args))
+        return key_of(*args)
+
+    monkeypatch.setattr(_aot, "_key", recording_key)
+    for step in _driver.STEPS.values():
+        step(mesh, opts, mesh.quality(opts.quality), None)
+    assert built <= asked  # (the demo also has larger trees: a second tree capacity)
     with pytest.raises(jtet.JtetError, match="unknown smoothing options"):
-        _smooth.prefetch_pass("min_sine", n_trails=3)
+        _smooth.pass_kernel_specs("min_sine", n_trails=3)

@@ -81,6 +81,7 @@ from .._quality import Vec, get_measure, signed_volume
 __all__ = [
     "CHUNK",
     "prefetch",
+    "kernel_specs",
     "candidate_triangles",
     "ring_kernel",
     "solve_ring",
@@ -531,6 +532,11 @@ def _parallel_chunks(kernel, arrays: list[np.ndarray], **static):
 def prefetch(ms, measure: str = "min_sine", prune: bool | str = True) -> None:
     """Compile (or load) the kernels ``solve_rings`` needs for the ring sizes ``ms``, all
     at once on the worker threads, instead of one after the other as the sizes come."""
+    prefetch_kernels(kernel_specs(ms, measure, prune))
+
+
+def kernel_specs(ms, measure: str = "min_sine", prune: bool | str = True) -> list[tuple]:
+    """``_aot.prefetch`` specs of the kernels ``solve_rings`` calls for ring sizes ``ms``."""
     f64 = np.dtype(np.float64)
     apex = [jax.ShapeDtypeStruct((CALL_CHUNKS, CHUNK), f64)] * 6
 
@@ -550,9 +556,7 @@ def prefetch(ms, measure: str = "min_sine", prune: bool | str = True) -> None:
             static = {"measure": measure, "mode": "quality" if prune is True else prune}
             specs.append(("screen_chunks", tuple(sorted(static.items())), screen_chunks,
                           [*soa(m), apex[0]], static))  # fmt: skip
-    prefetch_kernels(
-        [(name, settings, functools.partial(k, **st), a) for name, settings, k, a, st in specs]
-    )
+    return [(name, settings, functools.partial(k, **st), a) for name, settings, k, a, st in specs]
 
 
 def _capacity(n: int) -> int:
