@@ -350,8 +350,6 @@ def smooth_star(
 
     # Acceptance is decided in GLOBAL coordinates on the rounded candidate points, i.e. on
     # exactly the numbers the mesh will store (the solvers use the relative frame).
-    q0 = star_qualities(v0, opp, mask, measure)
-    q_old = jnp.min(q0)
     t0 = jnp.zeros(3)
     if solver != "active_set":
         # optimistix (and equinox, lineax) only for the surrogate solvers: ~0.5 s of
@@ -375,7 +373,10 @@ def smooth_star(
     s = 0.5 ** jnp.arange(n_backtrack, dtype=jnp.float64)
     T = s[:, None] * t_star[None, :]
     P = v0[None, :] + T @ B.T  # (J, 3) candidate positions, rounded as they will be stored
-    Q = jax.vmap(lambda x: star_qualities(x, opp, mask, measure))(P)  # (J, K)
+    # v0 itself is the last row: one copy of the measure's code for both
+    Q = jax.vmap(lambda x: star_qualities(x, opp, mask, measure))(jnp.vstack([P, v0[None]]))
+    Q, q0 = Q[:-1], Q[-1]  # (J, K), (K,)
+    q_old = jnp.min(q0)
     qmin = jnp.min(Q, axis=-1)
     # a correct tet stays clearly correct: above min_gain, or at least as good as before
     # (a float-positive quality at round-off level is no proof of orientation)
