@@ -656,15 +656,14 @@ def solve_rings(
     sizes = np.full(n, m) if sizes is None else np.asarray(sizes)
     if sizes.shape != (n,) or (n and not (MIN_M <= sizes.min() and sizes.max() <= m)):
         raise JtetError(f"sizes must be (B,) = ({n},) ints in [{MIN_M}, {m}]")
+    small = np.flatnonzero(sizes <= PAD_M)
+    if small.size == n:  # the usual case (max_ring <= PAD_M): no copies
+        return _solve_padded(a, b, ring, sizes, measure, m)
     q_new = np.full(n, -np.inf)
     tris = np.full((n, m - 2, 3), -1, np.int32)
-    small = np.flatnonzero(sizes <= PAD_M)
     if small.size:
-        q_new[small], t = _solve_padded(a[small], b[small], ring[small], sizes[small], measure)
-        keep = min(m, PAD_M) - 2
-        tris[small, :keep] = t[:, :keep]
-        past = np.arange(m - 2) >= sizes[small, None] - 2  # rows of the pad polygon
-        tris[small] = np.where(past[:, :, None], -1, tris[small])
+        q_new[small], t = _solve_padded(a[small], b[small], ring[small], sizes[small], measure, m)
+        tris[small, : t.shape[1]] = t
     for k in np.unique(sizes[sizes > PAD_M]).tolist():
         idx = np.flatnonzero(sizes == k)
         q_new[idx], tris[idx, : k - 2] = _solve_size(
@@ -673,18 +672,21 @@ def solve_rings(
     return q_new, tris
 
 
-def _solve_padded(a, b, ring, sizes, measure: str):
-    """``solve_rings`` of rings of at most ``PAD_M`` vertices by the padded kernel."""
+def _solve_padded(a, b, ring, sizes, measure: str, m: int):
+    """``solve_rings`` of rings of at most ``PAD_M`` vertices by the padded kernel:
+    ``(q_new (n,), tris (n, min(m, PAD_M) - 2, 3))``, rows past a ring's size -1."""
     n = len(a)
-    # pad slots repeat the ring's last vertex: finite, and never part of a real candidate
-    slot = np.minimum(np.arange(PAD_M), sizes[:, None] - 1)
-    padded = ring[np.arange(n)[:, None], slot]
+    # what the slots past a ring's size hold never matters (masked in the kernel, tested
+    # with zeros, huge values and NaN): zero-pad or cut the vertex axis to PAD_M
+    ring = ring[:, :PAD_M] if m >= PAD_M else np.pad(ring, ((0, 0), (0, PAD_M - m), (0, 0)))
     cap = _capacity(n)
     size_pad = np.full(cap, MIN_M, np.int32)  # padding rings: all-zero triangles
     size_pad[:n] = sizes
-    soa = [*to_chunks(a, b, padded, cap), size_pad.reshape(-1, CHUNK)]
+    soa = [*to_chunks(a, b, ring, cap), size_pad.reshape(-1, CHUNK)]
     q_new, tris = _parallel_chunks(solve_padded_chunks, soa, measure=measure)
-    return _unchunk_q(q_new, n), _unchunk_tris(tris, n)
+    tris = _unchunk_tris(tris, n)[:, : min(m, PAD_M) - 2]
+    tris[np.arange(tris.shape[1]) >= sizes[:, None] - 2] = -1  # rows of the pad polygon
+    return _unchunk_q(q_new, n), tris
 
 
 def _solve_size(a, b, ring, q_old, measure: str, prune: bool | str):
