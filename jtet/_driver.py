@@ -173,9 +173,11 @@ def improve(
 
     opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
     t0 = time.perf_counter()
-    _prefetch_in_background(opts)
     _require_conforming(mesh)
     _require_scale(mesh)
+    # after the checks: a refused mesh must not leave builds that its process's exit
+    # then waits for (background threads are joined at exit)
+    _prefetch_in_background(opts)
     prefetch_kernels(opts.quality)  # statistics and per-tet kernels, built side by side
     stats_before = mesh_stats(mesh)
     history: list[dict] = []

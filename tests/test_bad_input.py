@@ -20,7 +20,7 @@ from helpers import delaunay_mesh, grid_mesh
 from scipy.spatial import Delaunay
 
 import jtet
-from jtet import cli
+from jtet import _aot, cli
 from jtet._invariants import InvariantChecker
 from jtet._predicates import orient3d_tets
 
@@ -230,8 +230,11 @@ def test_face_in_three_tets(tmp_path, capsys):
     tets = [[0, 1, 2, 3], [1, 0, 2, 4], [0, 1, 2, 5]]
     mesh = jtet.TetMesh(pts, tets)
     assert not mesh.is_valid().conforming  # the validity report describes it
+    started = len(_aot._background)
     with pytest.raises(jtet.MeshInputError, match="shared by 3 tets"):
         jtet.improve(mesh)
+    # no kernel build left behind for the process's exit to wait for
+    assert len(_aot._background) == started
     _refused(capsys, _save(mesh, tmp_path / "f3.vtu"), tmp_path, "shared by 3 tets")
 
 
