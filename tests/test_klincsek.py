@@ -363,6 +363,19 @@ def test_padded_kernel_matches_one_kernel_per_size():
         check_triangulation(t_mix[r, : k - 2], k)
 
 
+def test_small_rings_in_a_wide_batch_keep_the_batch_width():
+    # every ring small enough for the padded kernel, but the batch is wider than PAD_M:
+    # tris still has m - 2 rows per ring (the docstring's shape), the extra ones -1
+    m = kl.PAD_M + 2
+    a, b, ring, sizes = mixed_sizes_batch(kl.PAD_M, 40, seed=3)
+    wide = np.concatenate([ring, np.zeros((len(a), 2, 3))], axis=1)
+    q_w, t_w = kl.solve_rings(a, b, wide, np.zeros(len(a)), sizes=sizes)
+    q_n, t_n = kl.solve_rings(a, b, ring, np.zeros(len(a)), sizes=sizes)
+    assert t_w.shape == (len(a), m - 2, 3)
+    assert np.array_equal(q_w, q_n) and np.array_equal(t_w[:, : kl.PAD_M - 2], t_n)
+    assert np.all(t_w[:, kl.PAD_M - 2 :] == -1)
+
+
 def test_padding_slots_do_not_matter():
     # whatever the kernel finds in the slots past a ring's size (zeros, huge values,
     # NaN), its result is the same bit for bit

@@ -657,7 +657,7 @@ def solve_rings(
     if sizes.shape != (n,) or (n and not (MIN_M <= sizes.min() and sizes.max() <= m)):
         raise JtetError(f"sizes must be (B,) = ({n},) ints in [{MIN_M}, {m}]")
     small = np.flatnonzero(sizes <= PAD_M)
-    if small.size == n:  # the usual case (max_ring <= PAD_M): no copies
+    if m <= PAD_M:  # the usual case (max_ring <= PAD_M): every ring small, no copies
         return _solve_padded(a, b, ring, sizes, measure, m)
     q_new = np.full(n, -np.inf)
     tris = np.full((n, m - 2, 3), -1, np.int32)
