@@ -219,12 +219,17 @@ def prefetch(specs: list[tuple]) -> None:
         _config.parallel_map(lambda item: _get(item[0], *item[1]), list(todo.items()))
 
 
-def prefetch_calls(call: functools.partial, args_list: list) -> None:
-    """``prefetch`` for a ``functools.partial(cached_call, name, settings, fn)`` (as
-    ``_smooth.batched_smoother`` returns): the kernel for every argument list in
-    ``args_list`` (arrays or ``jax.ShapeDtypeStruct``s), built at once."""
+def call_specs(call: functools.partial, args_list: list) -> list[tuple]:
+    """``prefetch`` specs of a ``functools.partial(cached_call, name, settings, fn)`` (as
+    ``_smooth.batched_smoother`` returns) for every argument list in ``args_list`` (arrays
+    or ``jax.ShapeDtypeStruct``s)."""
     name, settings, fn = call.args[:3]
-    prefetch([(name, settings, fn, args) for args in args_list])
+    return [(name, settings, fn, args) for args in args_list]
+
+
+def prefetch_calls(call: functools.partial, args_list: list) -> None:
+    """``prefetch`` of ``call_specs(call, args_list)``: the kernels built at once."""
+    prefetch(call_specs(call, args_list))
 
 
 def prefetch_in_background(specs: list[tuple]) -> None:

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._aot import cached_call, prefetch_calls
+from ._aot import cached_call, call_specs, prefetch_calls
 from ._config import parallel_map
 from ._errors import JtetError
 from ._predicates import orient3d_tets
@@ -776,8 +776,7 @@ def pass_kernel_specs(measure: str = "min_sine", **options) -> list[tuple]:
     params = inspect.signature(smooth_pass).parameters
     o = {k: options.get(k, params[k].default) for k in known}
     kernel = _pass_kernel(measure, *(o[k] for k in _KERNEL_OPTIONS))
-    name, settings, fn = kernel.args[:3]
-    return [(name, settings, fn, _kernel_structs(min(o["capacities"]), min(o["batch_sizes"])))]
+    return call_specs(kernel, [_kernel_structs(min(o["capacities"]), min(o["batch_sizes"]))])
 
 
 def _colour_tasks(verts, size, capacities, batch_sizes) -> list[tuple]:
