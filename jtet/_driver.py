@@ -168,7 +168,7 @@ def improve(
             it, or its extent is outside [1e-30, 1e30] (float64 quality would overflow).
             Inverted and degenerate tets and a non-manifold boundary are fine.
     """
-    from ._quality import prefetch_kernels
+    from ._quality import prefetch_kernels, tet_all_measures
     from ._stats import mesh_stats
 
     opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
@@ -178,12 +178,15 @@ def improve(
     # after the checks: a refused mesh must not leave builds that its process's exit
     # then waits for (background threads are joined at exit)
     _prefetch_in_background(opts)
-    prefetch_kernels(opts.quality)  # statistics and per-tet kernels, built side by side
-    stats_before = mesh_stats(mesh)
+    prefetch_kernels(opts.quality)  # the per-tet kernel, and the warm start
+    # one evaluation of every tet serves the statistics and the optimizer's measures
+    per_tet = tet_all_measures(mesh.points, mesh.tets)
+    stats_before = mesh_stats(mesh, per_tet=per_tet)
     history: list[dict] = []
     status = "converged"
     current = mesh
-    q, lo_t, hi_t = _tet_measures(current.points, current.tets, opts.quality)
+    _, lo_t, hi_t, qualities = per_tet
+    q = qualities[opts.quality]
     obj = _objective(q, opts.good_quality)
     dirty = {op: None for op in opts.ops}  # None: everything is new to the operation
     stall = 0

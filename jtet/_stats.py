@@ -68,13 +68,18 @@ class MeshStats:
         return d
 
 
-def mesh_stats(mesh, measures: Iterable[str] | None = None) -> MeshStats:
-    """Statistics of ``mesh`` (a ``TetMesh``) for the quality ``measures`` (default: all)."""
+def mesh_stats(mesh, measures: Iterable[str] | None = None, *, per_tet=None) -> MeshStats:
+    """Statistics of ``mesh`` (a ``TetMesh``) for the quality ``measures`` (default: all).
+
+    ``per_tet``: ``tet_all_measures(mesh.points, mesh.tets)`` if the caller has it already
+    (``improve`` needs it too), else computed here."""
     names = list(MEASURES) if measures is None else list(measures)
     for name in names:
         get_measure(name)  # unknown names fail here, with the list of valid ones
     points, tets = mesh.points, mesh.tets
-    angles, lo, hi, qualities = tet_all_measures(points, tets)
+    if per_tet is None:
+        per_tet = tet_all_measures(points, tets)
+    angles, lo, hi, qualities = per_tet
     qmin, qmean, qhist = {}, {}, {}
     for name in names:
         q = qualities[name]

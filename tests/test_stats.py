@@ -80,6 +80,17 @@ def test_counts_match_numpy(rng):
     assert s.volume == pytest.approx(1.0, rel=1e-12)
 
 
+def test_precomputed_per_tet_values_give_the_same_stats():
+    # improve hands mesh_stats the per-tet values it computed anyway; a given tuple must
+    # be what the statistics read (a doctored one shows), and an honest one changes nothing
+    mesh = delaunay_mesh(300, seed=4)
+    per_tet = jtet._quality.tet_all_measures(mesh.points, mesh.tets)
+    assert mesh_stats(mesh, per_tet=per_tet).as_dict() == mesh_stats(mesh).as_dict()
+    angles, lo, hi, qs = per_tet
+    doctored = (angles, lo + 90.0, hi, qs)
+    assert mesh_stats(mesh, per_tet=doctored).min_dihedral == pytest.approx(lo.min() + 90.0)
+
+
 def test_inverted_and_degenerate_counts():
     mesh = grid_mesh(2)
     tets = mesh.tets.copy()
