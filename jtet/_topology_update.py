@@ -18,6 +18,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ._config import parallel_map
 from ._topology import (
     _EDGE_OTHERS,
     TET_EDGES,
@@ -105,15 +106,24 @@ def _update(old: Topology, old_mesh, new_mesh, keep, feature_angle) -> Topology 
     renum = np.full(m0 + 1, -1, np.int64)
     renum[keep_idx] = np.arange(K)
 
-    fu = _update_faces(old, tets, keep, keep_idx, removed, renum, n)
-    if fu is None:
-        return None
-    flags = _update_face_flags(old, old_mesh, new_mesh, fu, region)
-    if flags is None:
-        return None  # the full build reports the missing face
+    def faces_and_flags():
+        fu = _update_faces(old, tets, keep, keep_idx, removed, renum, n)
+        return fu, None if fu is None else _update_face_flags(old, old_mesh, new_mesh, fu, region)
+
+    # faces, edges and vertices are regrouped independently: side by side on the worker
+    # threads (NumPy's sorts and gathers release the GIL), as in ``Topology.build``
+    (fu, flags), eu, (vert_tets_ptr, vert_tets) = parallel_map(
+        lambda part: part(),
+        [
+            faces_and_flags,
+            lambda: _update_edges(old, tets, keep, keep_idx, removed, renum, n),
+            lambda: _update_vertices(old, old_mesh.tets, tets, keep, removed, renum),
+        ],
+    )
+    if fu is None or flags is None:
+        return None  # the full build reports the non-conforming or missing face
     boundary_face, interface_face, subfacet, surface_id, prot_changed = flags
 
-    eu = _update_edges(old, tets, keep, keep_idx, removed, renum, n)
     pe = new_mesh.protected_edges
     pe_ids = _lookup(eu.keys, pe[:, 0] * np.int64(n) + pe[:, 1])
     if (pe_ids < 0).any():
@@ -136,7 +146,6 @@ def _update(old: Topology, old_mesh, new_mesh, keep, feature_angle) -> Topology 
         subsegment[affected] = seg
     subsegment[pe_ids] = True
 
-    vert_tets_ptr, vert_tets = _update_vertices(old, old_mesh.tets, tets, keep, removed, renum)
     # vertices whose subfacets or subsegments may have changed
     vf = np.concatenate(
         [

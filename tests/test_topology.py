@@ -195,3 +195,17 @@ def test_local_index_equals_argmax(mesh):
     v = mesh.tets[t, rng.integers(0, 4, 500)]
     want = np.argmax(mesh.tets[t] == v[:, None], axis=1)
     assert np.array_equal(local_index(mesh.tets, t, v), want)
+
+
+@pytest.mark.parametrize("workers", [1, 2, 3])
+def test_build_is_the_same_on_any_number_of_threads(mesh, monkeypatch, workers):
+    """The face, edge and vertex groupings run side by side on the worker threads; the
+    topology must not depend on how many there are (1: one after the other)."""
+    from jtet import _config
+
+    ref = Topology.build(mesh)
+    monkeypatch.setattr(_config, "WORKERS", workers)
+    monkeypatch.setattr(_config, "_pool", None)  # a pool of the patched size
+    got = Topology.build(mesh)
+    for name in Topology.__dataclass_fields__:
+        assert np.array_equal(getattr(got, name), getattr(ref, name)), name
