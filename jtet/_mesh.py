@@ -21,9 +21,19 @@ def _readonly(a: np.ndarray) -> np.ndarray:
 
 
 def _orient_volumes6(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """6 x signed volume of every tet in plain float64 NumPy (no robustness filter)."""
-    p0, p1, p2, p3 = (points[tets[:, i]] for i in range(4))
-    return np.einsum("ij,ij->i", p1 - p0, np.cross(p2 - p0, p3 - p0))
+    """6 x signed volume (m,) of every tet in plain float64 NumPy (no robustness filter).
+
+    Coordinates gathered per axis from contiguous rows and the triple product written out:
+    ~3x faster than ``np.cross`` and ``einsum`` on (m, 3) rows (983k tets: 0.55 -> 0.17 s;
+    the statistics compute it before and after every run). Equal to that form up to the
+    order of the last two additions (an ulp).
+    """
+    x, y, z = np.ascontiguousarray(np.asarray(points, np.float64).T)
+    i0, i1, i2, i3 = np.ascontiguousarray(np.asarray(tets).T)
+    ax, ay, az = x[i1] - x[i0], y[i1] - y[i0], z[i1] - z[i0]
+    bx, by, bz = x[i2] - x[i0], y[i2] - y[i0], z[i2] - z[i0]
+    cx, cy, cz = x[i3] - x[i0], y[i3] - y[i0], z[i3] - z[i0]
+    return ax * (by * cz - bz * cy) + ay * (bz * cx - bx * cz) + az * (bx * cy - by * cx)
 
 
 def _checked_points(points) -> np.ndarray:

@@ -356,3 +356,18 @@ def test_host_helpers_on_a_mesh(rng):
 def test_unknown_measure():
     with pytest.raises(jtet.JtetError, match="min_sine"):
         get_measure("nope")
+
+
+def test_mesh_volumes_match_a_determinant_reference(rng):
+    """TetMesh.volumes (the statistics' volume) against det[p1 - p0, p2 - p0, p3 - p0] / 6
+    of NumPy's LU determinant, tet by tet; relative 1e-12 of the tet's edge lengths cubed
+    (both are a few float64 roundings of products of coordinate differences)."""
+    points = rng.normal(size=(60, 3)) * 10.0 ** rng.uniform(-3, 3, size=(60, 1))
+    tets = np.array([rng.choice(60, 4, replace=False) for _ in range(200)])
+    mesh = jtet.TetMesh(points, tets)
+    p = points[tets]
+    edges = p[:, 1:] - p[:, :1]
+    ref = np.linalg.det(edges) / 6.0
+    scale = np.linalg.norm(edges, axis=2).prod(axis=1)
+    assert np.all(np.abs(mesh.volumes - ref) <= 1e-12 * scale)
+    assert np.array_equal(np.sign(mesh.volumes), np.sign(orient3d_tets(points, tets)))
