@@ -354,8 +354,10 @@ def orient3d_tets(
     tets = np.asarray(tets)
     if tets.ndim != 2 or tets.shape[1] != 4:
         raise ValueError(f"tets must have shape (m, 4), got {tets.shape}")
-    sign = _orient3d_flat(*(points[tets[:, i]] for i in range(4)))
-    return sign
+    # np.take of contiguous index rows: ~4x faster than fancy row indexing with a
+    # strided column (983k tets: 0.53 -> 0.13 s for the four corners)
+    columns = np.ascontiguousarray(tets.T)
+    return _orient3d_flat(*(np.take(points, columns[i], axis=0) for i in range(4)))
 
 
 # ---------------------------------------------------------------------------------------------

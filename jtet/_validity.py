@@ -45,17 +45,10 @@ _EDGES = np.array([[0, 1], [1, 2], [2, 0]])  # edges of an oriented triangle
 
 
 def orientation_signs(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, bool]:
-    """Sign (+1 / 0 / -1, int8 (m,)) of every tet's volume, and whether it is exact.
+    """Sign (+1 / 0 / -1, int8 (m,)) of every tet's volume, and whether it is exact
+    (always: the robust ``jtet._predicates.orient3d_tets``)."""
+    from ._predicates import orient3d_tets
 
-    Uses the robust ``jtet._predicates.orient3d_tets`` when available; otherwise a plain
-    float64 determinant (which can misclassify nearly degenerate tets).
-    """
-    try:
-        from ._predicates import orient3d_tets
-    except ImportError:  # TODO: drop once jtet._predicates is always present
-        p = points[tets]
-        d = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
-        return np.sign(d).astype(np.int8), False
     return np.asarray(orient3d_tets(points, tets), dtype=np.int8), True
 
 
