@@ -90,7 +90,10 @@ def nonconforming_owners(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarra
     nf = np.sort(nf, axis=1)
     # kept old tets on the faces the new tets touch
     fid = T.face_ids(nf)
-    hit = np.unique(fid[fid >= 0])
+    # distinct face ids, sorted: a mask over the faces, not np.unique (which hashes)
+    seen = np.zeros(len(T.faces), bool)
+    seen[fid[fid >= 0]] = True
+    hit = np.flatnonzero(seen)
     kt, ka = T.face_tets[hit].reshape(-1), T.face_apex[hit].reshape(-1)
     ok = kt >= 0
     ok[ok] = ~remove[kt[ok]]

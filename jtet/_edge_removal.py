@@ -182,7 +182,9 @@ def edge_removal_pass(
     solve = np.flatnonzero(valid[ch.cand])  # every chain of a valid candidate, all sizes
     if len(solve):
         sizes = clen[solve]
-        prefetch_rings(np.unique(sizes).tolist(), measure, prune)
+        # the distinct ring sizes, by a count (small ints): no hash or sort of every ring
+        present = np.flatnonzero(np.bincount(sizes)).tolist()
+        prefetch_rings(present, measure, prune)
         width = int(sizes.max())
         # (S, width) vertex ids; slots past a chain's end repeat its last vertex
         ring_all = ch.verts[
@@ -198,7 +200,7 @@ def edge_removal_pass(
             sizes=sizes,
         )
         np.minimum.at(q_new, ch.cand[solve], qn)
-        for k in np.unique(sizes).tolist():
+        for k in present:
             of_k = sizes == k
             tris_of[k] = (solve[of_k], ring_all[of_k, :k], tris_all[of_k, : k - 2])
     q_new[~valid] = -np.inf

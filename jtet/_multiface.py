@@ -289,7 +289,6 @@ def build_forest(
     verts[:, 0] = np.take_along_axis(tets[t_a], FACE_CCW[la], axis=1)
     ta[:, 0], tb[:, 0] = t_a, t_b
     bad |= (quality[t_a] <= 0) | (quality[t_b] <= 0)
-    keys = np.arange(nt) * np.int64(F) + root  # (tree, face) of every node so far
 
     # frontier rows: (tree, node, slot); the root expands all three slots
     ft = np.repeat(np.arange(nt), 3)
@@ -327,10 +326,12 @@ def build_forest(
         )
         sel = sel[npos >= 2]
         ct, cn, cs, cg = ft[sel], fn[sel], fs[sel], g[sel]
-        # a face met twice (already in its tree, or twice this round): a cycle
+        # a face met twice (already in its tree, or twice this round): a cycle. A tree
+        # holds at most N faces, so its row of ``face`` is searched directly (an isin
+        # against every node of every tree hashed them all each round)
         ck = ct * np.int64(F) + cg
-        uk, uinv, ucnt = np.unique(ck, return_inverse=True, return_counts=True)
-        dup = np.isin(ck, keys) | (ucnt[uinv.reshape(-1)] > 1)
+        _, uinv, ucnt = np.unique(ck, return_inverse=True, return_counts=True)
+        dup = (face[ct] == cg[:, None]).any(axis=1) | (ucnt[uinv.reshape(-1)] > 1)
         bad[ct[dup]] = True
         inverted = (quality[na[sel]] <= 0) | (quality[nb[sel]] <= 0)
         bad[ct[inverted]] = True
@@ -350,7 +351,6 @@ def build_forest(
         parent[ct, idx], pslot[ct, idx] = cn, cs
         child[ct, cn, cs] = idx
         np.add.at(count, ct, 1)
-        keys = np.concatenate([keys, ct * np.int64(F) + cg])
         # next round: the new nodes' slots 0 and 1, for trees still growing
         grow = ~overflow[ct] & ~bad[ct]
         ct, idx = ct[grow], idx[grow]
