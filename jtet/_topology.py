@@ -96,11 +96,29 @@ def sorted_rows(tets: np.ndarray, local: np.ndarray) -> np.ndarray:
     return np.stack([lo, a + b + c - lo - hi, hi], axis=2)  # exact: ints
 
 
+# Above this many queries a binary search sorts them first (see ``search_sorted``).
+SORT_QUERIES_ABOVE = 2048
+
+
+def search_sorted(sorted_keys: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """``np.searchsorted(sorted_keys, queries)``, with many queries searched in increasing
+    order: consecutive searches then walk the keys in one direction and stay in cache
+    (NumPy narrows each search by the previous one for sorted queries). Measured into 2M
+    keys: 100k queries 99 -> 25 ms, 5k queries 4.0 -> 1.6 ms, including the sort."""
+    queries = np.asarray(queries)
+    if queries.ndim != 1 or len(queries) <= SORT_QUERIES_ABOVE:
+        return np.searchsorted(sorted_keys, queries)
+    order = np.argsort(queries)
+    pos = np.empty(len(queries), np.int64)
+    pos[order] = np.searchsorted(sorted_keys, queries[order])
+    return pos
+
+
 def sorted_lookup(sorted_keys: np.ndarray, queries: np.ndarray) -> np.ndarray:
     """(q,) index of every query in the increasing unique ``sorted_keys`` (G,), or -1."""
     if len(sorted_keys) == 0:
         return np.full(len(queries), -1, np.int64)
-    pos = np.minimum(np.searchsorted(sorted_keys, queries), len(sorted_keys) - 1)
+    pos = np.minimum(search_sorted(sorted_keys, queries), len(sorted_keys) - 1)
     return np.where(sorted_keys[pos] == queries, pos, -1)
 
 
@@ -425,7 +443,7 @@ def _subsegments(points, faces, subfacet, surface_id, edges, edge_manifold, feat
     sfaces = faces[sub]
     fe = np.stack([sfaces[:, [0, 1]], sfaces[:, [0, 2]], sfaces[:, [1, 2]]], 1).reshape(-1, 2)
     ekeys_u = edges[:, 0] * np.int64(n) + edges[:, 1]  # sorted: edges come from a sort
-    sf_edge = np.searchsorted(ekeys_u, fe[:, 0] * np.int64(n) + fe[:, 1])
+    sf_edge = search_sorted(ekeys_u, fe[:, 0] * np.int64(n) + fe[:, 1])
     sf_face = np.repeat(sub, 3)
     edge_n_subfacets = np.bincount(sf_edge, minlength=E)
     subsegment = (edge_n_subfacets != 0) & (edge_n_subfacets != 2)

@@ -209,3 +209,20 @@ def test_build_is_the_same_on_any_number_of_threads(mesh, monkeypatch, workers):
     got = Topology.build(mesh)
     for name in Topology.__dataclass_fields__:
         assert np.array_equal(getattr(got, name), getattr(ref, name)), name
+
+
+@pytest.mark.parametrize("q", [10, 5000])
+def test_search_sorted_and_lookup_match_numpy(q):
+    """search_sorted (sorts many queries first) equals np.searchsorted, and sorted_lookup
+    finds exactly the present keys, for queries with repeats, misses and both ends."""
+    from jtet._topology import search_sorted, sorted_lookup
+
+    rng = np.random.default_rng(q)
+    keys = np.unique(rng.integers(0, 10**6, 20000))
+    queries = np.concatenate([rng.choice(keys, q // 2), rng.integers(-5, 10**6 + 5, q - q // 2)])
+    rng.shuffle(queries)
+    assert np.array_equal(search_sorted(keys, queries), np.searchsorted(keys, queries))
+    got = sorted_lookup(keys, queries)
+    present = np.isin(queries, keys)
+    assert np.array_equal(got >= 0, present)
+    assert np.array_equal(keys[got[present]], queries[present])
