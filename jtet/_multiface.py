@@ -70,6 +70,12 @@ def _local(tets: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:
     return local_index(tets, t, v)
 
 
+def _at(table: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``table[rows, cols]`` for a C-ordered (m, w) table, by ``np.take`` of flat indices
+    (2-3x faster than NumPy's two-array fancy indexing on whole-mesh tables)."""
+    return np.take(table.reshape(-1), rows * table.shape[1] + cols)
+
+
 def candidate_faces(mesh: TetMesh, quality: np.ndarray, dirty: np.ndarray | None) -> np.ndarray:
     """Interior non-subfacet faces worth trying, worst tets first, one per apex pair.
 
@@ -290,6 +296,8 @@ def build_forest(
     ta[:, 0], tb[:, 0] = t_a, t_b
     bad |= (quality[t_a] <= 0) | (quality[t_b] <= 0)
 
+    # the sum of a tet's vertex ids: a neighbour's vertex opposite a known face in one gather
+    vertex_sum = tets[:, 0] + tets[:, 1] + tets[:, 2] + tets[:, 3]
     # frontier rows: (tree, node, slot); the root expands all three slots
     ft = np.repeat(np.arange(nt), 3)
     fn = np.zeros(3 * nt, np.int64)
@@ -303,22 +311,21 @@ def build_forest(
         A, B = a[ft], b[ft]
         t_a, t_b = ta[ft, fn], tb[ft, fn]
         lo_a, lo_b = _local(tets, t_a, o), _local(tets, t_b, o)
-        na = T.tet_neighbors[t_a, lo_a]
-        nb = T.tet_neighbors[t_b, lo_b]
+        na = _at(T.tet_neighbors, t_a, lo_a)
+        nb = _at(T.tet_neighbors, t_b, lo_b)
         ok = (na >= 0) & (nb >= 0)
         na0, nb0 = np.maximum(na, 0), np.maximum(nb, 0)
-        va = tets[na0].sum(axis=1) - A - p - q
-        vb = tets[nb0].sum(axis=1) - B - p - q
+        va = np.take(vertex_sum, na0) - A - p - q
+        vb = np.take(vertex_sum, nb0) - B - p - q
         ok &= va == vb  # the edge pq is in exactly four tets: (f,a) (f,b) (g,a) (g,b)
-        edge = T.tet_edges[t_a, _LOCAL_EDGE[_local(tets, t_a, p), _local(tets, t_a, q)]]
-        g = T.tet_faces[na0, _local(tets, na0, A)]
-        ok &= ~T.subfacet[T.tet_faces[t_a, lo_a]] & ~T.subfacet[T.tet_faces[t_b, lo_b]]
+        edge = _at(T.tet_edges, t_a, _LOCAL_EDGE[_local(tets, t_a, p), _local(tets, t_a, q)])
+        g = _at(T.tet_faces, na0, _local(tets, na0, A))
+        ok &= ~T.subfacet[_at(T.tet_faces, t_a, lo_a)] & ~T.subfacet[_at(T.tet_faces, t_b, lo_b)]
         ok &= ~T.subsegment[edge] & ~T.subfacet[g]
         # the child (p, v, q), counterclockwise seen from a; reflex test (lines 18-21)
         sel = np.flatnonzero(ok)
         v = va[sel]
-        Ps, Qs, As, Bs = P[p[sel]], P[q[sel]], P[A[sel]], P[B[sel]]
-        Vs = P[v]
+        Ps, Qs, As, Bs, Vs = (np.take(P, i, axis=0) for i in (p[sel], q[sel], A[sel], B[sel], v))
         npos = (
             (orient3d(As, Bs, Vs, Ps) > 0).astype(np.int64)
             + (orient3d(As, Bs, Qs, Vs) > 0)
