@@ -4,6 +4,12 @@ import os
 import signal
 import threading
 
+from . import _interrupt
+
+# Count Ctrl-C from here on: one that lands in a gc callback (JAX registers one) is
+# swallowed there, and only the count tells the CLI and the optimizer (see _interrupt)
+_interrupt.install()
+
 # Ctrl-C while jaxlib initializes its extension crashes the interpreter (SIGSEGV / abort /
 # ImportError). Hold SIGINT back during the import: a Ctrl-C then arrives right after it
 # as a plain KeyboardInterrupt. (Threads XLA starts meanwhile keep it blocked, so the

@@ -250,12 +250,14 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    from ._interrupt import catch_ctrl_c
+    from ._interrupt import catch_ctrl_c, pressed
 
     try:
-        # from here on a Ctrl-C is remembered even if JAX's gc callback swallows it
-        # (reading the input included): the optimizer then stops and 130 is returned
-        with catch_ctrl_c():
+        # a Ctrl-C is remembered even if JAX's gc callback swallows it, from jtet's import
+        # on (reading the input included): the optimizer then stops and 130 is returned
+        with catch_ctrl_c(earlier=True):
+            if pressed():  # while jtet was imported: do nothing at all
+                raise KeyboardInterrupt
             return args.func(args)
     except JtetError as e:
         print(f"jtet: error: {e}", file=sys.stderr)

@@ -354,3 +354,50 @@ def test_cli_remembers_a_ctrl_c_swallowed_before_the_optimizer_starts(
         signal.signal(signal.SIGINT, previous)
     assert code == 130
     assert "interrupted" in capsys.readouterr().err
+
+
+def test_a_ctrl_c_swallowed_before_the_cli_starts_still_counts(infile, tmp_path, capsys):
+    # seen in CI: Ctrl-C 2 s after start landed in JAX's gc callback while jtet was still
+    # being imported (before the CLI's handler existed) and the CLI ran to the end, exit 0.
+    # jtet counts SIGINTs from its import on; the CLI reads the count, improve() does not
+    # (a Ctrl-C that stopped one run must not stop the next).
+    from jtet import _interrupt
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _interrupt.install()  # what importing jtet does in a fresh process
+        assert signal.getsignal(signal.SIGINT) is _interrupt._handler
+        try:
+            signal.getsignal(signal.SIGINT)(signal.SIGINT, None)
+        except KeyboardInterrupt:
+            pass  # what a gc callback does with it
+        # a library run started afterwards is not stopped by it
+        assert jtet.improve(jtet.load(infile), ops=("edge",), max_passes=1).status != (
+            "interrupted"
+        )
+        try:  # the same again, now before a CLI command
+            signal.getsignal(signal.SIGINT)(signal.SIGINT, None)
+        except KeyboardInterrupt:
+            pass
+        out = tmp_path / "out.vtu"
+        code = cli.main(["improve", str(infile), str(out), "--ops", "edge", "-q"])
+        assert code == 130 and not out.exists()
+        assert "interrupted" in capsys.readouterr().err
+        # once the command has ended, the record is spent
+        assert cli.main(["improve", str(infile), str(out), "--ops", "edge", "-q"]) == 0
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def test_importing_jtet_counts_sigint_where_python_default_handler_was():
+    code = (
+        "import signal, jtet\n"
+        "from jtet import _interrupt\n"
+        "assert signal.getsignal(signal.SIGINT) is _interrupt._handler\n"
+        "try:\n"
+        "    signal.raise_signal(signal.SIGINT)\n"
+        "except KeyboardInterrupt:\n"
+        "    pass\n"
+        "assert _interrupt._count == 1\n"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
