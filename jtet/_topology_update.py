@@ -103,7 +103,7 @@ def _update(old: Topology, old_mesh, new_mesh, keep, feature_angle) -> Topology 
     removed = np.flatnonzero(~keep)
     keep_idx = np.flatnonzero(keep)
     # old tet id -> new id, -1 for removed tets; renum[-1] == -1 maps "no tet" to itself
-    renum = np.full(m0 + 1, -1, np.int64)
+    renum = np.full(m0 + 1, -1, _id_type(m0 + 1))
     renum[keep_idx] = np.arange(K)
 
     def faces_and_flags():
@@ -362,6 +362,15 @@ def _merge(old_keys, dead, nk: _NewKeys):
     return keys, gmap, src, add_src
 
 
+def _id_type(size: int) -> type:
+    """Narrowest integer type of an id map over ``size`` ids (and -1). Whole-mesh
+    renumbering gathers read their map at random: an int32 map (half the bytes) stays in
+    cache where an int64 one does not, measured 2-4x faster for 4-6M ids through the
+    1M-entry tet map or the 2M-entry face map of a 983k-tet mesh (and 6M ids through a
+    6M-entry map 1.3x). Gathered values are stored in the topology's int64 arrays."""
+    return np.int32 if size < np.iinfo(np.int32).max else np.int64
+
+
 def _touched(old_tet_ids, removed, nk: _NewKeys, n_old: int):
     """Sorted ids of the old faces (edges) the step touches: those of removed tets and
     those a new tet also has. ``old_tet_ids`` (m0, w) per-tet ids, ``nk`` the keys of
@@ -383,7 +392,8 @@ def _merged(old_rows, old_keys, dead, new_rows, nk: _NewKeys, old_tet_ids, keep_
     w = old_tet_ids.shape[1]
     tet_ids = np.empty((len(keep_idx) + len(nk.inverse) // w, w), np.int64)
     # np.take: ~20 % faster than fancy indexing for these whole-mesh gathers
-    tet_ids[: len(keep_idx)] = np.take(gmap, np.take(old_tet_ids, keep_idx, axis=0))
+    narrow = gmap.astype(_id_type(len(gmap)))
+    tet_ids[: len(keep_idx)] = np.take(narrow, np.take(old_tet_ids, keep_idx, axis=0))
     tet_ids[len(keep_idx) :] = np.searchsorted(keys, nk.ukeys)[nk.inverse].reshape(-1, w)
     return keys, gmap, src, add_src, rows, tet_ids
 
@@ -480,10 +490,10 @@ def _update_faces(old: Topology, tets, keep, keep_idx, removed, renum, n):
 
     # carried faces: renumbered tets, same slots (regrouped ones are overwritten below)
     none = np.full((A, 2), -1, np.int64)
-    face_tets = np.take(renum, _take_rows(old.face_tets, none, src))
+    face_tets = np.take(renum, _take_rows(old.face_tets, none, src)).astype(np.int64)
     face_apex = _take_rows(old.face_apex, none, src)
     # entries (face, slot = tet * 4 + local vertex) of the touched faces, as build sorts them
-    kt = renum[ft[kept_slot]]
+    kt = renum[ft[kept_slot]].astype(np.int64)
     apex = old.face_apex[touched][kept_slot]
     local = local_index(tets, kt, apex)
     kface = np.broadcast_to(fmap[touched][:, None], ft.shape)[kept_slot]
@@ -576,7 +586,7 @@ def _update_edges(old: Topology, tets, keep, keep_idx, removed, renum, n):
     kt, ke = rt[kept], touched[owner[kept]]
     klocal = np.argmax(old.tet_edges[kt] == ke[:, None], axis=1)
     group = np.concatenate([emap[ke], tet_edges[K:].reshape(-1)])
-    slot = np.concatenate([renum[kt] * 6 + klocal, np.arange(6 * K, 6 * m1)])
+    slot = np.concatenate([renum[kt].astype(np.int64) * 6 + klocal, np.arange(6 * K, 6 * m1)])
     group, slot, ptr = _regroup(group, slot, 6 * m1)
     redo_ids = group[ptr[:-1]]
     etet, elocal = slot // 6, slot % 6
@@ -622,7 +632,7 @@ def _update_vertices(old: Topology, old_tets, tets, keep, removed, renum):
     t = old.vert_tets[pos]
     k = keep[t]
     group = np.concatenate([vids[owner[k]], added.reshape(-1)])
-    tet = np.concatenate([renum[t[k]], np.repeat(np.arange(K, m1), 4)])
+    tet = np.concatenate([renum[t[k]].astype(np.int64), np.repeat(np.arange(K, m1), 4)])
     group, tet, _ = _regroup(group, tet, m1)
     lens0 = np.diff(old.vert_tets_ptr)
     lens1 = lens0.copy()

@@ -276,3 +276,16 @@ def test_replace_tets_checks_the_new_tets():
         mesh.replace(tets=mesh.tets[:-1])
     moved = mesh.replace(points=mesh.points + 1.0)
     assert moved.tets is mesh.tets and np.array_equal(moved.points, mesh.points + 1.0)
+
+
+def test_id_maps_are_narrow_only_when_every_id_fits():
+    """The renumbering maps are int32 (faster gathers) exactly when every id and -1 fit;
+    the topology's own arrays stay int64 (checked field by field in the tests above)."""
+    from jtet._topology_update import _id_type
+
+    top = np.iinfo(np.int32).max
+    assert _id_type(10) is np.int32
+    assert _id_type(top - 1) is np.int32
+    assert _id_type(top) is np.int64
+    ids = np.arange(top - 3, top, dtype=np.int64)
+    assert np.array_equal(ids.astype(_id_type(top - 1)), ids)  # no wrap-around below the cut
