@@ -69,7 +69,7 @@ def _replaced(mesh: TetMesh, out: TetMesh, stats, keep: np.ndarray | None) -> St
 
 
 def _smooth_step(mesh: TetMesh, opts: Options, quality, dirty) -> StepResult:
-    from ._smooth import smooth_pass
+    from ._smooth import smooth_pass, star_tets
 
     candidates = None
     if dirty is not None:
@@ -84,9 +84,7 @@ def _smooth_step(mesh: TetMesh, opts: Options, quality, dirty) -> StepResult:
         candidates=candidates,
         seed=opts.seed,
     )
-    moved = np.zeros(mesh.n_points, bool)
-    moved[np.asarray(stats.moved, np.int64)] = True
-    changed = moved[out.tets].any(axis=1)
+    changed = star_tets(out.topology, stats.moved, out.n_tets)
     return StepResult(out, stats, None, changed)
 
 

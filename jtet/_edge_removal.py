@@ -23,6 +23,7 @@ from ._kernels.klincsek import prefetch as prefetch_rings
 from ._kernels.klincsek import solve_rings
 from ._mesh import TetMesh
 from ._select import select_conflict_free
+from ._topology import csr_rows
 
 
 @dataclass
@@ -66,6 +67,16 @@ def _segments(ptr: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return owner, np.arange(lens.sum()) - start
 
 
+def _worst_around(q: np.ndarray, T, edges: np.ndarray) -> np.ndarray:
+    """(k,) smallest ``q`` (m,) among the tets of each edge in ``edges`` (k >= 1 ids)."""
+    tp = T.edge_tets_ptr
+    if 2 * len(edges) > len(T.edges):  # most edges: one sequential pass over all
+        return np.minimum.reduceat(q[T.edge_tets], tp[:-1])[edges]
+    # few edges (late in a run): only their tets (~100 ms -> ~4 ms at 983k tets)
+    pos, starts = csr_rows(tp, edges)
+    return np.minimum.reduceat(q[T.edge_tets[pos]], starts)
+
+
 def edge_candidates(
     mesh: TetMesh, max_ring: int, dirty: np.ndarray | None, *, with_skipped: bool = False
 ):
@@ -78,8 +89,11 @@ def edge_candidates(
     size = np.diff(T.edge_ring_ptr)  # polygon size: ring (closed) or chain (open)
     ok = ~T.subsegment & T.edge_manifold & (size >= 3)
     if dirty is not None:
-        d = dirty[T.edge_tets].astype(np.int64)
-        ok &= np.add.reduceat(d, T.edge_tets_ptr[:-1]) > 0 if len(d) else False
+        # the edges of the dirty tets (rows of tet_edges): late in a run a few hundred
+        # tets, where a gather of every edge's tets cost ~50 ms at 983k tets
+        near = np.zeros(len(ok), bool)
+        near[T.tet_edges[np.asarray(dirty, bool)].reshape(-1)] = True
+        ok &= near
     # interior-surface edges split their ring in two chains, each <= max_ring; the
     # whole ring may be up to 2 * max_ring - 2
     surface = (T.edge_n_subfacets == 2) & ~T.edge_boundary
@@ -169,7 +183,7 @@ def edge_removal_pass(
     ch = _build_chains(mesh, edges)
     clen = np.diff(ch.ptr)
     tp = T.edge_tets_ptr
-    q_old = np.minimum.reduceat(q[T.edge_tets], tp[:-1])[edges]
+    q_old = _worst_around(q, T, edges)
     valid = np.ones(len(edges), bool)
     np.logical_and.at(valid, ch.cand, (clen >= 3) & (clen <= max_ring))
     stats.attempts = int(valid.sum())

@@ -50,6 +50,7 @@ from ._quality import (
     get_measure,
     tet_quality,
 )
+from ._topology import csr_rows
 
 # For a tet whose local vertex i is the smoothed vertex v, the other three vertices in an
 # order that makes (v, f0, f1, f2) an even permutation of the tet, hence positively oriented
@@ -561,6 +562,14 @@ def star_faces(mesh, verts: np.ndarray | None = None) -> tuple[np.ndarray, np.nd
     return ptr, opp
 
 
+def star_tets(topo, verts: np.ndarray, m: int) -> Bool[np.ndarray, " m"]:
+    """(m,) bool: the tets that have one of the vertices ``verts`` (k,) (from their stars,
+    not a scan of every tet)."""
+    out = np.zeros(m, bool)
+    out[topo.vert_tets[csr_rows(topo.vert_tets_ptr, np.asarray(verts, np.int64))[0]]] = True
+    return out
+
+
 def independent_sets(
     candidates: Bool[np.ndarray, " n"], edges: np.ndarray, priority: np.ndarray
 ) -> list[np.ndarray]:
@@ -669,16 +678,19 @@ def smooth_pass(
     q = mesh.quality(measure) if quality is None else np.asarray(quality)
     worst_before = float(q.min())
 
-    # worst quality of each vertex's star
-    vq = np.full(n, np.inf)
-    np.minimum.at(vq, tets.reshape(-1), np.repeat(q, 4))
-
     basis, cand, pinned = motion_bases(mesh, boundary, slide_tol)
     if candidates is not None:
         c = np.asarray(candidates, bool)
         if c.shape != (n,):
             raise JtetError(f"candidates must be a bool mask of shape ({n},), got {c.shape}")
         cand &= c
+    # worst quality of each candidate's star (+inf elsewhere): only the candidates' tets
+    # are read (late passes: a few hundred stars of a large mesh)
+    vq = np.full(n, np.inf)
+    stars = np.flatnonzero(cand & (np.diff(topo.vert_tets_ptr) > 0))
+    if len(stars):
+        pos, starts = csr_rows(topo.vert_tets_ptr, stars)
+        vq[stars] = np.minimum.reduceat(q[topo.vert_tets[pos]], starts)
     if threshold is not None:
         cand &= vq < threshold
     ptr, opp_ids = star_faces(mesh, cand)
@@ -724,9 +736,7 @@ def smooth_pass(
     # connectivity and subfacet planes are unchanged: the topology stays valid
     new.__dict__["topology"] = topo
     # only tets with a moved vertex changed quality
-    touched = np.zeros(n, bool)
-    touched[moved] = True
-    redo = touched[tets].any(axis=1)
+    redo = star_tets(topo, moved, len(tets))
     worst_after = min(
         float(q[~redo].min(initial=np.inf)),
         float(tet_quality(pts, tets[redo], measure).min(initial=np.inf)),

@@ -100,6 +100,15 @@ def sorted_rows(tets: np.ndarray, local: np.ndarray) -> np.ndarray:
 SORT_QUERIES_ABOVE = 2048
 
 
+def csr_rows(ptr: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(pos, starts): positions of the CSR entries of the groups ``ids`` (g,) one group
+    after the other, and where each group's run begins in ``pos`` (g,). Costs in
+    proportion to those groups' entries, not to the whole CSR."""
+    lens = ptr[ids + 1] - ptr[ids]
+    starts = np.cumsum(lens) - lens
+    return np.arange(int(lens.sum())) + np.repeat(ptr[ids] - starts, lens), starts
+
+
 def search_sorted(sorted_keys: np.ndarray, queries: np.ndarray) -> np.ndarray:
     """``np.searchsorted(sorted_keys, queries)``, with many queries searched in increasing
     order: consecutive searches then walk the keys in one direction and stay in cache

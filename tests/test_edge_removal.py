@@ -112,3 +112,24 @@ def test_inverted_tet_repaired_by_edge_removal():
     assert new.n_tets == 2 and (new.volumes > 0).all()
     # same polyhedron: the volume is conserved (signed volumes add up)
     assert np.isclose(new.volumes.sum(), bad.volumes.sum(), rtol=1e-12)
+
+
+@pytest.mark.parametrize("fraction", [0.02, 0.3, 1.0])
+def test_candidates_and_worst_tet_per_edge_match_brute_force(fraction):
+    """edge_candidates' dirty filter and the worst tet around each candidate edge (both
+    the few-edges and the most-edges paths) against a loop over every edge's tets."""
+    from jtet._edge_removal import _worst_around, edge_candidates
+
+    mesh = delaunay_mesh(300, seed=4)
+    T = mesh.topology
+    rng = np.random.default_rng(4)
+    dirty = rng.random(mesh.n_tets) < fraction
+    q = rng.random(mesh.n_tets)
+    got = edge_candidates(mesh, 7, dirty)
+    everything = edge_candidates(mesh, 7, None)
+    tp = T.edge_tets_ptr
+    want = [e for e in everything if dirty[T.edge_tets[tp[e] : tp[e + 1]]].any()]
+    assert np.array_equal(got, want)
+    for edges in (got, everything):
+        ref = [q[T.edge_tets[tp[e] : tp[e + 1]]].min() for e in edges]
+        assert np.array_equal(_worst_around(q, T, edges), ref)

@@ -543,3 +543,22 @@ def test_biased_star_with_two_near_minimal_pieces_in_one_tet_moves():
     )
     assert q_new > q_old + 0.07  # 0.451 -> 0.531 (25.2 -> 29.8 degrees)
     assert q_new >= -r.fun - 2e-3
+
+
+def test_star_tets_and_csr_rows_match_a_scan_of_every_tet():
+    """star_tets (the tets with one of some vertices, from their stars) against a scan of
+    every tet, for no vertex, a few, and all of them."""
+    from jtet._smooth import star_tets
+    from jtet._topology import csr_rows
+
+    mesh = delaunay_mesh(200, seed=6)
+    T = mesh.topology
+    rng = np.random.default_rng(6)
+    for verts in (np.zeros(0, np.int64), rng.choice(mesh.n_points, 7, replace=False)):
+        want = np.isin(mesh.tets, verts).any(axis=1)
+        assert np.array_equal(star_tets(T, verts, mesh.n_tets), want)
+    every = np.arange(mesh.n_points)
+    assert star_tets(T, every, mesh.n_tets).all()
+    pos, starts = csr_rows(T.vert_tets_ptr, every)
+    assert np.array_equal(pos, np.arange(len(T.vert_tets)))
+    assert np.array_equal(starts, T.vert_tets_ptr[:-1])
