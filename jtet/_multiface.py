@@ -87,7 +87,11 @@ def candidate_faces(mesh: TetMesh, quality: np.ndarray, dirty: np.ndarray | None
     ft = T.face_tets
     ok = (ft[:, 1] >= 0) & ~T.subfacet
     if dirty is not None:
-        ok &= dirty[ft[:, 0]] | dirty[np.maximum(ft[:, 1], 0)]
+        # the faces of the dirty tets (rows of tet_faces), not a gather of every face's
+        # two tets: late in a run a few hundred tets of a large mesh
+        near = np.zeros(len(ok), bool)
+        near[T.tet_faces[np.asarray(dirty, bool)].reshape(-1)] = True
+        ok &= near
     f = np.flatnonzero(ok)
     if len(f) == 0:
         return f

@@ -434,3 +434,22 @@ def test_improve_with_face_removal(ops):
     assert result.stats_after.quality_min["min_sine"] >= result.stats_before.quality_min["min_sine"]
     face = [h for h in result.history if h["op"] == "face"]
     assert face and sum(h["successes"] for h in face) > 0
+
+
+@pytest.mark.parametrize("fraction", [0.02, 0.5])
+def test_candidate_faces_dirty_filter_matches_a_scan_of_every_face(fraction):
+    """candidate_faces with a dirty mask: the candidates without one, restricted to the
+    faces one of whose two tets is dirty (the old whole-mesh formulation)."""
+    mesh = delaunay_mesh(300, seed=8)
+    rng = np.random.default_rng(8)
+    q = mesh.quality()
+    dirty = rng.random(mesh.n_tets) < fraction
+    ft = mesh.topology.face_tets
+    touches = dirty[ft[:, 0]] | ((ft[:, 1] >= 0) & dirty[np.maximum(ft[:, 1], 0)])
+    T = mesh.topology
+    ok = (ft[:, 1] >= 0) & ~T.subfacet & touches
+    f = np.flatnonzero(ok)
+    f = f[np.argsort(np.minimum(q[ft[f, 0]], q[ft[f, 1]]), kind="stable")]
+    a, b = T.face_apex[f, 0], T.face_apex[f, 1]
+    _, first = np.unique(np.minimum(a, b) * mesh.n_points + np.maximum(a, b), return_index=True)
+    assert np.array_equal(candidate_faces(mesh, q, dirty), f[np.sort(first)])
