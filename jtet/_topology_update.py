@@ -31,6 +31,7 @@ from ._topology import (
     _surface_ids,
     _vertex_kinds,
     _vertex_kinds_at,
+    csr_rows,
     local_index,
     row_keys,
     sorted_lookup,
@@ -410,14 +411,10 @@ def _take_rows(old_rows, add_rows, src):
 
 
 def _csr_take(ptr: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(pos, owner): positions of the CSR entries of groups ``ids`` (g,), concatenated,
-    and the index into ``ids`` each came from."""
-    start = ptr[ids]
-    lens = ptr[ids + 1] - start
-    owner = np.repeat(np.arange(len(ids)), lens)
-    first = np.cumsum(lens) - lens
-    pos = start[owner] + np.arange(len(owner)) - first[owner]
-    return pos, owner
+    """(pos, owner): positions of the CSR entries of groups ``ids`` (g,), concatenated
+    (``csr_rows``), and the index into ``ids`` each came from."""
+    pos, _ = csr_rows(ptr, ids)
+    return pos, np.repeat(np.arange(len(ids)), ptr[ids + 1] - ptr[ids])
 
 
 def _splice(old_vals, old_lens, old_carry, new_lens, new_redo, redo_vals, mapping=None):
