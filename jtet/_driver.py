@@ -69,7 +69,7 @@ def _replaced(mesh: TetMesh, out: TetMesh, stats, keep: np.ndarray | None) -> St
 
 
 def _smooth_step(mesh: TetMesh, opts: Options, quality, dirty) -> StepResult:
-    from ._smooth import smooth_pass, star_tets
+    from ._smooth import smooth_pass
 
     candidates = None
     if dirty is not None:
@@ -84,8 +84,7 @@ def _smooth_step(mesh: TetMesh, opts: Options, quality, dirty) -> StepResult:
         candidates=candidates,
         seed=opts.seed,
     )
-    changed = star_tets(out.topology, stats.moved, out.n_tets)
-    return StepResult(out, stats, None, changed)
+    return StepResult(out, stats, None, stats.moved_tets)
 
 
 STEPS = {"edge": _edge_step, "face": _face_step, "smooth": _smooth_step}

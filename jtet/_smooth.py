@@ -419,6 +419,8 @@ class SmoothStats:
         pinned: boundary vertices that ``boundary="slide"`` would move but whose incident
             subfacets / subsegments are not flat / straight to ``slide_tol`` (kept fixed).
         moved: (successes,) int64 ids of the vertices that moved.
+        moved_tets: (m,) bool, the tets with a moved vertex (the only ones whose quality
+            changed).
         worst_before, worst_after: smallest tet quality of the whole mesh before / after.
         n_colours: number of independent sets (sequential batches) the candidates needed.
         seconds: wall time of the pass.
@@ -429,6 +431,7 @@ class SmoothStats:
     skipped: int
     pinned: int
     moved: np.ndarray = field(repr=False)
+    moved_tets: np.ndarray = field(repr=False)
     worst_before: float
     worst_after: float
     n_colours: int
@@ -747,6 +750,7 @@ def smooth_pass(
         skipped=int(too_big.sum()),
         pinned=pinned,
         moved=np.sort(moved),
+        moved_tets=redo,
         worst_before=worst_before,
         worst_after=worst_after,
         n_colours=len(sets),

@@ -273,6 +273,7 @@ def _check_pass(before: jtet.TetMesh, after: jtet.TetMesh, stats, boundary="fixe
     changed = np.flatnonzero((after.points != before.points).any(axis=1))
     assert np.array_equal(changed, stats.moved)
     assert stats.successes == len(stats.moved) <= stats.attempts
+    assert np.array_equal(stats.moved_tets, np.isin(before.tets, stats.moved).any(axis=1))
     kind = before.topology.vertex_kind
     if boundary == "fixed":
         assert (kind[changed] == FREE).all()
