@@ -174,8 +174,8 @@ def improve(
     _require_scale(mesh)
     # after the checks: a refused mesh must not leave builds that its process's exit
     # then waits for (background threads are joined at exit)
-    _prefetch_in_background(opts)
-    prefetch_kernels(opts.quality)  # the per-tet kernel, and the warm start
+    groups = _prefetch_in_background(opts)
+    prefetch_kernels(groups)  # the per-tet kernel, and the warm start of the run's kernels
     # one evaluation of every tet serves the statistics and the optimizer's measures
     per_tet = tet_all_measures(mesh.points, mesh.tets)
     stats_before = mesh_stats(mesh, per_tet=per_tet)
@@ -334,11 +334,12 @@ def _require_conforming(mesh: TetMesh) -> None:
         )
 
 
-def _prefetch_in_background(opts: Options) -> None:
+def _prefetch_in_background(opts: Options) -> set[tuple]:
     """Start building the kernels of the run's operations on background threads: a new
     process then compiles them side by side, while the run checks the mesh and computes
     its statistics, instead of one group at the start of each first pass (the smoothing
-    kernel, ~9 s cold, used to compile alone after the flip passes)."""
+    kernel, ~9 s cold, used to compile alone after the flip passes). Returns their
+    (name, settings) groups (the run's other shapes of them are in the same groups)."""
     from ._aot import prefetch_in_background
 
     specs = []
@@ -355,6 +356,7 @@ def _prefetch_in_background(opts: Options) -> None:
 
         specs += tree_kernel_specs(opts.quality, opts.max_faces)
     prefetch_in_background(specs)
+    return {spec[:2] for spec in specs}
 
 
 def _updated_tet_measures(step: StepResult, measure: str, q, lo, hi):

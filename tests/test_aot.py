@@ -255,6 +255,31 @@ def test_warm_start_loads_the_most_recently_used_kernels(cache, monkeypatch):
     assert np.array_equal(np.asarray(out), np.asarray(jax.jit(_kernel)(*shapes[3])))
 
 
+def test_warm_start_loads_only_the_groups_asked_for(cache):
+    # a cache that runs with other settings filled (other quality measures, other
+    # kernels) must not cost this run loads of kernels it never calls
+    import os
+
+    args = [(ARGS[0][:n], ARGS[1]) for n in (1, 2, 3)]
+    for i, (settings, a) in enumerate([((1,), args[0]), ((2,), args[1]), ((1,), args[2])]):
+        _aot.cached_call("k", settings, _kernel, *a)
+        os.utime(cache / _aot._filename(_aot._key("k", settings, a)), (1e9 + i, 1e9 + i))
+    _aot.cached_call("other", (1,), _kernel, *args[0])  # the most recent of all
+    _aot._memo.clear()  # a new process
+    loaded = _aot.warm_start(limit=32, groups={("k", (1,))})
+    # every shape of the group, in the order they were last used; nothing else
+    assert loaded == [_aot._key("k", (1,), args[0]), _aot._key("k", (1,), args[2])]
+    for thread in list(_aot._background):
+        thread.join()
+    # ``limit`` counts the group's kernels only: the most recent of them
+    os.utime(cache / _aot._filename(loaded[0]), (1e9, 1e9))  # (the load renewed it)
+    _aot._memo.clear()
+    _aot._warm_started = False
+    assert _aot.warm_start(limit=1, groups={("k", (1,))}) == [_aot._key("k", (1,), args[2])]
+    for thread in list(_aot._background):
+        thread.join()
+
+
 def test_exit_while_warm_start_loads_is_clean(tmp_path):
     """A process that exits while warm-start threads are still loading kernels exits
     normally: a thread inside XLA during interpreter shutdown aborted the process (SIGABRT
@@ -283,7 +308,7 @@ def test_background_prefetch_builds_what_the_passes_use(cache, monkeypatch):
     from jtet import _driver, _smooth
 
     opts = jtet.Options(max_ring=5)
-    _driver._prefetch_in_background(opts)  # returns at once
+    groups = _driver._prefetch_in_background(opts)  # returns at once
     for thread in list(_aot._background):
         thread.join()
     built = set(_aot._memo)
@@ -301,5 +326,9 @@ def test_background_prefetch_builds_what_the_passes_use(cache, monkeypatch):
     for step in _driver.STEPS.values():
         step(mesh, opts, mesh.quality(opts.quality), None)
     assert built <= asked  # (the demo also has larger trees: a second tree capacity)
+    # the warm start of a run loads the groups of every pass kernel it calls
+    per_tet = ("tet_all_measures", tuple(jtet.MEASURES))
+    assert {k[:2] for k in asked} <= groups | {per_tet}
+    assert groups == {k[:2] for k in built}
     with pytest.raises(jtet.JtetError, match="unknown smoothing options"):
         _smooth.pass_kernel_specs("min_sine", n_trails=3)
