@@ -298,3 +298,38 @@ def test_counts_match_brute_force_on_damaged_meshes(seed):
     got = {k: getattr(r, k) for k in ref}
     assert got == ref
     assert r.n_duplicate_tets == 3 - (len({tuple(sorted(t)) for t in extra}) < 3)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_component_roots_match_scipy(seed):
+    # against scipy's connected components: the same partition, labelled by the
+    # smallest node of each component; paths and cycles (as the fans of a boundary
+    # vertex), random graphs, self loops, repeated edges, isolated nodes, no edge at all
+    import scipy.sparse
+    import scipy.sparse.csgraph
+
+    from jtet._validity import component_roots
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 400))
+    perm = rng.permutation(n)  # paths and cycles over shuffled ids
+    cuts = np.sort(rng.choice(np.arange(1, n), size=min(n - 1, 10), replace=False)) if n > 1 else []
+    src, dst = [], []
+    for part in np.split(perm, cuts):
+        src.append(part[:-1])
+        dst.append(part[1:])
+        if len(part) > 2 and rng.random() < 0.5:  # close it into a cycle
+            src.append(part[-1:])
+            dst.append(part[:1])
+    k = int(rng.integers(0, n // 4 + 1)) if seed % 2 else 0  # random extra edges
+    src.append(rng.integers(0, n, k))
+    dst.append(rng.integers(0, n, k))
+    src, dst = np.concatenate(src).astype(np.int64), np.concatenate(dst).astype(np.int64)
+    if seed == 0:
+        src, dst = src[:0], dst[:0]
+    roots = component_roots(n, src, dst)
+    graph = scipy.sparse.coo_matrix((np.ones(len(src)), (src, dst)), shape=(n, n))
+    _, labels = scipy.sparse.csgraph.connected_components(graph, directed=False)
+    smallest = np.full(labels.max() + 1, n)
+    np.minimum.at(smallest, labels, np.arange(n))
+    assert np.array_equal(roots, smallest[labels])
