@@ -119,7 +119,7 @@ def _load_siblings(key: tuple, fn) -> None:
 
 def _start_background(target, *args) -> threading.Thread:
     """Run ``target(*args)`` on a daemon thread that the interpreter's exit waits for
-    (``_join_background``); returns the started thread."""
+    (``join_background``); returns the started thread."""
     thread = threading.Thread(target=target, args=args, daemon=True)
     with _lock:
         _background.append(thread)
@@ -128,7 +128,7 @@ def _start_background(target, *args) -> threading.Thread:
 
 
 @atexit.register
-def _join_background() -> None:
+def join_background() -> None:
     """Let the background loads that are running finish before the interpreter exits and
     start no new one: a thread still inside XLA while Python finalizes aborts the process
     (measured: a short run printed its result, then exited with SIGABRT). A load takes

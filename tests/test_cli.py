@@ -297,3 +297,24 @@ def test_help(argv, expect, capsys):
     assert out.startswith("usage: jtet")
     for word in expect:
         assert word in out, word
+
+
+def test_console_command_ends_with_complete_outputs_and_its_code(small, tmp_path):
+    # the installed ``jtet`` command runs cli.run(): main(), then os._exit without the
+    # interpreter's teardown; everything main wrote must be there and complete
+    import subprocess
+    import sys
+
+    out, report, plot = tmp_path / "o.vtu", tmp_path / "r.json", tmp_path / "h.png"
+    args = ["improve", str(small), str(out), "--report", str(report), "--plot", str(plot),
+            "--ops", "edge", "--max-passes", "1"]  # fmt: skip
+    cmd = [sys.executable, "-m", "jtet.cli"]
+    done = subprocess.run([*cmd, *args], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "time (s)" in done.stdout  # the summary table, flushed before the exit
+    assert json.loads(report.read_text())["stats_after"]
+    assert plot.read_bytes().startswith(PNG_MAGIC)
+    assert jtet.load(out).n_tets > 0
+    bad = subprocess.run([*cmd, "stats", str(tmp_path / "missing.vtu")], capture_output=True,
+                         text=True, timeout=600)  # fmt: skip
+    assert bad.returncode == 2 and bad.stderr.startswith("jtet: error:")
