@@ -165,17 +165,25 @@ def improve(
             it, or its extent is outside [1e-30, 1e30] (float64 quality would overflow).
             Inverted and degenerate tets and a non-manifold boundary are fine.
     """
+    from ._aot import prefetch_in_background
     from ._quality import prefetch_kernels, tet_all_measures
     from ._stats import mesh_stats
 
     opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
     t0 = time.perf_counter()
+    specs = _pass_kernel_specs(opts)
+    # the run's kernels that earlier processes left on disk load on background threads
+    # while the checks build the mesh's topology (NumPy sorts that release the GIL)
+    prefetch_kernels({spec[:2] for spec in specs}, build=False)
     _require_conforming(mesh)
     _require_scale(mesh)
-    # after the checks: a refused mesh must not leave builds that its process's exit
-    # then waits for (background threads are joined at exit)
-    groups = _prefetch_in_background(opts)
-    prefetch_kernels(groups)  # the per-tet kernel, and the warm start of the run's kernels
+    # builds only after the checks: a refused mesh must not leave compilations that its
+    # process's exit then waits for (background threads are joined at exit). The pass
+    # kernels compile side by side in the background while the run computes its
+    # statistics and first passes (the smoothing kernel, ~9 s cold, used to compile
+    # alone after the flip passes); the per-tet kernel is needed at once.
+    prefetch_in_background(specs)
+    prefetch_kernels()
     # one evaluation of every tet serves the statistics and the optimizer's measures
     per_tet = tet_all_measures(mesh.points, mesh.tets)
     stats_before = mesh_stats(mesh, per_tet=per_tet)
@@ -334,14 +342,9 @@ def _require_conforming(mesh: TetMesh) -> None:
         )
 
 
-def _prefetch_in_background(opts: Options) -> set[tuple]:
-    """Start building the kernels of the run's operations on background threads: a new
-    process then compiles them side by side, while the run checks the mesh and computes
-    its statistics, instead of one group at the start of each first pass (the smoothing
-    kernel, ~9 s cold, used to compile alone after the flip passes). Returns their
-    (name, settings) groups (the run's other shapes of them are in the same groups)."""
-    from ._aot import prefetch_in_background
-
+def _pass_kernel_specs(opts: Options) -> list[tuple]:
+    """``_aot.prefetch`` specs of the kernels the run's passes call first (their other
+    shapes share these specs' (name, settings) groups)."""
     specs = []
     if "smooth" in opts.ops:  # the largest kernel first
         from ._smooth import pass_kernel_specs
@@ -355,8 +358,7 @@ def _prefetch_in_background(opts: Options) -> set[tuple]:
         from ._multiface import tree_kernel_specs
 
         specs += tree_kernel_specs(opts.quality, opts.max_faces)
-    prefetch_in_background(specs)
-    return {spec[:2] for spec in specs}
+    return specs
 
 
 def _updated_tet_measures(step: StepResult, measure: str, q, lo, hi):

@@ -357,19 +357,21 @@ def tet_all_measures(
 _kernels_prefetched = False
 
 
-def prefetch_kernels(warm_groups=None) -> None:
-    """Build the per-tet kernel (every measure and the dihedral angles) on a worker
-    thread. ``jtet.improve`` passes ``warm_groups``, the (name, settings) of its passes'
-    kernels: then the kernels of those groups and the per-tet kernel that earlier
-    processes used most recently also start loading in the background
-    (``_aot.warm_start``): a warm first run loaded them one group at a time as its
-    passes first needed them.
+def prefetch_kernels(warm_groups=None, build: bool = True) -> None:
+    """Build the per-tet kernel (every measure and the dihedral angles); returns when it
+    is ready. ``jtet.improve`` first passes ``warm_groups``, the (name, settings) of its
+    passes' kernels, with ``build=False``: the kernels of those groups and the per-tet
+    kernel that earlier processes used most recently then start loading in the
+    background (``_aot.warm_start``, once per process; nothing is compiled), where a
+    warm first run loaded them one group at a time as its passes first needed them.
     """
     global _kernels_prefetched
-    _kernels_prefetched = True
     names = tuple(MEASURES)
     if warm_groups is not None:
         warm_start(groups={*warm_groups, ("tet_all_measures", names)})
+    if not build:
+        return
+    _kernels_prefetched = True
     xyz = [jax.ShapeDtypeStruct((TET_CHUNK,), np.float64)] * 12
     fn = functools.partial(_all_measures_soa, names=names)
     prefetch([("tet_all_measures", names, fn, xyz)])

@@ -308,7 +308,9 @@ def test_background_prefetch_builds_what_the_passes_use(cache, monkeypatch):
     from jtet import _driver, _smooth
 
     opts = jtet.Options(max_ring=5)
-    groups = _driver._prefetch_in_background(opts)  # returns at once
+    specs = _driver._pass_kernel_specs(opts)
+    groups = {spec[:2] for spec in specs}
+    _aot.prefetch_in_background(specs)  # returns at once
     for thread in list(_aot._background):
         thread.join()
     built = set(_aot._memo)
