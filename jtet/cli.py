@@ -281,7 +281,9 @@ def run() -> None:
     every output is complete (written through atomic renames); once the background kernel
     builds have finished (their cache files written) and the streams are flushed, the
     teardown has nothing left to save, so the process ends with ``os._exit``. In-process
-    callers (the tests, notebooks) call ``main()`` and keep the normal exit.
+    callers (the tests, notebooks) call ``main()`` and keep the normal exit, as does
+    ``python -m jtet.cli`` (so that profilers and coverage tools wrapping it can write
+    their results at exit).
     """
     code = main()
     from ._aot import join_background
@@ -301,4 +303,4 @@ def run() -> None:
 
 
 if __name__ == "__main__":
-    run()
+    sys.exit(main())

@@ -308,7 +308,11 @@ def test_console_command_ends_with_complete_outputs_and_its_code(small, tmp_path
     out, report, plot = tmp_path / "o.vtu", tmp_path / "r.json", tmp_path / "h.png"
     args = ["improve", str(small), str(out), "--report", str(report), "--plot", str(plot),
             "--ops", "edge", "--max-passes", "1"]  # fmt: skip
-    cmd = [sys.executable, "-m", "jtet.cli"]
+    cmd = [
+        sys.executable,
+        "-c",
+        "import sys; from jtet.cli import run; sys.argv[0] = 'jtet'; run()",
+    ]
     done = subprocess.run([*cmd, *args], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "time (s)" in done.stdout  # the summary table, flushed before the exit
