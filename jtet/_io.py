@@ -334,6 +334,10 @@ def _write_vtk_file(grid, path: Path, fmt: str) -> None:
             writer.SetDataModeToAppended()
             writer.EncodeAppendedDataOff()  # raw binary, no base64
             writer.SetCompressorTypeToZLib()
+            # level 1, not VTK's 5: float64 coordinates and qualities hardly compress, so
+            # the file is 1 % larger and written 1.6x faster (182k tets with their quality
+            # arrays: 0.82 -> 0.51 s, 13.1 -> 13.3 MB)
+            writer.SetCompressionLevel(1)
         else:
             from vtkmodules.vtkIOLegacy import vtkUnstructuredGridWriter
 
