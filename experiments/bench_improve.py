@@ -12,6 +12,7 @@ times and the kernel builds (experiments/results/compile.md).
     python experiments/bench_improve.py --meshes gmsh_cube --ops edge,face
     python experiments/bench_improve.py --boundary slide      # flat facets' vertices slide
     python experiments/bench_improve.py --compile --meshes gmsh_cube   # compile overhead
+    python experiments/bench_improve.py --cli --repeat 5      # the jtet command, end to end
     python experiments/bench_improve.py --big 165000          # + a ~1M-tet Delaunay mesh
     python experiments/bench_improve.py --meshes gmsh:cube:0.03   # Gmsh cube, h = 0.03 (~200k)
     python experiments/bench_improve.py --smooth-effort 15x6,8x3,4x4   # smoothing effort table
@@ -236,6 +237,35 @@ def _compile_run(name: str, ops: str, cache: str) -> dict:
     return row
 
 
+def cli_wall_time(names: list[str], repeat: int) -> None:
+    """Wall time of the ``jtet improve IN OUT`` command as a user runs it (a new process:
+    interpreter start, imports, reading, the run with its kernels loaded from the warm
+    cache, the summary, writing the output, exit), after one untimed run per mesh that
+    fills the cache; min and median of ``repeat`` runs."""
+    import shutil
+
+    command = shutil.which("jtet")
+    if command is None:
+        sys.exit("--cli: the jtet command is not installed (pip install -e .)")
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in names:
+            path = Path(tmp) / "in.vtu"
+            jtet.save(load_mesh(name), path)
+            args = [command, "improve", str(path), str(Path(tmp) / "out.vtu"), "--quiet"]
+            subprocess.run(args, check=True, capture_output=True)  # fills the cache
+            walls = []
+            for _ in range(repeat):
+                t = time.perf_counter()
+                subprocess.run(args, check=True, capture_output=True)
+                walls.append(time.perf_counter() - t)
+            rows.append((name, jtet.load(path).n_tets, min(walls), float(np.median(walls))))
+    print(f"\njtet improve IN OUT (new process, warm cache), {repeat} runs\n")
+    print("| mesh | tets | min s | median s |\n|---|---|---|---|")
+    for name, m, lo, med in rows:
+        print(f"| {name} | {m:,} | {lo:.2f} | {med:.2f} |")
+
+
 def compile_overhead(name: str, ops: str, repeat: int) -> None:
     """First improve with an empty cache (cold) and in a second process with the cache
     the first one filled (warm), each against the steady state (the second improve in
@@ -321,7 +351,12 @@ def main() -> None:
     p.add_argument(
         "--compile", action="store_true", help="measure compile overhead (cold vs warm cache)"
     )
-    p.add_argument("--repeat", type=int, default=2, help="--compile: pairs of processes")
+    p.add_argument(
+        "--cli", action="store_true", help="wall time of the jtet improve command (new processes)"
+    )
+    p.add_argument(
+        "--repeat", type=int, default=2, help="--compile: pairs of processes; --cli: runs"
+    )
     p.add_argument("--compile-worker", default=None, help=argparse.SUPPRESS)
     p.add_argument(
         "--settings",
@@ -342,6 +377,9 @@ def main() -> None:
         names.append(f"delaunay:{args.big}")
     if args.compile_worker:
         compile_worker(args.compile_worker, ops)
+        return
+    if args.cli:
+        cli_wall_time(names, args.repeat)
         return
     if args.compile:
         for name in names:
