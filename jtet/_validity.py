@@ -324,18 +324,6 @@ def check_validity(mesh) -> ValidityReport:
     r["repeated_vertex_tets"] = _examples(np.flatnonzero(rep))
     proper = np.flatnonzero(~rep)
 
-    # --- duplicate tets (same vertex set, whatever the order)
-    g = _group_rows(st[proper], n)
-    r["n_duplicate_tets"] = int((g.counts - 1).sum())
-    if r["n_duplicate_tets"]:
-        # pair every later copy with the first (smallest index) tet of its group
-        members = proper[g.order]
-        first = np.minimum.reduceat(members, g.starts)
-        gid = np.repeat(np.arange(len(g.starts)), g.counts)
-        copies = members != first[gid]
-        pairs = np.stack([first[gid][copies], members[copies]], axis=1)
-        r["duplicate_tets"] = _examples(pairs[np.lexsort(pairs.T[::-1])])
-
     # --- faces: 4 per proper tet, oriented by the boundary chain of the tet
     t = tets[proper]
     f = t[:, _FACES].reshape(-1, 3)  # (4m', 3), row 4*i + j: face opposite vertex j of tet i
@@ -345,6 +333,23 @@ def check_validity(mesh) -> ValidityReport:
     parity = ((f[:, 0] > f[:, 1]) ^ (f[:, 0] > f[:, 2]) ^ (f[:, 1] > f[:, 2])).astype(np.int8)
     fg = _group_rows(fs, n)
     faces, fcnt, order, starts = fs[fg.first], fg.counts, fg.order, fg.starts
+
+    # --- duplicate tets (same vertex set, whatever the order): the same face opposite
+    # their largest vertex, and that vertex. Grouped by (face group, vertex), one 1-D
+    # sort of m keys, not a sort of the (m, 4) sorted rows (983k tets: 0.83 -> ~0.15 s)
+    top = np.argmax(t, axis=1)  # local index of each tet's largest vertex
+    across = fg.inverse()[4 * np.arange(len(t)) + top]
+    key = across * np.int64(n) + t[np.arange(len(t)), top]
+    g = _group_rows(key[:, None], int(key.max(initial=0)) + 1)
+    r["n_duplicate_tets"] = int((g.counts - 1).sum())
+    if r["n_duplicate_tets"]:
+        # pair every later copy with the first (smallest index) tet of its group
+        members = proper[g.order]
+        first = np.minimum.reduceat(members, g.starts)
+        gid = np.repeat(np.arange(len(g.starts)), g.counts)
+        copies = members != first[gid]
+        pairs = np.stack([first[gid][copies], members[copies]], axis=1)
+        r["duplicate_tets"] = _examples(pairs[np.lexsort(pairs.T[::-1])])
     r["n_overshared_faces"] = int((fcnt > 2).sum())
     r["overshared_faces"] = _examples(faces[fcnt > 2])
 

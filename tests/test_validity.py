@@ -104,6 +104,20 @@ def test_duplicate_tet(base):
     assert not r.ok and not r.conforming
 
 
+def test_three_copies_and_a_tet_sharing_three_vertices(base):
+    # copies in any vertex order and orientation are one group; a tet that shares the
+    # face opposite the largest vertex but not that vertex is not a copy
+    m, n = base.n_tets, base.n_points
+    i = int(np.flatnonzero(base.tets.max(axis=1) < n - 2)[0])
+    t = base.tets[i]
+    # the same three smallest vertices and a larger fourth: the face opposite the
+    # largest vertex is the same, the tet is not
+    twin_face = np.sort(t)[:3].tolist() + [n - 1]
+    extra = np.array([t[[3, 2, 1, 0]], t[[2, 0, 1, 3]], twin_face])
+    r = check_validity(jtet.TetMesh(base.points, np.concatenate([base.tets, extra])))
+    assert r.n_duplicate_tets == 2 and r.duplicate_tets == ((i, m), (i, m + 1))
+
+
 def test_face_shared_by_three_tets(base):
     ft = face_tets(base.tets)
     face = next(f for f, ts in ft.items() if len(ts) == 2)
