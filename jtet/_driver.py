@@ -166,7 +166,7 @@ def improve(
             Inverted and degenerate tets and a non-manifold boundary are fine.
     """
     from ._aot import prefetch_in_background
-    from ._quality import prefetch_kernels, tet_all_measures
+    from ._quality import prefetch_kernels, tet_all_measures, warm_start_kernels
     from ._stats import mesh_stats
 
     opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
@@ -174,7 +174,7 @@ def improve(
     specs = _pass_kernel_specs(opts)
     # the run's kernels that earlier processes left on disk load on background threads
     # while the checks build the mesh's topology (NumPy sorts that release the GIL)
-    prefetch_kernels({spec[:2] for spec in specs}, build=False)
+    warm_start_kernels({spec[:2] for spec in specs})
     _require_conforming(mesh)
     _require_scale(mesh)
     # builds only after the checks: a refused mesh must not leave compilations that its

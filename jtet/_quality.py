@@ -350,31 +350,33 @@ def tet_all_measures(
     if not _kernels_prefetched:
         prefetch_kernels()
     fn = functools.partial(_all_measures_soa, names=names)
-    rows, *qs = _per_tet("tet_all_measures", names, fn, points, tets)
+    rows, *qs = _per_tet(*PER_TET_KERNEL, fn, points, tets)
     return *_angle_extremes(rows), dict(zip(names, qs, strict=True))
 
 
 _kernels_prefetched = False
+# (name, settings) of the per-tet kernel: every measure and the dihedral angles
+PER_TET_KERNEL = ("tet_all_measures", tuple(MEASURES))
 
 
-def prefetch_kernels(warm_groups=None, build: bool = True) -> None:
-    """Build the per-tet kernel (every measure and the dihedral angles); returns when it
-    is ready. ``jtet.improve`` first passes ``warm_groups``, the (name, settings) of its
-    passes' kernels, with ``build=False``: the kernels of those groups and the per-tet
-    kernel that earlier processes used most recently then start loading in the
-    background (``_aot.warm_start``, once per process; nothing is compiled), where a
-    warm first run loaded them one group at a time as its passes first needed them.
-    """
+def warm_start_kernels(pass_groups) -> None:
+    """Start loading, in the background, the kernels of ``pass_groups`` (the (name,
+    settings) of ``jtet.improve``'s pass kernels) and the per-tet kernel that earlier
+    processes used most recently (``_aot.warm_start``, once per process; nothing is
+    compiled). A warm first run loaded them one group at a time as its passes first
+    needed them."""
+    warm_start(groups={*pass_groups, PER_TET_KERNEL})
+
+
+def prefetch_kernels() -> None:
+    """Build the per-tet kernel (every measure and the dihedral angles), or wait for the
+    thread loading it; returns when it is ready."""
     global _kernels_prefetched
-    names = tuple(MEASURES)
-    if warm_groups is not None:
-        warm_start(groups={*warm_groups, ("tet_all_measures", names)})
-    if not build:
-        return
     _kernels_prefetched = True
     xyz = [jax.ShapeDtypeStruct((TET_CHUNK,), np.float64)] * 12
+    name, names = PER_TET_KERNEL
     fn = functools.partial(_all_measures_soa, names=names)
-    prefetch([("tet_all_measures", names, fn, xyz)])
+    prefetch([(name, names, fn, xyz)])
 
 
 def tet_dihedrals(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, ...]:
