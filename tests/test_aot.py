@@ -334,3 +334,19 @@ def test_background_prefetch_builds_what_the_passes_use(cache, monkeypatch):
     assert groups == {k[:2] for k in built}
     with pytest.raises(jtet.JtetError, match="unknown smoothing options"):
         _smooth.pass_kernel_specs("min_sine", n_trails=3)
+
+
+def test_a_refused_mesh_compiles_nothing(cache):
+    # improve's checks come before any build: a mesh it refuses must not leave kernel
+    # compilations running that the process's exit would then wait for (the warm start
+    # before the checks only loads from disk, and this cache is empty)
+    import jtet
+
+    mesh = jtet.demo_mesh()
+    doubled = jtet.TetMesh(mesh.points, np.concatenate([mesh.tets, mesh.tets[:1]]))
+    threads_before = set(_aot._background)
+    with pytest.raises(jtet.MeshInputError, match="non-conforming"):
+        jtet.improve(doubled)
+    assert _aot._memo == {} and _aot._building == {}
+    assert not any(t.is_alive() for t in set(_aot._background) - threads_before)
+    assert not list(cache.parent.glob("*/*.bin"))  # nothing exported either
