@@ -58,11 +58,15 @@ from ._topology import csr_rows
 STAR_PERM = np.array([[1, 2, 3], [0, 3, 2], [3, 0, 1], [2, 1, 0]], dtype=np.int64)
 
 SOLVERS = ("bfgs", "ncg", "bfgs_tr", "active_set", "hybrid")
-# Stars up to 64 tets share one kernel shape (K = 64): a K = 32 shape for the smaller
-# stars cost a second ~12 s CPU compile in a new process (compile time hardly depends on
-# K) and a second executable to load, and its calls were no faster (K = 64 only: cube /
-# torus steady 0.71 -> 0.64 s / 1.98 -> 1.67 s, fuller batches; same quality). 128: rare.
-DEFAULT_CAPACITIES = (64, 128)
+# Stars up to 56 tets share one kernel shape (K = 56). A second, smaller shape (K = 32)
+# cost a second ~10 s CPU compile in a new process and a second executable to load, and
+# its calls were no faster overall (fewer stars per batch). The kernel is bound by the
+# work per padded slot (~1.8 us per slot and star at batch 32: every slot is evaluated
+# ~45 times), so the capacity is the smallest multiple of 8 above the stars of Gmsh and
+# optimized fTetWild meshes (at most 50 tets measured; a mean of ~27): calls 12 % faster
+# than at K = 64, the same output on the benchmark meshes (K = 40 rounds some reductions
+# differently; 48 sends the rare 49-50-tet stars to the 128 shape, a second compile).
+DEFAULT_CAPACITIES = (56, 128)
 
 # ---------------------------------------------------------------------------------------
 # Quality of a star as a function of the moving vertex.
