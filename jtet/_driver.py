@@ -171,6 +171,9 @@ def improve(
 
     opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
     t0 = time.perf_counter()
+    # the run's topologies (the checks', every step's) treat subfacets bent by less than
+    # the feature angle as one surface; the caller's mesh object is left as it was
+    mesh = mesh._with_feature_angle(opts.feature_angle)
     specs = _pass_kernel_specs(opts)
     # the run's kernels that earlier processes left on disk load on background threads
     # while the checks build the mesh's topology (NumPy sorts that release the GIL)

@@ -217,6 +217,7 @@ class TetMesh:
                 changes.get("protected_edges", pe), 2, "protected_edges", len(points)
             )
         out = object.__new__(type(self))
+        object.__setattr__(out, "_feature_angle", self._feature_angle)
         for name, value in (
             ("points", points),
             ("tets", tets),
@@ -362,12 +363,27 @@ class TetMesh:
         """(m,) signed volumes."""
         return _orient_volumes6(self.points, self.tets) / 6.0
 
+    # Degrees: two subfacets of one surface bent by more than this meet at a subsegment
+    # (``Topology.build``). Not a field: ``improve`` sets it on its working copy of the
+    # mesh (``_with_feature_angle``), and every mesh derived from that copy (flip steps,
+    # smoothing) keeps it, so their topologies, full or incremental, agree.
+    _feature_angle = 0.0
+
+    def _with_feature_angle(self, feature_angle: float) -> TetMesh:
+        """This mesh if its topology is built with ``feature_angle``, else a copy (same
+        read-only arrays, no cached topology) whose topology will be."""
+        if float(feature_angle) == self._feature_angle:
+            return self
+        out = self._derive()
+        object.__setattr__(out, "_feature_angle", float(feature_angle))
+        return out
+
     @functools.cached_property
     def topology(self):
         """Vectorized adjacency: faces, edges, rings, boundary, protection (cached)."""
         from ._topology import Topology
 
-        return Topology.build(self)
+        return Topology.build(self, self._feature_angle)
 
     def quality(self, measure: str = "min_sine") -> np.ndarray:
         """(m,) quality of every tet under ``measure`` (see ``jtet.MEASURES``)."""

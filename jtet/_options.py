@@ -42,7 +42,9 @@ class Options:
             vertices slide inside flat facets and along straight subsegments.
         feature_angle: degrees; two subfacets whose planes differ by more than this make
             their edge a subsegment. 0 (default): only exactly coplanar subfacets may be
-            flipped, so the boundary stays geometrically identical.
+            flipped, so the boundary stays geometrically identical. A positive angle lets
+            flips replace subfacets bent by less than it: the boundary and interfaces
+            then keep their vertices but their shape (and the region volumes) change.
         max_passes: stop after this many passes.
         patience: stop after this many passes in a row without progress.
         time_limit: seconds of wall time, or None.

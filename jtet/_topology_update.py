@@ -53,17 +53,20 @@ def update_topology(
     old_mesh,
     new_mesh,
     keep: np.ndarray,
-    feature_angle: float = 0.0,
+    feature_angle: float | None = None,
     fallback: bool = True,
 ) -> Topology | None:
     """``Topology.build(new_mesh, feature_angle)``, derived from ``old`` (of ``old_mesh``).
 
     ``new_mesh.tets`` must be ``old_mesh.tets[keep]`` followed by new tets (``keep`` (m,)
     bool), with the same points and protected edges; ``old`` must have been built with
-    the same ``feature_angle``. Otherwise, or for a large change, or when the full build
-    would raise (non-conforming faces, missing protected entities), it runs the full build
-    (``fallback``) or returns None.
+    the same ``feature_angle`` (None: the new mesh's own, which its ``topology`` uses).
+    Otherwise, or for a large change, or when the full build would raise (non-conforming
+    faces, missing protected entities), it runs the full build (``fallback``) or returns
+    None.
     """
+    if feature_angle is None:
+        feature_angle = new_mesh._feature_angle
     keep = np.asarray(keep, bool)
     if _compatible(old, old_mesh, new_mesh, keep):
         topo = _update(old, old_mesh, new_mesh, keep, feature_angle)

@@ -66,7 +66,8 @@ def _add_options(p: argparse.ArgumentParser) -> None:
         "--feature-angle",
         type=float,
         default=DEFAULTS.feature_angle,
-        help="degrees; subfacets bent more than this are features (default 0: exactly flat only)",
+        help="degrees; subfacets bent more than this are features, smaller bends may be "
+        "flipped, changing the surface's shape (default 0: exactly flat only)",
     )
     p.add_argument("--max-passes", type=int, default=DEFAULTS.max_passes)
     p.add_argument(

@@ -173,6 +173,20 @@ def test_improve_options_reach_options(small, tmp_path, capsys):
     )
 
 
+def test_improve_feature_angle_reaches_the_flips(tmp_path, capsys):
+    # two tets under a roof folded by 11.4 degrees along the boundary edge 0-1
+    points = [[-1, 0, 0], [1, 0, 0], [0, -0.3, 0.03], [0, 0.3, 0.03], [0, 0, -0.6]]
+    roof = jtet.TetMesh.from_arrays(np.array(points, float), [[0, 1, 2, 4], [0, 1, 3, 4]])
+    src = tmp_path / "roof.vtu"
+    jtet.save(roof, src)
+    for angle, flipped in (("0", False), ("15", True)):
+        out = tmp_path / f"out{angle}.vtu"
+        code = _improve(src, out, "--ops", "edge", "--feature-angle", angle, "--check", "-q")
+        assert code == 0, capsys.readouterr().err
+        edges = {tuple(e) for e in jtet.load(out).topology.edges.tolist()}
+        assert ((2, 3) in edges) == flipped and ((0, 1) in edges) != flipped
+
+
 def test_improve_bad_option_exits_2(small, tmp_path, capsys):
     out = tmp_path / "o.vtu"
     # out of range for Options: JtetError -> exit 2 with one line naming the option

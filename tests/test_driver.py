@@ -418,6 +418,36 @@ def test_boundary_slide_keeps_boundary():
             assert np.allclose(p1[plane, axis], v, atol=1e-12)
 
 
+def bent_roof() -> jtet.TetMesh:
+    """Two tets under a roof a-x-b-y folded along its diagonal ab: the boundary faces
+    abx and aby meet at a bend of 2 atan(0.1) = 11.4 degrees. Flipping ab (a boundary
+    2-2 flip to the diagonal xy) raises the worst dihedral angle 29.0 -> 58.1 degrees."""
+    points = [[-1, 0, 0], [1, 0, 0], [0, -0.3, 0.03], [0, 0.3, 0.03], [0, 0, -0.6]]
+    return jtet.TetMesh.from_arrays(np.array(points, float), [[0, 1, 2, 4], [0, 1, 3, 4]])
+
+
+def test_feature_angle_lets_flips_replace_bent_boundary_faces():
+    mesh = bent_roof()
+    for angle in (0.0, 10.0):  # the bend is a feature: ab is a subsegment
+        r = jtet.improve(mesh, ops=("edge",), feature_angle=angle, check=True)
+        assert r.status == "converged" and r.history[0]["successes"] == 0
+        assert np.array_equal(r.mesh.tets, mesh.tets)
+    r = jtet.improve(mesh, ops=("edge",), feature_angle=15.0, check=True)
+    assert r.status == "converged" and r.history[0]["by_kind"]["boundary"] == 1
+    assert r.stats_before.min_dihedral < 29.1 and r.stats_after.min_dihedral > 58.0
+    # the new diagonal xy is an edge, ab is not; the roof's four vertices stay on the
+    # boundary, but the domain changed: the flip filled the fold
+    edges = {tuple(e) for e in r.mesh.topology.edges.tolist()}
+    assert (2, 3) in edges and (0, 1) not in edges
+    assert r.mesh.volumes.sum() > mesh.volumes.sum() + 1e-3
+    # the caller's mesh keeps its own topology (feature angle 0: ab a subsegment)
+    ab = mesh.topology.edge_ids(np.array([[0, 1]]))[0]
+    assert mesh.topology.subsegment[ab]
+    # the exact checker of the input mesh sees the changed surface
+    with pytest.raises(jtet.InvariantError, match="volume changed"):
+        InvariantChecker(mesh).check(r.mesh, 0, "edge")
+
+
 @pytest.mark.parametrize("measure", sorted(jtet.MEASURES))
 def test_every_measure_edge_pass(demo, measure):
     q0 = jtet.quality(demo, measure).min()

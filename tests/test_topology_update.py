@@ -10,7 +10,8 @@ import dataclasses
 
 import numpy as np
 import pytest
-from helpers import delaunay_mesh, grid_mesh
+from helpers import delaunay_mesh, grid_mesh, orient_positive
+from scipy.spatial import Delaunay
 
 import jtet
 import jtet._topology_update as U
@@ -35,7 +36,8 @@ def direct_updates(T, old_mesh, new_mesh, keep):
     for fraction in (1.0, 0.0):
         saved, U.LOCAL_FRACTION = U.LOCAL_FRACTION, fraction
         try:
-            out.append(U._update(T, old_mesh, new_mesh, np.asarray(keep, bool), 0.0))
+            angle = new_mesh._feature_angle
+            out.append(U._update(T, old_mesh, new_mesh, np.asarray(keep, bool), angle))
         finally:
             U.LOCAL_FRACTION = saved
     return out
@@ -43,7 +45,7 @@ def direct_updates(T, old_mesh, new_mesh, keep):
 
 def check_step(old_mesh, new_mesh, keep):
     """The incremental path itself (no size fallback) and the public entry point."""
-    want = Topology.build(new_mesh)
+    want = Topology.build(new_mesh, new_mesh._feature_angle)
     for direct in direct_updates(old_mesh.topology, old_mesh, new_mesh, keep):
         assert direct is not None
         assert_same(direct, want)
@@ -72,6 +74,20 @@ def run_passes(mesh, n_passes=3, **kw):
     return steps
 
 
+def ball_mesh(seed: int) -> jtet.TetMesh:
+    """Delaunay mesh of random points in the unit ball and on its sphere: a convex hull
+    whose faces meet at small bends (feature angles)."""
+    rng = np.random.default_rng(seed)
+    sphere = rng.standard_normal((80, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    inside = rng.standard_normal((80, 3)) * 0.3
+    pts = np.vstack([sphere, inside])
+    tets = orient_positive(pts, Delaunay(pts).simplices.astype(np.int64))
+    p = pts[tets]
+    vol = np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]))
+    return jtet.TetMesh(pts, tets[vol > 1e-12])
+
+
 def flat_protected_mesh():
     """One region with user-protected faces on the flat plane x = 0.5 (4-4 flips there
     swap protected faces in replace_tets)."""
@@ -88,8 +104,10 @@ def flat_protected_mesh():
         lambda: grid_mesh(4, perturb=0.9, seed=1, two_regions=True),  # interface 4-4 flips
         flat_protected_mesh,
         lambda: delaunay_mesh(150, seed=3, clustered=True),
+        # bent boundary faces are flipped too: every step's topology keeps the angle
+        lambda: ball_mesh(seed=2)._with_feature_angle(30.0),
     ],
-    ids=["boundary", "interface", "protected", "clustered"],
+    ids=["boundary", "interface", "protected", "clustered", "feature-angle"],
 )
 def test_real_passes(make):
     assert run_passes(make()) > 0
