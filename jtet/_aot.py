@@ -52,6 +52,9 @@ _stopping = threading.Event()  # set at exit: background loads take no new kerne
 _pruned = False  # old versions are pruned at most once per process
 _groups_seen: set[tuple] = set()  # (name, settings) whose siblings were loaded
 _warm_started = False  # warm_start() runs at most once per process
+_called: set[tuple] = set()  # keys this process has called (recorded in ``.calls`` files)
+_PROCESS = f"{os.getpid()}-{time.time_ns()}"  # this process in the ``.calls`` files
+CALLS_KEPT = 4  # processes whose called kernels a group's ``.calls`` file remembers
 # Kernels built by this process: exported (traced + lowered + written) or loaded from disk,
 # and seconds spent on both, summed over threads (experiments/bench_improve.py --compile).
 STATS = {"exported": 0, "loaded": 0, "export_s": 0.0, "compile_s": 0.0}
@@ -95,7 +98,61 @@ def cached_call(name: str, settings: tuple, fn, *args, siblings: bool = False):
         if siblings:
             _load_siblings(key, fn)
         call = _get(key, fn, args)
+    if key not in _called:
+        _record_call(key)
     return call(*args)
+
+
+def _calls_path(directory: Path, group: tuple) -> Path:
+    return directory / f"{_group_prefix(group)}.calls"
+
+
+def _record_call(key: tuple) -> None:
+    """Note in the group's ``.calls`` file that this process called ``key``.
+
+    The file lists, for each of the last ``CALLS_KEPT`` processes that called a kernel
+    of the group, the shapes it called. The warm start and the sibling loads read it to
+    load only those shapes: kernels of a group that no recent run called (a batch size
+    tried once, the test suite's shapes) are not loaded into every later run. A lost
+    update between two processes writing at once only costs one of them a later load.
+    """
+    directory = _directory()
+    with _lock:
+        if key in _called:
+            return
+        _called.add(key)
+        if directory is None:
+            return
+        mine = sorted((k for k in _called if k[:2] == key[:2]), key=repr)
+        path = _calls_path(directory, key[:2])
+        try:
+            others = [e for e in _read_calls(path) if e[0] != _PROCESS]
+            entries = [(_PROCESS, mine), *others[: CALLS_KEPT - 1]]
+            _write_atomic(path, repr(entries).encode())
+        except OSError:  # read-only or vanished cache: the loads fall back to every shape
+            pass
+
+
+def _read_calls(path: Path) -> list:
+    """[(process, [key, ...]), ...] of a ``.calls`` file, most recent process first; []
+    when there is none or it cannot be read."""
+    try:
+        entries = ast.literal_eval(path.read_text())
+        return [(str(p), [tuple(k) for k in keys]) for p, keys in entries]
+    except (OSError, ValueError, SyntaxError, TypeError):
+        return []
+
+
+def _recent_keys(directory: Path, group: tuple) -> list[tuple] | None:
+    """Keys of ``group`` that the last processes called, most recent first, each once;
+    None when no process recorded its calls (then every exported shape counts)."""
+    entries = _read_calls(_calls_path(directory, group))
+    if not entries:
+        return None
+    keys = []
+    for _, called in entries:
+        keys += [k for k in called if k not in keys]
+    return keys
 
 
 def _load_siblings(key: tuple, fn) -> None:
@@ -109,8 +166,12 @@ def _load_siblings(key: tuple, fn) -> None:
     directory = _directory()
     if directory is None:
         return
+    recent = _recent_keys(directory, group)
     try:
-        paths = sorted(directory.glob(f"{_group_prefix(group)}-*.bin"))
+        if recent is None:
+            paths = sorted(directory.glob(f"{_group_prefix(group)}-*.bin"))
+        else:
+            paths = [directory / _filename(k) for k in recent if k != key]
     except OSError:
         return
     for path in paths:
@@ -159,10 +220,12 @@ def warm_start(limit: int = WARM_START_KERNELS, groups=None) -> list[tuple]:
     only once per process. Returns their keys. A kernel a caller asks for meanwhile is
     loaded once: the caller waits for the background thread or the thread skips it.
 
-    ``groups`` (optional collection of (name, settings)): only kernels of these groups,
-    any shape. A cache that runs with other settings filled (a sweep over quality
-    measures, the test suite) then costs no loads of kernels this run never calls:
-    each load takes 0.05-0.5 s of CPU from the run it overlaps.
+    ``groups`` (optional collection of (name, settings)): only kernels of these groups.
+    A cache that runs with other settings filled (a sweep over quality measures, the
+    test suite) then costs no loads of kernels this run never calls: each load takes
+    0.05-0.5 s of CPU from the run it overlaps. Of a group, the shapes its last
+    ``CALLS_KEPT`` processes called (its ``.calls`` file), most recent first; every
+    exported shape if no process recorded its calls.
 
     Warm cube run: 13 kernels, ~2.4 s of loading summed over threads (0.05-0.5 s each),
     most of the overhead of a first run; loaded behind the topology build and the first
@@ -176,21 +239,33 @@ def warm_start(limit: int = WARM_START_KERNELS, groups=None) -> list[tuple]:
     directory = _directory()
     if directory is None:
         return []
-    try:
-        recent = sorted(directory.glob("*.bin"), key=lambda p: p.stat().st_mtime)
-    except OSError:  # a file pruned meanwhile by another process
-        return []
-    todo = []
-    for path in reversed(recent):  # most recent first, until ``limit`` are taken
-        if len(todo) == limit:
-            break
+    # groups whose recent processes recorded their calls: exactly those kernels
+    todo, unrecorded = [], groups
+    if groups is not None:
+        unrecorded = set()
+        for group in sorted(groups, key=repr):
+            recent = _recent_keys(directory, group)
+            if recent is None:
+                unrecorded.add(group)
+            else:
+                todo += [(k, directory / _filename(k)) for k in recent]
+        todo = [(k, p) for k, p in todo if p.exists()][:limit]
+    if unrecorded is None or unrecorded:
         try:
-            key = ast.literal_eval(path.with_suffix(".key").read_text())
-        except (OSError, ValueError, SyntaxError):  # exported before keys were written
-            continue
-        if path.name == _filename(key) and (groups is None or key[:2] in groups):
-            todo.append((key, path))
-    todo.reverse()  # loaded in the order they were last used
+            recent = sorted(directory.glob("*.bin"), key=lambda p: p.stat().st_mtime)
+        except OSError:  # a file pruned meanwhile by another process
+            recent = []
+        found = []
+        for path in reversed(recent):  # most recent first, until ``limit`` are taken
+            if len(todo) + len(found) == limit:
+                break
+            try:
+                key = ast.literal_eval(path.with_suffix(".key").read_text())
+            except (OSError, ValueError, SyntaxError):  # exported before keys were written
+                continue
+            if path.name == _filename(key) and (unrecorded is None or key[:2] in unrecorded):
+                found.append((key, path))
+        todo += reversed(found)  # loaded in the order they were last used
     queue = iter(todo)
     for _ in range(min(_config.WORKERS, len(todo))):
         _start_background(_warm_worker, queue)

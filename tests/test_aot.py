@@ -28,7 +28,17 @@ def cache(tmp_path, monkeypatch):
     monkeypatch.setattr(_aot, "_pruned", False)
     monkeypatch.setattr(_aot, "_groups_seen", set())
     monkeypatch.setattr(_aot, "_warm_started", False)
+    monkeypatch.setattr(_aot, "_called", set())
     return tmp_path / "jtet-aot" / _aot._source_hash()
+
+
+def new_process(monkeypatch, name: str) -> None:
+    """Forget what this process built and called, as a new process would."""
+    monkeypatch.setattr(_aot, "_memo", {})
+    monkeypatch.setattr(_aot, "_groups_seen", set())
+    monkeypatch.setattr(_aot, "_warm_started", False)
+    monkeypatch.setattr(_aot, "_called", set())
+    monkeypatch.setattr(_aot, "_PROCESS", name)
 
 
 ARGS = (np.linspace(0, 1, 12).reshape(4, 3), np.arange(15.0).reshape(3, 5))
@@ -39,8 +49,10 @@ def test_export_then_reload_gives_identical_results(cache):
 
     expected = np.asarray(jax.jit(_kernel)(*ARGS))
     first = np.asarray(_aot.cached_call("k", (1,), _kernel, *ARGS))
-    files = sorted(cache.iterdir())  # the kernel and its key, no temporary file left
-    assert [f.suffix for f in files] == [".bin", ".key"] and files[0].stem == files[1].stem
+    # the kernel and its key, no temporary file left, and the group's record of calls
+    files = sorted(cache.iterdir(), key=lambda f: f.suffix)
+    assert [f.suffix for f in files] == [".bin", ".calls", ".key"]
+    assert files[0].stem == files[2].stem and files[0].stem.startswith(files[1].stem + "-")
     _aot._memo.clear()  # a new process: the kernel comes from the file
     second = np.asarray(_aot.cached_call("k", (1,), _kernel, *ARGS))
     assert np.array_equal(first, expected) and np.array_equal(second, expected)
@@ -271,11 +283,46 @@ def test_warm_start_loads_only_the_groups_asked_for(cache):
     assert loaded == [_aot._key("k", (1,), args[0]), _aot._key("k", (1,), args[2])]
     for thread in list(_aot._background):
         thread.join()
-    # ``limit`` counts the group's kernels only: the most recent of them
-    os.utime(cache / _aot._filename(loaded[0]), (1e9, 1e9))  # (the load renewed it)
+    # ``limit`` counts the group's kernels only: the most recently called of them
+    _aot._memo.clear()
+    _aot._warm_started = False
+    _aot._called.clear()
+    _aot._PROCESS = "second"
+    _aot.cached_call("k", (1,), _kernel, *args[2])
     _aot._memo.clear()
     _aot._warm_started = False
     assert _aot.warm_start(limit=1, groups={("k", (1,))}) == [_aot._key("k", (1,), args[2])]
+    for thread in list(_aot._background):
+        thread.join()
+
+
+def test_loads_skip_shapes_no_recent_process_called(cache, monkeypatch):
+    # a shape one run called (a batch size tried once) stops being loaded into later
+    # runs once CALLS_KEPT processes in a row did not call it
+    a, b = (ARGS[0][:2], ARGS[1]), ARGS
+    ka, kb = _aot._key("k", (1,), a), _aot._key("k", (1,), b)
+    new_process(monkeypatch, "p0")
+    _aot.cached_call("k", (1,), _kernel, *a)
+    _aot.cached_call("k", (1,), _kernel, *b)
+    for i in range(1, _aot.CALLS_KEPT + 2):
+        new_process(monkeypatch, f"p{i}")
+        # the record holds the last CALLS_KEPT processes: p0 (a and b) drops out at the end
+        expected = [ka] if i > _aot.CALLS_KEPT else [ka, kb]
+        assert _aot.warm_start(groups={("k", (1,))}) == expected
+        for thread in list(_aot._background):
+            thread.join()
+        _aot.cached_call("k", (1,), _kernel, *a)  # this run calls a only
+    # the siblings of a first call follow the same record
+    new_process(monkeypatch, "siblings")
+    _aot.cached_call("k", (1,), _kernel, *a, siblings=True)
+    for thread in list(_aot._background):
+        thread.join()
+    assert set(_aot._memo) == {ka}
+    # with no record (caches written before .calls files), every shape counts
+    for f in cache.glob("*.calls"):
+        f.unlink()
+    new_process(monkeypatch, "unrecorded")
+    assert sorted(_aot.warm_start(groups={("k", (1,))}), key=repr) == sorted([ka, kb], key=repr)
     for thread in list(_aot._background):
         thread.join()
 
