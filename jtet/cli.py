@@ -97,6 +97,20 @@ def _add_options(p: argparse.ArgumentParser) -> None:
         metavar="Q",
         help="leave tets of at least this quality alone ('none': work everywhere)",
     )
+    p.add_argument(
+        "--min-improvement",
+        type=float,
+        default=DEFAULTS.min_improvement,
+        help="an operation must raise its worst tet's quality by more than this",
+    )
+    p.add_argument(
+        "--smooth-threshold",
+        type=_optional_float,
+        default=DEFAULTS.smooth_threshold,
+        metavar="Q",
+        help="smooth only vertices of tets below this quality ('none', the default: every "
+        "vertex of a tet below --good-quality)",
+    )
     p.add_argument("--seed", type=int, default=DEFAULTS.seed)
     p.add_argument("--check", action="store_true", help="verify invariants after every operation")
 

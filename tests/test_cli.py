@@ -147,6 +147,10 @@ def test_improve_options_reach_options(small, tmp_path, capsys):
         "1",
         "--good-quality",
         "none",
+        "--smooth-threshold",
+        "0.4",
+        "--min-improvement",
+        "1e-6",
         "--report",
         report,
         "-q",
@@ -160,9 +164,11 @@ def test_improve_options_reach_options(small, tmp_path, capsys):
     assert opts["quality"] == "radius_ratio"
     assert opts["max_passes"] == 1
     assert opts["good_quality"] is None
+    assert opts["smooth_threshold"] == 0.4 and opts["min_improvement"] == 1e-6
     # the other options keep their defaults
     defaults = jtet.Options().as_dict()
     changed = {"ops", "max_ring", "quality", "max_passes", "good_quality"}
+    changed |= {"smooth_threshold", "min_improvement"}
     assert {k: v for k, v in opts.items() if k not in changed} == {
         k: v for k, v in defaults.items() if k not in changed
     }
@@ -336,3 +342,19 @@ def test_console_command_ends_with_complete_outputs_and_its_code(small, tmp_path
     bad = subprocess.run([*cmd, "stats", str(tmp_path / "missing.vtu")], capture_output=True,
                          text=True, timeout=600)  # fmt: skip
     assert bad.returncode == 2 and bad.stderr.startswith("jtet: error:")
+
+
+def test_every_option_has_a_flag(capsys):
+    # the CLI shares jtet.Options with the API: each field is settable from the shell
+    # (progress is the progress bar, switched off by --quiet)
+    import dataclasses
+
+    with pytest.raises(SystemExit):
+        main(["improve", "--help"])
+    text = capsys.readouterr().out
+    missing = [
+        f.name
+        for f in dataclasses.fields(jtet.Options)
+        if f.name != "progress" and "--" + f.name.replace("_", "-") not in text
+    ]
+    assert missing == []
