@@ -227,9 +227,10 @@ def warm_start(limit: int = WARM_START_KERNELS, groups=None) -> list[tuple]:
     ``CALLS_KEPT`` processes called (its ``.calls`` file), most recent first; every
     exported shape if no process recorded its calls.
 
-    Warm cube run: 13 kernels, ~2.4 s of loading summed over threads (0.05-0.5 s each),
-    most of the overhead of a first run; loaded behind the topology build and the first
-    passes they cost less wall time (``experiments/results/compile.md``).
+    A warm cube run loads 4-5 kernels (the per-tet kernel and the pass kernels), 0.05-0.5
+    s each summed over threads, most of the overhead of a first run; loaded behind the
+    topology build and the first passes they cost less wall time
+    (``experiments/results/compile.md``).
     """
     global _warm_started
     with _lock:
