@@ -110,6 +110,112 @@ def _workable(dirty: np.ndarray | None, q: np.ndarray, good: float | None) -> np
     return bad if dirty is None else dirty & bad
 
 
+class _Run:
+    """The state of one ``improve`` run: the current mesh, its per-tet measures, what
+    each operation has still to look at, the history; ``step`` and ``climb`` advance it.
+    """
+
+    def __init__(self, opts: Options, mesh: TetMesh, q, lo_t, hi_t, callback):
+        self.opts, self.current, self.callback = opts, mesh, callback
+        self.q, self.lo_t, self.hi_t = q, lo_t, hi_t
+        self.dirty = {op: None for op in opts.ops}  # None: everything is new to the operation
+        self.history: list[dict] = []
+        self.checker = None
+        self.passes = 0  # passes started so far (the ``pass`` of history entries)
+
+    def snapshot(self) -> tuple:
+        """What ``restore`` needs to undo later steps (arrays are replaced, never edited)."""
+        return self.current, self.q, self.lo_t, self.hi_t, dict(self.dirty)
+
+    def restore(self, snap: tuple) -> None:
+        self.current, self.q, self.lo_t, self.hi_t, dirty = snap
+        self.dirty = dict(dirty)
+
+    def check_stop(self, t0: float) -> None:
+        """Raise ``_Stop`` on Ctrl-C or when the time limit is up (between operations)."""
+        from ._interrupt import pressed
+
+        if pressed():  # its KeyboardInterrupt was swallowed (see _interrupt)
+            raise _Stop("interrupted")
+        limit = self.opts.time_limit
+        if limit is not None and time.perf_counter() - t0 > limit:
+            raise _Stop("time limit")
+
+    def step(self, op: str, run_op, workable, record: bool = True) -> StepResult:
+        """Run ``run_op(mesh, opts, quality, workable)`` and make its mesh current."""
+        ts = time.perf_counter()
+        try:
+            step = run_op(self.current, self.opts, self.q, workable)
+        except MeshInputError as e:
+            # the input passed the same checks: the operation broke the mesh
+            raise InvariantError(
+                f"pass {self.passes - 1}, operation {op!r}: the mesh is no longer valid: {e}"
+            ) from e
+        if step.mesh is not self.current:
+            if self.checker is not None:
+                self.checker.check(step.mesh, self.passes - 1, op)
+            for other, d in self.dirty.items():
+                if d is not None and step.keep is not None:
+                    new = np.zeros(step.mesh.n_tets - int(step.keep.sum()), bool)
+                    d = np.concatenate([d[step.keep], new])
+                self.dirty[other] = None if d is None else d | step.changed
+            self.q, self.lo_t, self.hi_t = _updated_tet_measures(
+                step, self.opts.quality, self.q, self.lo_t, self.hi_t
+            )
+            self.current = step.mesh
+        if op in self.dirty:
+            self.dirty[op] = step.changed.copy()
+        if record:
+            self.record(
+                {"pass": self.passes - 1, **_stats_dict(op, step.stats)}, time.perf_counter() - ts
+            )
+        return step
+
+    def record(self, entry: dict, seconds: float) -> dict:
+        """Complete ``entry`` with the current mesh's measures, log it and keep it."""
+        entry.update(
+            worst_quality=float(self.q.min()),
+            min_dihedral=float(self.lo_t.min()),
+            max_dihedral=float(self.hi_t.max()),
+            n_tets=self.current.n_tets,
+            seconds=seconds,
+        )
+        self.history.append(entry)
+        if self.opts.progress:
+            _log(entry)
+        if self.callback is not None:
+            self.callback(entry)
+        return entry
+
+    def objective(self) -> np.ndarray:
+        return _objective(self.q, self.opts.good_quality)
+
+    def progressed(self, before: np.ndarray) -> bool:
+        """Whether the objective rose from ``before`` enough to count as progress."""
+        # relative rises; the worst quality may be <= 0 (inverted input), hence abs
+        need = np.maximum(self.opts.min_progress * np.abs(before), self.opts.min_improvement)
+        return bool((self.objective() > before + need).any())
+
+    def climb(self, t0: float, record: bool = True, patience: int | None = None) -> str:
+        """Passes of every operation until ``patience`` (default: the option's) passes in a
+        row make no progress ("converged") or ``max_passes`` ("max passes"); raises
+        ``_Stop``."""
+        opts = self.opts
+        stall = 0
+        patience = opts.patience if patience is None else patience
+        for _ in range(opts.max_passes):
+            before = self.objective()
+            self.passes += 1
+            for op in opts.ops:
+                self.check_stop(t0)
+                workable = _workable(self.dirty[op], self.q, opts.good_quality)
+                self.step(op, STEPS[op], workable, record)
+            stall = 0 if self.progressed(before) else stall + 1
+            if stall >= patience:
+                return "converged"
+        return "max passes"
+
+
 @dataclass
 class ImproveResult:
     """Outcome of ``jtet.improve``.
@@ -190,96 +296,36 @@ def improve(
     # one evaluation of every tet serves the statistics and the optimizer's measures
     per_tet = tet_all_measures(mesh.points, mesh.tets)
     stats_before = mesh_stats(mesh, per_tet=per_tet)
-    history: list[dict] = []
-    status = "converged"
-    current = mesh
     _, lo_t, hi_t, qualities = per_tet
     q = qualities[opts.quality]
-    obj = _objective(q, opts.good_quality)
-    dirty = {op: None for op in opts.ops}  # None: everything is new to the operation
-    stall = 0
-    checker = None
+    run = _Run(opts, mesh, q, lo_t, hi_t, callback)
     if opts.check:
         from ._invariants import InvariantChecker
 
-        checker = InvariantChecker(mesh)
-    from ._interrupt import catch_ctrl_c, pressed
+        run.checker = InvariantChecker(mesh)
+    from ._interrupt import catch_ctrl_c
 
     ctrl_c = catch_ctrl_c()
+    status = "converged"
     try:
         ctrl_c.__enter__()
-        for pass_no in range(opts.max_passes):
-            pass_obj = obj
-            for op in opts.ops:
-                if pressed():  # its KeyboardInterrupt was swallowed (see _interrupt)
-                    status = "interrupted"
-                    raise _Stop
-                if opts.time_limit is not None and time.perf_counter() - t0 > opts.time_limit:
-                    status = "time limit"
-                    raise _Stop
-                ts = time.perf_counter()
-                try:
-                    step = STEPS[op](current, opts, q, _workable(dirty[op], q, opts.good_quality))
-                except MeshInputError as e:
-                    # the input passed the same checks: the operation broke the mesh
-                    raise InvariantError(
-                        f"pass {pass_no}, operation {op!r}: the mesh is no longer valid: {e}"
-                    ) from e
-                if step.mesh is not current:
-                    if checker is not None:
-                        checker.check(step.mesh, pass_no, op)
-                    for other in opts.ops:
-                        d = dirty[other]
-                        if step.keep is not None:
-                            d = (
-                                None
-                                if d is None
-                                else np.concatenate(
-                                    [
-                                        d[step.keep],
-                                        np.zeros(step.mesh.n_tets - step.keep.sum(), bool),
-                                    ]
-                                )
-                            )
-                        dirty[other] = None if d is None else d | step.changed
-                    q, lo_t, hi_t = _updated_tet_measures(step, opts.quality, q, lo_t, hi_t)
-                    current = step.mesh
-                dirty[op] = step.changed.copy()
-                lo, hi = float(lo_t.min()), float(hi_t.max())
-                entry = {
-                    "pass": pass_no,
-                    **_stats_dict(op, step.stats),
-                    "worst_quality": float(q.min()),
-                    "min_dihedral": lo,
-                    "max_dihedral": hi,
-                    "n_tets": current.n_tets,
-                    "seconds": time.perf_counter() - ts,
-                }
-                history.append(entry)
-                if opts.progress:
-                    _log(entry)
-                if callback is not None:
-                    callback(entry)
-            obj = _objective(q, opts.good_quality)
-            # relative rises; the worst quality may be <= 0 (inverted input), hence abs
-            need = np.maximum(opts.min_progress * np.abs(pass_obj), opts.min_improvement)
-            progress = bool((obj > pass_obj + need).any())
-            stall = 0 if progress else stall + 1
-            if stall >= opts.patience:
-                break
-        else:
-            status = "max passes"
-    except _Stop:
-        pass
+        status = run.climb(t0)
+        if status == "converged" and opts.perturb > 0:
+            from ._perturb import perturb
+
+            status = perturb(run, t0)
+    except _Stop as stop:
+        status = stop.status
     except KeyboardInterrupt:
         status = "interrupted"
     except InvariantError as e:
-        if checker is None:  # nothing vouches for ``current``: do not return it
+        if run.checker is None:  # nothing vouches for ``current``: do not return it
             raise
         # the checker runs before ``current`` is replaced: it is the last good mesh
         status = "invariant violation: " + " ".join(str(e).split())
     finally:
         ctrl_c.__exit__(None, None, None)
+    current, history = run.current, run.history
     return ImproveResult(
         mesh=current,
         stats_before=stats_before,
@@ -303,7 +349,11 @@ def _stats_dict(op: str, stats) -> dict:
 
 
 class _Stop(Exception):
-    pass
+    """Ends a run between operations with ``status`` ("interrupted", "time limit")."""
+
+    def __init__(self, status: str):
+        super().__init__(status)
+        self.status = status
 
 
 # Quality measures multiply up to six lengths: beyond these extents they overflow to

@@ -11,7 +11,7 @@ from ._errors import JtetError
 from ._quality import MEASURES
 
 OPS = ("edge", "face", "smooth")
-_INTS = ("max_ring", "max_faces", "max_passes", "patience", "seed")
+_INTS = ("max_ring", "max_faces", "max_passes", "patience", "perturb", "seed")
 _FLOATS = (
     "feature_angle",
     "time_limit",
@@ -47,6 +47,12 @@ class Options:
             then keep their vertices but their shape (and the region volumes) change.
         max_passes: stop after this many passes.
         patience: stop after this many passes in a row without progress.
+        perturb: perturbation rounds after the climb converges (0: none). A round
+            applies flips around the worst tets that may lower them by a little, climbs
+            again, and keeps the result only if the worst quality (or a thresholded mean
+            of the worst tets) rose; otherwise the mesh goes back. Stops at the first
+            round that keeps nothing. It frees worst tets whose vertices are all pinned
+            (boundary fixed): holeplate 29.10 -> 30.79 degrees.
         time_limit: seconds of wall time, or None.
         min_improvement: an operation must raise its worst tet by more than this.
         min_progress: a pass counts as progress when the worst quality or a thresholded
@@ -75,6 +81,7 @@ class Options:
     feature_angle: float = 0.0
     max_passes: int = 50
     patience: int = 2
+    perturb: int = 0
     time_limit: float | None = None
     min_improvement: float = 1e-9
     min_progress: float = 1e-3
@@ -125,6 +132,8 @@ class Options:
             raise JtetError(f"feature_angle must be in [0, 90) degrees, got {self.feature_angle}")
         if int(self.max_passes) < 0 or int(self.patience) < 1:
             raise JtetError("max_passes must be >= 0 and patience >= 1")
+        if self.perturb < 0:
+            raise JtetError(f"perturb must be >= 0, got {self.perturb}")
         if not 0.0 <= float(self.min_progress) < 1.0:
             raise JtetError(f"min_progress must be in [0, 1), got {self.min_progress}")
         if self.good_quality is not None and not 0.0 < float(self.good_quality) <= 1.0:

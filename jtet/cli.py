@@ -77,6 +77,14 @@ def _add_options(p: argparse.ArgumentParser) -> None:
         help="stop after this many passes in a row without progress",
     )
     p.add_argument(
+        "--perturb",
+        type=int,
+        default=DEFAULTS.perturb,
+        metavar="N",
+        help="after the climb converges, up to N rounds of flips that may lower the worst "
+        "tets a little, each kept only if the climb that follows ends better (0: off)",
+    )
+    p.add_argument(
         "--time-limit",
         type=float,
         default=None,
