@@ -11,6 +11,7 @@ times and the kernel builds (experiments/results/compile.md).
     python experiments/bench_improve.py                       # the four reference meshes
     python experiments/bench_improve.py --meshes gmsh_cube --ops edge,face
     python experiments/bench_improve.py --boundary slide      # flat facets' vertices slide
+    python experiments/bench_improve.py --perturb 8           # + perturbation rounds
     python experiments/bench_improve.py --compile --meshes gmsh_cube   # compile overhead
     python experiments/bench_improve.py --cli --repeat 5      # the jtet command, end to end
     python experiments/bench_improve.py --big 165000          # + a ~1M-tet Delaunay mesh
@@ -346,6 +347,13 @@ def main() -> None:
         "along straight subsegments, the domain's shape unchanged)",
     )
     p.add_argument(
+        "--perturb",
+        type=int,
+        default=0,
+        metavar="N",
+        help="improve's perturb option: up to N perturbation rounds after the climb",
+    )
+    p.add_argument(
         "--big", type=int, default=0, help="also run a Delaunay mesh of this many random points"
     )
     p.add_argument(
@@ -392,7 +400,7 @@ def main() -> None:
         quality_settings(names, ops, args.settings.split(","))
         return
     rows = []
-    options = {"boundary": args.boundary}
+    options = {"boundary": args.boundary, "perturb": args.perturb}
     for name in names:
         if args.json:  # one run, as a user's (the compile-overhead table times it)
             rows.append(run_one(name, ops, args.time_limit, **options))
@@ -408,7 +416,7 @@ def main() -> None:
         return
     print_table(
         rows,
-        f"jtet.improve(ops={ops}), boundary {args.boundary}: wall time of a second run on each mesh "
+        f"jtet.improve(ops={ops}), boundary {args.boundary}, perturb {args.perturb}: wall time of a second run on each mesh "
         "(steady state) and of the first (with compilation)",
     )
 
