@@ -110,3 +110,40 @@ def nonconforming_owners(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarra
     reject = np.zeros(n_cand, bool)
     reject[owner[bad]] = True
     return reject
+
+
+def split_tets(mesh: TetMesh, which: np.ndarray) -> tuple[TetMesh, np.ndarray]:
+    """1-4 split: a new vertex at the centroid of every tet where ``which`` (m,) bool,
+    joined to the tet's four faces.
+
+    Tets whose four new tets would not all be positive (exact orient3d; only a nearly
+    flat tet's rounded centroid can fail) are left alone. Returns (new mesh, keep (m,)):
+    the kept tets first, in order, then four new tets per split tet; the new vertices
+    are appended to the points, in the order of the split tets. Faces and edges of the
+    old tets all stay, so subfacets and subsegments are untouched.
+    """
+    from ._predicates import orient3d_tets
+
+    split = np.flatnonzero(which)
+    old = mesh.tets[split]
+    centroids = mesh.points[old].mean(axis=1)
+    ids = mesh.n_points + np.arange(len(split))
+    # replacing vertex i of a positive tet by a point inside it keeps the orientation
+    new = np.repeat(old[:, None, :], 4, axis=1)
+    new[:, np.arange(4), np.arange(4)] = ids[:, None]
+    points = np.concatenate([mesh.points, centroids])
+    positive = (orient3d_tets(points, new.reshape(-1, 4)) > 0).reshape(-1, 4).all(axis=1)
+    split, new, centroids = split[positive], new[positive], centroids[positive]
+    if not len(split):
+        return mesh, np.ones(mesh.n_tets, bool)
+    # renumber the kept centroids' vertices so that the new points have no gaps
+    ids = mesh.n_points + np.arange(len(split))
+    new[:, np.arange(4), np.arange(4)] = ids[:, None]
+    keep = np.ones(mesh.n_tets, bool)
+    keep[split] = False
+    out = mesh._derive(
+        points=np.concatenate([mesh.points, centroids]),
+        tets=np.concatenate([mesh.tets[keep], new.reshape(-1, 4)]),
+        region=np.concatenate([mesh.region[keep], np.repeat(mesh.region[split], 4)]),
+    )
+    return out, keep

@@ -36,16 +36,35 @@ WINDOWS = (0.005, 0.03)
 CLIMB_PATIENCE = 1
 
 
-def kicks(ops: tuple[str, ...]) -> list[tuple[float, float, str]]:
-    """(slack, window, op) of every attempt of a round, in the order they are tried."""
+def kicks(ops: tuple[str, ...]) -> list[tuple[float | None, float, str]]:
+    """(slack, window, kick) of every attempt of a round, in the order they are tried:
+    the flips of ``ops`` at each slack, then vertex insertion ("insert", no slack)."""
     flips = [op for op in ("edge", "face") if op in ops]
-    return [(s, w, op) for s in SLACKS for w in WINDOWS for op in flips]
+    ladder = [(s, w, op) for s in SLACKS for w in WINDOWS for op in flips]
+    if flips:  # a new vertex needs the flips (and smoothing) of the climb to pay off
+        ladder += [(None, w, "insert") for w in WINDOWS]
+    return ladder
 
 
-def kick_step(op: str, slack: float):
-    """A step function (``_driver.STEPS`` signature) of edge or multi-face removal whose
-    winners may lower the worst tet they touch by up to ``slack``."""
+def insert_step(mesh, opts, quality, workable):
+    """A step function (``_driver.STEPS`` signature): a new vertex at the centroid of
+    every ``workable`` tet (1-4 split), for the climb to move and connect."""
+    from ._apply import split_tets
     from ._driver import _replaced
+    from ._edge_removal import PassStats
+
+    out, keep = split_tets(mesh, workable)
+    n = int((~keep).sum())
+    return _replaced(mesh, out, PassStats("insert", n, n), keep if n else None)
+
+
+def kick_step(op: str, slack: float | None):
+    """A step function (``_driver.STEPS`` signature) of edge or multi-face removal whose
+    winners may lower the worst tet they touch by up to ``slack``, or ``insert_step``."""
+    from ._driver import _replaced
+
+    if op == "insert":
+        return insert_step
 
     def run(mesh, opts, quality, workable):
         if op == "edge":
@@ -132,7 +151,7 @@ def perturb(run, t0: float) -> str:
                 "successes": int(kept),
                 "kick": op,
                 "slack": slack,
-                "flips": int(step.stats.successes),
+                "changes": int(step.stats.successes),
             }
             run.record(entry, time.perf_counter() - ts)
             if kept:

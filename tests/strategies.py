@@ -177,6 +177,7 @@ def options(draw, ops: tuple[str, ...] | None = None) -> jtet.Options:
         feature_angle=draw(st.sampled_from([0.0, 0.0, 10.0, 60.0])),
         max_passes=draw(st.integers(1, 3)),
         patience=draw(st.integers(1, 2)),
+        perturb=draw(st.sampled_from([0, 0, 2])),
         seed=draw(st.integers(0, 1000)),
         check=True,
     )

@@ -168,7 +168,12 @@ def _improve(spec, opts):
     before, after = result.stats_before, result.stats_after
     assert after.n_inverted + after.n_degenerate <= before.n_inverted + before.n_degenerate
     assert _bad(result.mesh) <= _bad(mesh)
-    assert len(result.history) == len(opts.ops) * len({h["pass"] for h in result.history})
+    climb = [h for h in result.history if h["op"] != "perturb"]
+    assert len(climb) == len(opts.ops) * len({h["pass"] for h in climb})
+    # perturbation rounds only after a converged climb; each reports a kept or restored mesh
+    rounds = [h for h in result.history if h["op"] == "perturb"]
+    assert not rounds or opts.perturb > 0
+    assert all(h["worst_quality"] >= q0.min() for h in rounds)
 
 
 @_cases("improve")

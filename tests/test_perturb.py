@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import delaunay_mesh
 
 import jtet
 from jtet import _driver
+from jtet._apply import split_tets
+from jtet._invariants import InvariantChecker
 from jtet._perturb import SLACKS, WINDOWS, better, kicks
+from jtet._predicates import orient3d_tets
 
 
 def test_better_worst_rose():
@@ -35,12 +39,68 @@ def test_better_never_accepts_a_lower_worst():
 
 def test_kicks_order_and_ops():
     ladder = kicks(("edge", "face", "smooth"))
-    assert len(ladder) == len(SLACKS) * len(WINDOWS) * 2
+    flips = [k for k in ladder if k[2] != "insert"]
+    assert len(flips) == len(SLACKS) * len(WINDOWS) * 2
     # gentlest slack first, each slack with the narrow window before the wide one
-    assert [k[0] for k in ladder] == sorted(k[0] for k in ladder)
+    assert [k[0] for k in flips] == sorted(k[0] for k in flips)
     assert ladder[0] == (SLACKS[0], WINDOWS[0], "edge")
-    assert {k[2] for k in kicks(("face", "smooth"))} == {"face"}
+    # vertex insertion last, once per window
+    assert ladder[len(flips) :] == [(None, w, "insert") for w in WINDOWS]
+    assert {k[2] for k in kicks(("face", "smooth"))} == {"face", "insert"}
     assert kicks(("smooth",)) == []
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_split_tets_against_numpy(seed):
+    """1-4 splits of random tets: centroids appended in order, volumes kept per tet
+    (the four children sum to the parent, to round-off), a valid mesh, faces kept."""
+    rng = np.random.default_rng(seed)
+    mesh = delaunay_mesh(150, seed=seed, surface_points=20)
+    mesh = mesh.replace(region=rng.integers(0, 3, mesh.n_tets))
+    which = rng.random(mesh.n_tets) < 0.2
+    out, keep = split_tets(mesh, which)
+    split = np.flatnonzero(~keep)
+    np.testing.assert_array_equal(keep, ~which)  # no tet of a Delaunay mesh is near flat
+    k = len(split)
+    assert out.n_points == mesh.n_points + k and out.n_tets == mesh.n_tets + 3 * k
+    np.testing.assert_array_equal(out.points[: mesh.n_points], mesh.points)
+    np.testing.assert_allclose(
+        out.points[mesh.n_points :], mesh.points[mesh.tets[split]].mean(axis=1), rtol=0, atol=0
+    )
+    np.testing.assert_array_equal(out.tets[: keep.sum()], mesh.tets[keep])
+    np.testing.assert_array_equal(out.region[keep.sum() :], np.repeat(mesh.region[split], 4))
+    children = out.volumes[keep.sum() :].reshape(k, 4)
+    assert (children > 0).all()
+    # 1e-12 relative: four float64 determinants of rounded centroid coordinates
+    np.testing.assert_allclose(children.sum(axis=1), mesh.volumes[split], rtol=1e-12)
+    assert out.is_valid().ok
+    InvariantChecker(mesh).check(out, 0, "insert")  # surfaces, volumes per region
+    # every face of the old mesh is still a face (subfacets untouched)
+    assert (out.topology.face_ids(mesh.topology.faces) >= 0).all()
+
+
+def test_split_tets_skips_tets_whose_children_would_not_be_positive():
+    """Nearly flat tets (the 4th vertex 1e-16 off the plane of the others): the rounded
+    centroid lands on or outside a face for some; those are left whole, and every tet
+    of the result is positive by the exact orient3d."""
+    rng = np.random.default_rng(0)
+    k = 400
+    base = rng.random((k, 3, 3))
+    w = rng.random((k, 3))
+    w /= w.sum(axis=1, keepdims=True)
+    normal = np.cross(base[:, 1] - base[:, 0], base[:, 2] - base[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    apex = (w[:, :, None] * base).sum(axis=1) + 1e-16 * normal
+    points = np.concatenate([base, apex[:, None]], axis=1).reshape(-1, 3)
+    tets = np.arange(4 * k).reshape(k, 4)
+    tets = tets[orient3d_tets(points, tets) > 0]  # disjoint tets, each positive
+    mesh = jtet.TetMesh(points, tets)
+    out, keep = split_tets(mesh, np.ones(mesh.n_tets, bool))
+    assert 0 < keep.sum() < mesh.n_tets  # some split, some too flat (seed 0: 121 of 386)
+    assert out.n_points == mesh.n_points + (~keep).sum()
+    assert (orient3d_tets(out.points, out.tets) > 0).all()
+    out_none, keep_none = split_tets(mesh, keep.copy() & False)
+    assert out_none is mesh and keep_none.all()
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +134,10 @@ def test_perturbation_starts_from_the_converged_mesh_and_never_loses(demo_runs):
     worst = [plain.history[-1]["worst_quality"]] + [e["worst_quality"] for e in rounds]
     assert worst == sorted(worst)
     assert {e["successes"] for e in rounds} <= {0, 1}
-    assert all(e["attempts"] == 1 and e["kick"] in ("edge", "face") for e in rounds)
+    assert all(e["attempts"] == 1 and e["kick"] in ("edge", "face", "insert") for e in rounds)
+    # inserted vertices: one per split tet of a kept insertion round, at most
+    inserted = perturbed.mesh.n_points - plain.mesh.n_points
+    assert 0 <= inserted <= sum(e["changes"] for e in rounds if e["kick"] == "insert")
     assert rounds[-1]["worst_quality"] == q_after.min()
     assert rounds[-1]["n_tets"] == perturbed.mesh.n_tets
     kept = sum(e["successes"] for e in rounds)
