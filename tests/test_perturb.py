@@ -10,7 +10,7 @@ import jtet
 from jtet import _driver
 from jtet._apply import split_tets
 from jtet._invariants import InvariantChecker
-from jtet._perturb import SLACKS, WINDOWS, better, kicks
+from jtet._perturb import SLACKS, WINDOWS, _neighbourhood, _Submesh, better, kicks
 from jtet._predicates import orient3d_tets
 
 
@@ -178,3 +178,69 @@ def test_perturb_option_validated():
         jtet.Options(perturb=-1)
     with pytest.raises(jtet.JtetError, match="perturb"):
         jtet.Options(perturb=1.5)
+
+
+def _protected_area(mesh) -> float:
+    corners = mesh.points[mesh.protected_faces]
+    cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    return float(np.linalg.norm(cross, axis=1).sum()) / 2
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_kept_rounds_with_regions_and_protected_faces(seed):
+    """Delaunay meshes of a cube (their worst tets are pinned to the flat hull), two
+    regions and protected interior faces: rounds that insert vertices are kept, with
+    every invariant checked after every step (``check=True``), and the protected
+    faces' surface is still there."""
+    rng = np.random.default_rng(seed)
+    mesh = delaunay_mesh(300, seed=seed, surface_points=40)
+    centroids = mesh.points[mesh.tets].mean(axis=1)
+    mesh = mesh.replace(region=(centroids[:, 0] < 0.5).astype(np.int64))
+    T = mesh.topology
+    inner = np.flatnonzero(~T.boundary_face & ~T.interface_face)
+    mesh = mesh.replace(protected_faces=T.faces[rng.choice(inner, 10, replace=False)])
+    plain = jtet.improve(mesh, perturb=0)
+    r = jtet.improve(mesh, perturb=6, check=True)
+    assert r.status == "converged"
+    rounds = [e for e in r.history if e["op"] == "perturb"]
+    kept = [e for e in rounds if e["successes"]]
+    assert kept and {"insert"} <= {e["kick"] for e in kept}
+    assert r.mesh.n_points > mesh.n_points
+    q0, q1 = plain.mesh.quality(r.options.quality), r.mesh.quality(r.options.quality)
+    assert q1.min() >= q0.min()
+    # protected triangles may be flipped only into triangles covering the same area
+    assert _protected_area(r.mesh) == pytest.approx(_protected_area(mesh), rel=1e-12)
+    assert r.mesh.topology.subfacet.sum() >= 1  # the protected faces are faces (build ok)
+
+
+def _tet_set(mesh) -> set:
+    return {tuple(sorted(t)) for t in mesh.tets.tolist()}
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_neighbourhood_against_breadth_first_search(seed):
+    rng = np.random.default_rng(seed)
+    mesh = delaunay_mesh(150, seed=seed)
+    seeds = rng.random(mesh.n_tets) < 0.02
+    got = _neighbourhood(mesh, seeds, 2)
+    # reference: vertex rings grown one at a time with Python sets
+    tets = [set(t) for t in mesh.tets.tolist()]
+    chosen = {i for i in range(mesh.n_tets) if seeds[i]}
+    for _ in range(2):
+        verts = set().union(*(tets[i] for i in chosen))
+        chosen = {i for i, t in enumerate(tets) if t & verts}
+    assert set(np.flatnonzero(got).tolist()) == chosen
+
+
+def test_submesh_splice_round_trip_and_boundary_guard():
+    mesh = delaunay_mesh(150, seed=4, surface_points=20)
+    sel = _neighbourhood(mesh, np.arange(mesh.n_tets) == 7, 2)
+    part = _Submesh(mesh, sel)
+    assert part.mesh.n_tets == sel.sum() and len(part.verts) == part.mesh.n_points
+    out, keep = part.splice(mesh, part.mesh)
+    np.testing.assert_array_equal(keep, ~sel)
+    np.testing.assert_array_equal(out.points, mesh.points)
+    assert _tet_set(out) == _tet_set(mesh)
+    # a submesh that lost a tet has another boundary: it cannot be spliced back
+    smaller = part.mesh.replace(tets=part.mesh.tets[1:], region=part.mesh.region[1:])
+    assert part.splice(mesh, smaller) is None
