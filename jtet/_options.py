@@ -83,7 +83,7 @@ class Options:
     feature_angle: float = 0.0
     max_passes: int = 50
     patience: int = 2
-    perturb: int = 0
+    perturb: int = 8
     time_limit: float | None = None
     min_improvement: float = 1e-9
     min_progress: float = 1e-3

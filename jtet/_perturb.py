@@ -3,17 +3,20 @@
 Where the climb stops, the worst tets often have all four vertices pinned (boundary
 fixed) and every flip that removes one creates a tet that is a little worse, so no
 single operation raises the worst quality. A perturbation round (iterated local search)
-applies such a flip on purpose, lets the climb run again from there, and keeps the
-result only if the objective rose; otherwise the mesh goes back to where it was. The
-mesh returned by a run is therefore never worse than the one the climb converged to.
+makes such a change on purpose (a "kick"), lets the climb run again from there, and
+keeps the result only if it is better (``better``); otherwise the mesh goes back to
+where it was. The mesh a run returns is never worse than the one the climb converged to.
 
-Each attempt kicks the tets within ``window`` of the worst quality with edge removals
-(or multi-face removals) allowed to lower their worst tet by up to ``slack``, gentlest
-first (``kicks``). Measured on the Gmsh holeplate with the boundary fixed: the worst
-dihedral angle went 29.10 -> 31.13 degrees in two kept rounds, where the climb alone had
-converged (Stellar's flips + smoothing reach 31.4 there). Off by default
-(``Options.perturb = 0``): the rounds that keep nothing cost the most, ~0.15 s per
-attempt on 33k tets and ~2 s on 983k.
+The kicks, gentlest first (``kicks``): edge removals or multi-face removals around the
+tets within ``window`` of the worst quality, allowed to lower the worst tet they touch by
+up to ``slack``; then a new vertex at the centroid of each of those tets (1-4 split),
+which the climb then moves and connects. A round works on a submesh, the tets within
+``RINGS`` vertex rings of the worst ones with the cut faces pinned, and splices back the
+attempt it keeps, so an attempt costs the neighbourhood, not the mesh.
+
+Measured on the Gmsh holeplate with the boundary fixed, where the climb alone converges
+at 29.10 degrees (Stellar's flips + smoothing reach 31.4): 33.28 / 128.38 with 8 kept
+rounds, 33.64 / 127.67 with 16 (experiments/results/bench_improve.md, session 10).
 """
 
 from __future__ import annotations
@@ -29,10 +32,9 @@ import numpy as np
 SLACKS = (0.05, 0.1, 0.2)
 WINDOWS = (0.005, 0.03)
 # The climb after a kick stops at its first pass without progress: the kick's repair is
-# done in a pass or two, and an idle pass per attempt is ~0.05 s of fixed kernel costs.
-# Measured on the holeplate: 31.13 degrees after 3.1 s of perturbation, against 30.79
-# after 3.6 s with the run's patience of 2 (the shorter climbs end in other meshes,
-# here better ones).
+# done in a pass or two, and an idle pass per attempt is a set of fixed kernel costs.
+# Holeplate, 8 / 16 kept rounds: patience 1 33.28 / 33.64 degrees, patience 2 33.15 /
+# 33.66 with 6-20 % more attempts.
 CLIMB_PATIENCE = 1
 
 
@@ -121,6 +123,7 @@ def _change_key(step) -> bytes:
 # A round works on the tets within this many vertex rings of the worst ones: the kicks
 # and the climbs after them then cost in proportion to that neighbourhood, not to the
 # mesh (an attempt on the whole 983k-tet cube was ~2 s, mostly O(m) bookkeeping).
+# Holeplate, 16 kept rounds: 2 rings 33.62, 3 rings 33.64, 4 rings 33.65 degrees.
 RINGS = 3
 
 
@@ -246,10 +249,11 @@ def perturb(run, t0: float) -> str:
             spliced = part.splice(run.current, sub.current) if kept else None
             if spliced is not None:
                 out, keep = spliced
-                changed = np.arange(out.n_tets) >= int(keep.sum())
-                nb = out.topology.tet_neighbors[changed]
-                changed[nb[nb >= 0]] = True
-                result = StepResult(out, step.stats, keep, changed)
+                # tets touching the new ones: a vertex mask, not the new mesh's face
+                # adjacency (its topology would be a full build: the points changed)
+                touched = np.zeros(out.n_points, bool)
+                touched[out.tets[int(keep.sum()) :].reshape(-1)] = True
+                result = StepResult(out, step.stats, keep, touched[out.tets].any(axis=1))
                 run.step("perturb", lambda *_, done=result: done, None, record=False)
             else:
                 sub.restore(start)
