@@ -40,10 +40,11 @@ CLIMB_PATIENCE = 1
 
 def kicks(ops: tuple[str, ...]) -> list[tuple[float | None, float, str]]:
     """(slack, window, kick) of every attempt of a round, in the order they are tried:
-    the flips of ``ops`` at each slack, then vertex insertion ("insert", no slack)."""
+    the flips of ``ops`` at each slack, then vertex insertion ("insert", no slack) when
+    ``ops`` smooth as well."""
     flips = [op for op in ("edge", "face") if op in ops]
     ladder = [(s, w, op) for s in SLACKS for w in WINDOWS for op in flips]
-    if flips:  # a new vertex needs the flips (and smoothing) of the climb to pay off
+    if flips and "smooth" in ops:  # a new vertex pays off once smoothed and connected
         ladder += [(None, w, "insert") for w in WINDOWS]
     return ladder
 
@@ -181,9 +182,7 @@ class _Submesh:
         if not np.array_equal(self.boundary_faces(sub), self.boundary):
             return None
         n_old = len(self.verts)
-        to_global = np.concatenate(
-            [self.verts, mesh.n_points + np.arange(sub.n_points - n_old)]
-        )
+        to_global = np.concatenate([self.verts, mesh.n_points + np.arange(sub.n_points - n_old)])
         points = np.concatenate([mesh.points, sub.points[n_old:]])
         points[self.verts] = sub.points[:n_old]
         keep = ~self.sel

@@ -130,22 +130,26 @@ def test_demo_stats_match_jtet_stats(demo, demo_run):
 
 def test_demo_history(demo, demo_run):
     _, _, r = demo_run
-    h = r.history
-    assert h, "no history"
-    for e in h:
+    everything = r.history
+    assert everything, "no history"
+    for e in everything:
         assert HISTORY_KEYS <= set(e), set(HISTORY_KEYS) - set(e)
         assert 0 <= e["successes"] <= e["attempts"]
+    # the climb's passes, then the perturbation rounds (tests/test_perturb.py)
+    h = [e for e in everything if e["op"] != "perturb"]
+    rounds = everything[len(h) :]
+    assert all(e["op"] == "perturb" for e in rounds)
     ops = r.options.ops
     assert ops == ("edge", "face", "smooth")
     n_passes = len(h) // len(ops)
     assert len(h) == n_passes * len(ops)
     assert [e["op"] for e in h] == list(ops) * n_passes
     assert [e["pass"] for e in h] == [i // len(ops) for i in range(len(h))]
-    worst = [e["worst_quality"] for e in h]
+    worst = [e["worst_quality"] for e in everything]
     assert worst == sorted(worst), "the worst quality went down"
     measure = r.options.quality
     assert worst[0] >= demo.quality(measure).min()
-    last = h[-1]
+    last = everything[-1]
     assert last["worst_quality"] == r.mesh.quality(measure).min()
     assert last["n_tets"] == r.mesh.n_tets
     assert last["min_dihedral"] == pytest.approx(r.stats_after.min_dihedral, abs=1e-12)
@@ -159,6 +163,7 @@ def test_demo_history(demo, demo_run):
             assert _no_progress(w[-p - 1], w[-p])
     else:
         assert n_passes == r.options.max_passes
+        assert not rounds  # perturbation only after a converged climb
 
 
 def test_demo_as_dict_and_summary(demo_run):
@@ -295,8 +300,9 @@ def test_max_passes_zero_returns_input(demo):
 def test_patience(demo):
     # edge removal alone: a cheap run that needs several passes on the demo
     # (measured: patience=1 stops after 4 passes, patience=3 after 6)
-    p1 = jtet.improve(demo, ops=("edge",), patience=1)
-    p3 = jtet.improve(demo, ops=("edge",), patience=3)
+    # (no perturbation rounds: they would follow each converged climb)
+    p1 = jtet.improve(demo, ops=("edge",), patience=1, perturb=0)
+    p3 = jtet.improve(demo, ops=("edge",), patience=3, perturb=0)
     assert p1.status == p3.status == "converged"
     n1, n3 = len(_passes(p1.history)), len(_passes(p3.history))
     assert 2 <= n1 <= n3

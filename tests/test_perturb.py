@@ -47,6 +47,7 @@ def test_kicks_order_and_ops():
     # vertex insertion last, once per window
     assert ladder[len(flips) :] == [(None, w, "insert") for w in WINDOWS]
     assert {k[2] for k in kicks(("face", "smooth"))} == {"face", "insert"}
+    assert {k[2] for k in kicks(("edge", "face"))} == {"edge", "face"}  # no smoothing
     assert kicks(("smooth",)) == []
 
 
