@@ -11,7 +11,7 @@ times and the kernel builds (experiments/results/compile.md).
     python experiments/bench_improve.py                       # the four reference meshes
     python experiments/bench_improve.py --meshes gmsh_cube --ops edge,face
     python experiments/bench_improve.py --boundary slide      # flat facets' vertices slide
-    python experiments/bench_improve.py --perturb 8           # + perturbation rounds
+    python experiments/bench_improve.py --perturb 0           # without perturbation rounds
     python experiments/bench_improve.py --compile --meshes gmsh_cube   # compile overhead
     python experiments/bench_improve.py --cli --repeat 5      # the jtet command, end to end
     python experiments/bench_improve.py --big 165000          # + a ~1M-tet Delaunay mesh
@@ -83,6 +83,8 @@ def run_one(name: str, ops: tuple[str, ...], time_limit: float | None, **options
     r = jtet.improve(mesh, ops=ops, time_limit=time_limit, **options)
     wall = time.perf_counter() - t0
     smooth_s = sum(h["seconds"] for h in r.history if h["op"] == "smooth")
+    rounds = [h for h in r.history if h["op"] == "perturb"]
+    climb = [h for h in r.history if h["op"] != "perturb"]
     b, a = r.stats_before, r.stats_after
     return {
         "mesh": name,
@@ -94,8 +96,11 @@ def run_one(name: str, ops: tuple[str, ...], time_limit: float | None, **options
         "below30": a.small_dihedral[30],
         "seconds": wall,
         "us_per_tet": 1e6 * wall / mesh.n_tets,
-        "passes": 1 + max((h["pass"] for h in r.history), default=-1),
+        "passes": 1 + max((h["pass"] for h in climb), default=-1),
         "smooth_share": smooth_s / wall,
+        # perturbation: kept rounds / attempts, and their share of the wall time
+        "perturb": f"{sum(h['successes'] for h in rounds)}/{len(rounds)}",
+        "perturb_share": sum(h["seconds"] for h in rounds) / wall,
         # peak resident set of this process so far (rows run in order of size: the peak of
         # the largest mesh is its own)
         "peak_rss_gb": _peak_rss_gb(),
@@ -160,6 +165,8 @@ def print_table(rows: list[dict], title: str) -> None:
         "us/tet",
         "passes",
         "smooth %",
+        "perturb kept/tried",
+        "perturb %",
         "peak RSS GB",
         "status",
     ]
@@ -175,6 +182,8 @@ def print_table(rows: list[dict], title: str) -> None:
             f"{r['us_per_tet']:.0f}",
             str(r["passes"]),
             f"{100 * r['smooth_share']:.0f}",
+            r["perturb"],
+            f"{100 * r['perturb_share']:.0f}",
             f"{r['peak_rss_gb']:.2f}",
             r["status"],
         ]
@@ -349,9 +358,10 @@ def main() -> None:
     p.add_argument(
         "--perturb",
         type=int,
-        default=0,
+        default=jtet.Options().perturb,
         metavar="N",
-        help="improve's perturb option: up to N perturbation rounds after the climb",
+        help="improve's perturb option: up to N kept perturbation rounds after the climb "
+        "(default: jtet's)",
     )
     p.add_argument(
         "--big", type=int, default=0, help="also run a Delaunay mesh of this many random points"
