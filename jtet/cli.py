@@ -147,9 +147,12 @@ class _Progress:
             return
         frac = min((e["pass"] + 1) / self.max_passes, 1.0)
         bar = "#" * int(20 * frac) + "." * (20 - int(20 * frac))
+        if e["op"] == "perturb":  # one attempt of a perturbation round
+            what = f"perturb {e['kick']:6s} {'kept' if e['successes'] else 'undone':7s}"
+        else:
+            what = f"pass {e['pass'] + 1} {e['op']:6s} {e['successes']:6d}/{e['attempts']:<7d}"
         msg = (
-            f"[{bar}] pass {e['pass'] + 1} {e['op']:6s} {e['successes']:6d}/{e['attempts']:<7d} "
-            f"min/max dihedral {e['min_dihedral']:6.2f}/{e['max_dihedral']:6.2f}  "
+            f"[{bar}] {what} min/max dihedral {e['min_dihedral']:6.2f}/{e['max_dihedral']:6.2f}  "
             f"{time.perf_counter() - self.t0:6.1f}s"
         )
         if self.tty:
