@@ -219,6 +219,9 @@ def perturb(run, t0: float) -> str:
         part = _Submesh(run.current, _neighbourhood(run.current, seeds, RINGS))
         sel = part.sel
         sub = _Run(sub_opts, part.mesh, run.q[sel], run.lo_t[sel], run.hi_t[sel], None)
+        # the climb after a kick looks at what the kick changed (and what it changes in
+        # turn). Letting it work on the whole submesh was measured too: holeplate 33.28
+        # -> 33.67 degrees (8 rounds), but the 983k-tet cube 30.22 -> 28.76 (16 rounds)
         sub.dirty = {op: np.zeros(int(sel.sum()), bool) for op in opts.ops}
         start = sub.snapshot()
         outside = run.q[~sel]
