@@ -54,7 +54,7 @@ class Options:
             tied near it was fixed); otherwise the mesh goes back. Stops at the first
             round that keeps nothing. It frees worst tets whose vertices are all pinned
             (boundary fixed): holeplate 29.10 -> 33.28 degrees, 983k-tet cube 28.11 ->
-            30.22, for +2.5 s and +4 s. Inserted vertices are appended to the points.
+            30.22, for +3 s and +6 s. Inserted vertices are appended to the points.
         time_limit: seconds of wall time, or None.
         min_improvement: an operation must raise its worst tet by more than this.
         min_progress: a pass counts as progress when the worst quality or a thresholded
