@@ -30,7 +30,7 @@ class StepResult:
     changed: np.ndarray  # (m_new,) tets whose neighbourhood changed
 
 
-def _edge_step(mesh: TetMesh, opts: Options, quality, dirty) -> StepResult:
+def _edge_step(mesh: TetMesh, opts: Options, quality, dirty, prune: bool = True) -> StepResult:
     from ._edge_removal import edge_removal_pass
 
     out, stats, keep = edge_removal_pass(
@@ -40,6 +40,7 @@ def _edge_step(mesh: TetMesh, opts: Options, quality, dirty) -> StepResult:
         quality=quality,
         dirty=dirty,
         min_improvement=opts.min_improvement,
+        prune=prune,
     )
     return _replaced(mesh, out, stats, keep)
 

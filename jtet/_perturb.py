@@ -64,37 +64,17 @@ def insert_step(mesh, opts, quality, workable):
 def kick_step(op: str, slack: float | None):
     """A step function (``_driver.STEPS`` signature) of edge or multi-face removal whose
     winners may lower the worst tet they touch by up to ``slack``, or ``insert_step``."""
-    from ._driver import _replaced
+    from ._driver import _edge_step, _face_step
 
     if op == "insert":
         return insert_step
 
     def run(mesh, opts, quality, workable):
+        kick_opts = opts.replace(min_improvement=-slack)
         if op == "edge":
-            from ._edge_removal import edge_removal_pass
-
             # unpruned: the pruning bound assumes a winner must beat the old worst tet
-            out, stats, keep = edge_removal_pass(
-                mesh,
-                measure=opts.quality,
-                max_ring=opts.max_ring,
-                quality=quality,
-                dirty=workable,
-                min_improvement=-slack,
-                prune=False,
-            )
-        else:
-            from ._multiface import multiface_removal_pass
-
-            out, stats, keep = multiface_removal_pass(
-                mesh,
-                measure=opts.quality,
-                max_faces=opts.max_faces,
-                quality=quality,
-                dirty=workable,
-                min_improvement=-slack,
-            )
-        return _replaced(mesh, out, stats, keep)
+            return _edge_step(mesh, kick_opts, quality, workable, prune=False)
+        return _face_step(mesh, kick_opts, quality, workable)
 
     return run
 
