@@ -130,6 +130,13 @@ def test_improve_prints_summary(improved, small):
     # progress lines go to stderr, never to stdout
     assert "pass 1 edge" in improved["stderr"]
     assert "[" not in out.splitlines()[0]
+    # one line per perturbation attempt, with its kick and whether it was kept
+    rounds = [e for e in rep["history"] if e["op"] == "perturb"]
+    assert rounds, "the small mesh leaves work for the perturbation rounds"
+    lines = [ln for ln in improved["stderr"].splitlines() if "] perturb " in ln]
+    expected = [f"perturb {e['kick']:6s} {'kept' if e['successes'] else 'undone'}" for e in rounds]
+    assert len(lines) == len(expected)
+    assert all(want in line for want, line in zip(expected, lines, strict=True))
 
 
 def test_improve_options_reach_options(small, tmp_path, capsys):
