@@ -103,6 +103,12 @@ def test_every_group_option_composes_and_validates(group):
                 assert value in _options(key), (name, key, value)
 
 
+def test_no_perturb_is_the_default_without_perturbation_rounds():
+    cfg = _compose(["optimizer=no_perturb"])
+    assert config_schema.to_options(cfg.optimizer) == jtet.Options(perturb=0)
+    assert jtet.Options().perturb > 0
+
+
 def test_experiments_are_global_deltas():
     for path in (CONFIGS / "experiment").glob("*.yaml"):
         assert path.read_text().startswith("# @package _global_"), path.name
