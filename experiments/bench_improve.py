@@ -12,6 +12,7 @@ times and the kernel builds (experiments/results/compile.md).
     python experiments/bench_improve.py --meshes gmsh_cube --ops edge,face
     python experiments/bench_improve.py --boundary slide      # flat facets' vertices slide
     python experiments/bench_improve.py --perturb 0           # without perturbation rounds
+    python experiments/bench_improve.py --seeds 5             # quality over seeds 0-4
     python experiments/bench_improve.py --compile --meshes gmsh_cube   # compile overhead
     python experiments/bench_improve.py --cli --repeat 5      # the jtet command, end to end
     python experiments/bench_improve.py --big 165000          # + a ~1M-tet Delaunay mesh
@@ -150,6 +151,25 @@ def quality_settings(names: list[str], ops: tuple[str, ...], settings: list[str]
             row["mesh"] = f"{name} {setting}"
             rows.append(row)
     print_table(rows, f"quality measure : good_quality, ops={ops}")
+
+
+def seed_spread(names: list[str], ops: tuple[str, ...], n_seeds: int, **options) -> None:
+    """Worst / largest dihedral angle of ``improve`` with seeds 0 .. n_seeds - 1 on each
+    mesh (the seed breaks ties in the smoothing colouring, so each seed climbs a different
+    path), and how many seeds meet the quality target (worst >= 32, max <= 138 degrees)."""
+    print(f"\nquality over seeds 0-{n_seeds - 1}, ops={ops}, {options}")
+    print(
+        f"{'mesh':16s} {'worst / max per seed':{15 * n_seeds}s} {'worst min / median':20s} target  mean s"
+    )
+    for name in names:
+        run_one(name, ops, None, **options)  # warm-up: the shapes of this mesh
+        rows = [run_one(name, ops, None, seed=seed, **options) for seed in range(n_seeds)]
+        worst = np.array([r["min_dihedral"] for r in rows])
+        met = sum(r["min_dihedral"] >= 32 and r["max_dihedral"] <= 138 for r in rows)
+        cells = "".join(f"{r['after']:15s}" for r in rows)
+        spread = f"{worst.min():.2f} / {np.median(worst):.2f}"
+        mean_s = np.mean([r["seconds"] for r in rows])
+        print(f"{name:16s} {cells} {spread:20s} {met}/{n_seeds}     {mean_s:.1f}")
 
 
 def print_table(rows: list[dict], title: str) -> None:
@@ -387,6 +407,12 @@ def main() -> None:
         default="",
         help="comma list of ITERSxTRIALS smoothing settings to compare, e.g. 15x6,8x3",
     )
+    p.add_argument(
+        "--seeds",
+        type=int,
+        default=0,
+        help="quality spread over improve's seeds 0 .. N-1 (and how many meet the target)",
+    )
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
     ops = tuple(args.ops.split(","))
@@ -409,8 +435,11 @@ def main() -> None:
     if args.settings:
         quality_settings(names, ops, args.settings.split(","))
         return
-    rows = []
     options = {"boundary": args.boundary, "perturb": args.perturb}
+    if args.seeds:
+        seed_spread(names, ops, args.seeds, **options)
+        return
+    rows = []
     for name in names:
         if args.json:  # one run, as a user's (the compile-overhead table times it)
             rows.append(run_one(name, ops, args.time_limit, **options))
