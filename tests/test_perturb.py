@@ -10,7 +10,17 @@ import jtet
 from jtet import _driver
 from jtet._apply import split_tets
 from jtet._invariants import InvariantChecker
-from jtet._perturb import SLACKS, WINDOWS, _neighbourhood, _Submesh, better, kicks
+from jtet._perturb import (
+    JIGGLE,
+    JIGGLES,
+    SLACKS,
+    WINDOWS,
+    _neighbourhood,
+    _Submesh,
+    better,
+    jiggle_step,
+    kicks,
+)
 from jtet._predicates import orient3d_tets
 
 
@@ -39,16 +49,65 @@ def test_better_never_accepts_a_lower_worst():
 
 def test_kicks_order_and_ops():
     ladder = kicks(("edge", "face", "smooth"))
-    flips = [k for k in ladder if k[2] != "insert"]
+    flips = [k for k in ladder if k[2] in ("edge", "face")]
     assert len(flips) == len(SLACKS) * len(WINDOWS) * 2
     # gentlest slack first, each slack with the narrow window before the wide one
     assert [k[0] for k in flips] == sorted(k[0] for k in flips)
     assert ladder[0] == (SLACKS[0], WINDOWS[0], "edge")
-    # vertex insertion last, once per window
-    assert ladder[len(flips) :] == [(None, w, "insert") for w in WINDOWS]
-    assert {k[2] for k in kicks(("face", "smooth"))} == {"face", "insert"}
+    # then vertex insertion, once per window, and the jiggles last (wide window)
+    inserts = [(None, w, "insert") for w in WINDOWS]
+    jiggles = [(None, WINDOWS[-1], f"jiggle{d}") for d in range(JIGGLES)]
+    assert ladder[len(flips) :] == inserts + jiggles
+    assert {k[2] for k in kicks(("face", "smooth"))} == {"face", "insert"} | {k[2] for k in jiggles}
     assert {k[2] for k in kicks(("edge", "face"))} == {"edge", "face"}  # no smoothing
-    assert kicks(("smooth",)) == []
+    assert kicks(("smooth",)) == jiggles
+
+
+def _jiggled(mesh, workable, draw, seed=0):
+    step = jiggle_step(draw)(mesh, jtet.Options(seed=seed), None, workable)
+    return step, np.flatnonzero((step.mesh.points != mesh.points).any(axis=1))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_jiggle_moves_free_vertices_near_the_worst_tets_and_keeps_tets_positive(seed):
+    """Against a NumPy reference: only interior vertices of tets sharing a vertex with a
+    workable tet move, by at most JIGGLE times their mean edge length; every tet stays
+    positive (exact orient3d); the changed tets are exactly those with a moved vertex;
+    the draw and the seed pick the moves, the same ones every time."""
+    mesh = delaunay_mesh(300, seed=seed, surface_points=40)
+    q = mesh.quality("min_sine")
+    workable = q < np.quantile(q, 0.05)
+    step, moved = _jiggled(mesh, workable, draw=1, seed=seed)
+    assert len(moved) > 0 and step.keep is None
+    # reference: vertices of tets that share a vertex with a workable tet, interior only
+    near_verts = np.unique(mesh.tets[workable])
+    near_tets = np.isin(mesh.tets, near_verts).any(axis=1)
+    T = mesh.topology
+    on_boundary = np.unique(T.faces[T.boundary_face])
+    allowed = np.setdiff1d(np.unique(mesh.tets[near_tets]), on_boundary)
+    assert np.isin(moved, allowed).all()
+    edges = mesh.topology.edges
+    length = np.linalg.norm(mesh.points[edges[:, 0]] - mesh.points[edges[:, 1]], axis=1)
+    mean_length = np.array([length[(edges == v).any(axis=1)].mean() for v in moved])
+    shift = np.linalg.norm(step.mesh.points[moved] - mesh.points[moved], axis=1)
+    assert (shift <= JIGGLE * mean_length * (1 + 1e-12)).all()
+    assert (orient3d_tets(step.mesh.points, mesh.tets) > 0).all()
+    np.testing.assert_array_equal(step.changed, np.isin(mesh.tets, moved).any(axis=1))
+    again, _ = _jiggled(mesh, workable, draw=1, seed=seed)
+    np.testing.assert_array_equal(again.mesh.points, step.mesh.points)
+    other, _ = _jiggled(mesh, workable, draw=2, seed=seed)
+    assert not np.array_equal(other.mesh.points, step.mesh.points)
+
+
+def test_jiggle_leaves_worst_tets_with_only_pinned_vertices_alone():
+    """Worst tets whose four vertices are on the fixed boundary: no move (flips are their
+    only way out; moving their neighbours was measured useless)."""
+    mesh = delaunay_mesh(300, seed=0, surface_points=40)
+    T = mesh.topology
+    pinned = np.isin(mesh.tets, np.unique(T.faces[T.boundary_face])).all(axis=1)
+    assert pinned.any()
+    step, moved = _jiggled(mesh, pinned, draw=0)
+    assert len(moved) == 0 and not step.changed.any()
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -135,7 +194,10 @@ def test_perturbation_starts_from_the_converged_mesh_and_never_loses(demo_runs):
     worst = [plain.history[-1]["worst_quality"]] + [e["worst_quality"] for e in rounds]
     assert worst == sorted(worst)
     assert {e["successes"] for e in rounds} <= {0, 1}
-    assert all(e["attempts"] == 1 and e["kick"] in ("edge", "face", "insert") for e in rounds)
+    assert all(
+        e["attempts"] == 1 and e["kick"] in set(k[2] for k in kicks(("edge", "face", "smooth")))
+        for e in rounds
+    )
     # inserted vertices: one per split tet of a kept insertion round, at most
     inserted = perturbed.mesh.n_points - plain.mesh.n_points
     assert 0 <= inserted <= sum(e["changes"] for e in rounds if e["kick"] == "insert")
