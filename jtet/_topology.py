@@ -362,16 +362,7 @@ def _edge_groups(tets, n: int) -> dict[str, np.ndarray]:
     edges = np.take(te, eperm[eptr[:-1]], axis=0)
     tet_edges = einv.reshape(m, 6)
 
-    # ring step c -> d of every (tet, local edge), oriented w.r.t. the sorted edge:
-    # for local edge (i, j) the step is v_k -> v_l; if tets[i] > tets[j] the edge is
-    # traversed reversed (a and b swapped), which reverses the step.
-    lo = tets[:, TET_EDGES[:, 0]]
-    hi = tets[:, TET_EDGES[:, 1]]
-    ck = tets[:, _EDGE_OTHERS[:, 0]]
-    cl = tets[:, _EDGE_OTHERS[:, 1]]
-    swap = lo > hi
-    c = np.where(swap, cl, ck).reshape(-1)[eperm]
-    d = np.where(swap, ck, cl).reshape(-1)[eperm]
+    c, d = _sorted_steps(tets, n, eperm)
     edge_tets, edge_ring_ptr, edge_ring, edge_boundary, edge_manifold = _order_rings(
         eptr, c, d, eperm // 6
     )
@@ -385,6 +376,35 @@ def _edge_groups(tets, n: int) -> dict[str, np.ndarray]:
         edge_boundary=edge_boundary,
         edge_manifold=edge_manifold,
     )
+
+
+def _sorted_steps(tets, n: int, eperm) -> tuple[np.ndarray, np.ndarray]:
+    """(c, d), each (6m,): the ring step c -> d of every (tet, local edge) slot of the
+    tets (m, 4), in the order ``eperm`` (6m,) of the slots; int32 when the n point ids
+    fit."""
+    # the step is oriented w.r.t. the sorted edge: for local edge (i, j) it is
+    # v_k -> v_l; if tets[i] > tets[j] the edge is traversed reversed (a and b swapped),
+    # which reverses the step.
+    if n > np.iinfo(np.int32).max:
+        c, d = _slot_steps(tets)
+        return c.reshape(-1)[eperm], d.reshape(-1)[eperm]
+    # eperm reads the slots at random: one gather of (c, d) int32 pairs as int64 words
+    # touches half the cache lines of two int64 gathers (983k tets: 0.36 -> 0.21 s with
+    # the steps computed in int32)
+    cd = np.empty((len(tets), 6, 2), np.int32)
+    cd[:, :, 0], cd[:, :, 1] = _slot_steps(tets.astype(np.int32))
+    cd = cd.reshape(-1).view(np.int64)[eperm].view(np.int32).reshape(-1, 2)
+    return cd[:, 0], cd[:, 1]
+
+
+def _slot_steps(tets) -> tuple[np.ndarray, np.ndarray]:
+    """(c, d), each (m, 6): the ring step of every local edge of the tets (m, 4)."""
+    lo = tets[:, TET_EDGES[:, 0]]
+    hi = tets[:, TET_EDGES[:, 1]]
+    ck = tets[:, _EDGE_OTHERS[:, 0]]
+    cl = tets[:, _EDGE_OTHERS[:, 1]]
+    swap = lo > hi
+    return np.where(swap, cl, ck), np.where(swap, ck, cl)
 
 
 def _vertex_groups(tets, n: int) -> dict[str, np.ndarray]:
