@@ -135,13 +135,24 @@ def _stable_sort(keys: np.ndarray, key_bits: int) -> tuple[np.ndarray, np.ndarra
     """(perm, keys[perm]) of a stable sort of non-negative int keys below 2**key_bits.
 
     Packs (key, index) into one int64 and sorts VALUES when they fit: a SIMD value sort is
-    ~10x faster than argsort, and the index in the low bits makes it stable.
+    ~10x faster than argsort, and the index in the low bits makes it stable. Keys up to
+    twice as wide are sorted in two such passes, low bits first (LSD radix): face keys
+    of the 983k-tet mesh (53 bits, 4M keys) 0.66 -> 0.42 s.
     """
     N = len(keys)
     ibits = max(N - 1, 1).bit_length()
+    index = (1 << ibits) - 1
     if key_bits + ibits <= 63:
         packed = np.sort((keys.astype(np.int64, copy=False) << ibits) | np.arange(N))
-        return packed & ((1 << ibits) - 1), packed >> ibits
+        return packed & index, packed >> ibits
+    lo_bits = 63 - ibits
+    if key_bits - lo_bits + ibits <= 63:
+        k64 = keys.astype(np.int64, copy=False)
+        by_lo = np.sort(((k64 & ((1 << lo_bits) - 1)) << ibits) | np.arange(N)) & index
+        # stable on the high bits, ties in low-bits order: positions in by_lo break them
+        by_hi = np.sort(((k64 >> lo_bits)[by_lo] << ibits) | np.arange(N)) & index
+        perm = by_lo[by_hi]
+        return perm, keys[perm]
     perm = np.argsort(keys, kind="stable")
     return perm, keys[perm]
 
