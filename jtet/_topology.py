@@ -135,13 +135,24 @@ def _stable_sort(keys: np.ndarray, key_bits: int) -> tuple[np.ndarray, np.ndarra
     """(perm, keys[perm]) of a stable sort of non-negative int keys below 2**key_bits.
 
     Packs (key, index) into one int64 and sorts VALUES when they fit: a SIMD value sort is
-    ~10x faster than argsort, and the index in the low bits makes it stable.
+    ~10x faster than argsort, and the index in the low bits makes it stable. Keys up to
+    twice as wide are sorted in two such passes, low bits first (LSD radix): face keys
+    of the 983k-tet mesh (53 bits, 4M keys) 0.66 -> 0.42 s.
     """
     N = len(keys)
     ibits = max(N - 1, 1).bit_length()
+    index = (1 << ibits) - 1
     if key_bits + ibits <= 63:
         packed = np.sort((keys.astype(np.int64, copy=False) << ibits) | np.arange(N))
-        return packed & ((1 << ibits) - 1), packed >> ibits
+        return packed & index, packed >> ibits
+    lo_bits = 63 - ibits
+    if key_bits - lo_bits + ibits <= 63:
+        k64 = keys.astype(np.int64, copy=False)
+        by_lo = np.sort(((k64 & ((1 << lo_bits) - 1)) << ibits) | np.arange(N)) & index
+        # stable on the high bits, ties in low-bits order: positions in by_lo break them
+        by_hi = np.sort(((k64 >> lo_bits)[by_lo] << ibits) | np.arange(N)) & index
+        perm = by_lo[by_hi]
+        return perm, keys[perm]
     perm = np.argsort(keys, kind="stable")
     return perm, keys[perm]
 
@@ -362,16 +373,7 @@ def _edge_groups(tets, n: int) -> dict[str, np.ndarray]:
     edges = np.take(te, eperm[eptr[:-1]], axis=0)
     tet_edges = einv.reshape(m, 6)
 
-    # ring step c -> d of every (tet, local edge), oriented w.r.t. the sorted edge:
-    # for local edge (i, j) the step is v_k -> v_l; if tets[i] > tets[j] the edge is
-    # traversed reversed (a and b swapped), which reverses the step.
-    lo = tets[:, TET_EDGES[:, 0]]
-    hi = tets[:, TET_EDGES[:, 1]]
-    ck = tets[:, _EDGE_OTHERS[:, 0]]
-    cl = tets[:, _EDGE_OTHERS[:, 1]]
-    swap = lo > hi
-    c = np.where(swap, cl, ck).reshape(-1)[eperm]
-    d = np.where(swap, ck, cl).reshape(-1)[eperm]
+    c, d = _sorted_steps(tets, n, eperm)
     edge_tets, edge_ring_ptr, edge_ring, edge_boundary, edge_manifold = _order_rings(
         eptr, c, d, eperm // 6
     )
@@ -385,6 +387,35 @@ def _edge_groups(tets, n: int) -> dict[str, np.ndarray]:
         edge_boundary=edge_boundary,
         edge_manifold=edge_manifold,
     )
+
+
+def _sorted_steps(tets, n: int, eperm) -> tuple[np.ndarray, np.ndarray]:
+    """(c, d), each (6m,): the ring step c -> d of every (tet, local edge) slot of the
+    tets (m, 4), in the order ``eperm`` (6m,) of the slots; int32 when the n point ids
+    fit."""
+    # the step is oriented w.r.t. the sorted edge: for local edge (i, j) it is
+    # v_k -> v_l; if tets[i] > tets[j] the edge is traversed reversed (a and b swapped),
+    # which reverses the step.
+    if n > np.iinfo(np.int32).max:
+        c, d = _slot_steps(tets)
+        return c.reshape(-1)[eperm], d.reshape(-1)[eperm]
+    # eperm reads the slots at random: one gather of (c, d) int32 pairs as int64 words
+    # touches half the cache lines of two int64 gathers (983k tets: 0.36 -> 0.21 s with
+    # the steps computed in int32)
+    cd = np.empty((len(tets), 6, 2), np.int32)
+    cd[:, :, 0], cd[:, :, 1] = _slot_steps(tets.astype(np.int32))
+    cd = cd.reshape(-1).view(np.int64)[eperm].view(np.int32).reshape(-1, 2)
+    return cd[:, 0], cd[:, 1]
+
+
+def _slot_steps(tets) -> tuple[np.ndarray, np.ndarray]:
+    """(c, d), each (m, 6): the ring step of every local edge of the tets (m, 4)."""
+    lo = tets[:, TET_EDGES[:, 0]]
+    hi = tets[:, TET_EDGES[:, 1]]
+    ck = tets[:, _EDGE_OTHERS[:, 0]]
+    cl = tets[:, _EDGE_OTHERS[:, 1]]
+    swap = lo > hi
+    return np.where(swap, cl, ck), np.where(swap, ck, cl)
 
 
 def _vertex_groups(tets, n: int) -> dict[str, np.ndarray]:
@@ -485,67 +516,95 @@ def _order_rings(ptr, c, d, entry_tet):
     Entries come grouped by edge (CSR ``ptr``). Each edge's steps form one cycle (interior
     edge) or one path (boundary edge) in a manifold mesh. Edges are processed in buckets of
     equal ring size k: within a bucket the successor of every step is found by comparing
-    the k steps with each other, (E_k, k, k) at a time, then the ring is walked in k
-    vectorized steps. Cache-friendly and O(sum E_k k^2) with k ~ 5 on average.
+    the k steps with each other (``_ring_links``), then the ring is walked in k vectorized
+    steps (``_ring_walk``). Cache-friendly and O(sum E_k k^2) with k ~ 5 on average.
+    ``c`` and ``d`` may be int32 (half the bytes to gather and compare).
 
-    Returns the tets in ring order (CSR as ``ptr``), CSR ring vertices (a chain gets its
-    final vertex appended), the boundary flag and a manifold flag per edge.
+    Returns the tets in ring order (CSR as ``ptr``), CSR ring vertices (int64; a chain
+    gets its final vertex appended), the boundary flag and a manifold flag per edge.
     """
     E = len(ptr) - 1
     counts = np.diff(ptr)
-    edge_tets = entry_tet.copy()
-    ring_c = c.copy()
+    src = np.empty(len(c), np.int64)  # entry at each ring position
     edge_boundary = np.zeros(E, bool)
     edge_manifold = np.zeros(E, bool)
     chain_end = np.full(E, -1, np.int64)
-    for k in np.unique(counts):  # a loop over ring sizes, each bucket vectorized
-        es = np.flatnonzero(counts == k)
-        slots = ptr[es][:, None] + np.arange(k)  # (E_k, k)
-        cc, dd = c[slots], d[slots]
-        eq = dd[:, :, None] == cc[:, None, :]  # eq[e, i, j]: step j follows step i
-        # successors / predecessors per step, summed over the k positions in a loop
-        # (uint8: ~4x faster than a strided bool sum over an axis of (E_k, k, k))
-        e8 = eq.view(np.uint8) if k < 256 else eq.astype(np.int64)  # counts <= k
-        n_next, n_prev = e8[:, :, 0].copy(), e8[:, 0, :].copy()
-        for j in range(1, k):
-            n_next += e8[:, :, j]
-            n_prev += e8[:, j, :]
-        succ = np.where(n_next == 1, eq.argmax(axis=2), -1)
-        starts = n_prev == 0
-        n_starts = starts.sum(axis=1)
-        ok = (n_next <= 1).all(axis=1) & (n_prev <= 1).all(axis=1) & (n_starts <= 1)
-        start = np.where(n_starts == 1, starts.argmax(axis=1), 0)
-        rows = np.arange(len(es))
-        order = np.empty((len(es), k), np.int64)
-        pos = start
-        for step in range(k):
-            order[:, step] = pos
-            pos = np.where(pos >= 0, succ[rows, np.maximum(pos, 0)], -1)
-            ok &= (pos >= 0) | (step == k - 1)
-        # a visit of every step exactly once (cycles close on the start)
-        seen = np.bincount(
-            (rows[:, None] * k + np.maximum(order, 0)).reshape(-1), minlength=k * len(es)
-        )
-        ok &= (seen.reshape(-1, k) == 1).all(axis=1)
-        order = np.where(ok[:, None], order, np.arange(k))
-        src = np.take_along_axis(slots, order, 1)
-        edge_tets[slots] = entry_tet[src]
-        ring_c[slots] = c[src]
-        bnd = ok & (n_starts == 1)
+    # edges by ring size (ids increasing within a size): one value sort, not a scan of
+    # the (E,) counts per size
+    by_size, sizes = _stable_sort(counts, max(int(counts.max(initial=0)), 1).bit_length())
+    cut = np.flatnonzero(np.r_[True, sizes[1:] != sizes[:-1], True])
+    for b0, b1 in zip(cut[:-1], cut[1:]):  # a loop over ring sizes, each bucket vectorized
+        k, es = int(sizes[b0]), by_size[b0:b1]
+        base = ptr[es]
+        slots = base[:, None] + np.arange(k)  # (E_k, k)
+        order, ok, n_starts = _ring_walk(*_ring_links(c[slots], d[slots]))
+        src[slots] = base[:, None] + order
         edge_boundary[es] = n_starts >= 1
         edge_manifold[es] = ok
-        last = np.take_along_axis(slots, order[:, -1:], 1)[:, 0]
-        chain_end[es[bnd]] = d[last[bnd]]
-    # ring vertices: c of each step; chains also get d of their last step
-    ring_len = counts + edge_boundary
+        bnd = ok & (n_starts == 1)
+        chain_end[es[bnd]] = d[base[bnd] + order[bnd, -1]]
+    # ring vertices: c of each step; chains also get d of their last step, inserted after
+    # their run (a mask, not a scatter of every entry through the ring CSR)
     edge_ring_ptr = np.zeros(E + 1, np.int64)
-    np.cumsum(ring_len, out=edge_ring_ptr[1:])
-    edge_ring = np.empty(edge_ring_ptr[-1], np.int64)
-    owner = np.repeat(np.arange(E), counts)
-    edge_ring[edge_ring_ptr[owner] + (np.arange(len(c)) - ptr[owner])] = ring_c
+    np.cumsum(counts + edge_boundary, out=edge_ring_ptr[1:])
     bnd = np.flatnonzero(edge_boundary)
-    edge_ring[edge_ring_ptr[bnd + 1] - 1] = chain_end[bnd]
-    return edge_tets, edge_ring_ptr, edge_ring, edge_boundary, edge_manifold
+    ends = edge_ring_ptr[bnd + 1] - 1
+    steps = np.ones(edge_ring_ptr[-1], bool)
+    steps[ends] = False
+    edge_ring = np.empty(edge_ring_ptr[-1], np.int64)
+    edge_ring[steps] = c[src]
+    edge_ring[ends] = chain_end[bnd]
+    return entry_tet[src], edge_ring_ptr, edge_ring, edge_boundary, edge_manifold
+
+
+def _ring_links(cc, dd):
+    """(succ, n_next, n_prev), each (E_k, k), of the ring steps cc -> dd (E_k, k) of E_k
+    edges: how many steps follow / precede each step, and the position of its successor
+    where it has exactly one (any value below k elsewhere).
+
+    A loop over the k positions of (E_k, k) compares: measured 2-2.5x faster than one
+    (E_k, k, k) comparison reduced over its small axes (argmax, sums), k = 4..7.
+    """
+    E_k, k = cc.shape
+    dt = np.uint8 if k < 256 else np.int64  # counts <= k
+    n_next, n_prev, succ = (np.zeros((E_k, k), dt) for _ in range(3))
+    for j in range(k):
+        m = (dd == cc[:, j : j + 1]).astype(dt, copy=False)  # step j follows step i
+        n_next += m
+        succ += m * dt(j)  # wraps only where n_next > 1, where it is not used
+        n_prev += (cc == dd[:, j : j + 1]).astype(dt, copy=False)
+    return succ, n_next, n_prev
+
+
+def _ring_walk(succ, n_next, n_prev):
+    """(order (E_k, k), ok (E_k,), n_starts (E_k,)) of ``_ring_links``' output: the step
+    positions in ring order, from the only step without a predecessor (chain) or from
+    step 0 (cycle); ok where the steps form one chain or one cycle (else the order is
+    0..k-1); the number of steps without a predecessor."""
+    E_k, k = succ.shape
+    # row reductions as loops over the k columns: ~6x faster than .all / .sum / .argmax
+    # along rows of ~5
+    n_starts = np.zeros(E_k, np.int64)
+    start = np.zeros(E_k, np.int64)
+    bad = np.zeros(E_k, bool)
+    for j in reversed(range(k)):
+        s = n_prev[:, j] == 0
+        n_starts += s
+        np.copyto(start, j, where=s)  # the first start (only one where ok)
+        bad |= (n_prev[:, j] > 1) | (n_next[:, j] > 1)
+    ok = ~bad & (n_starts <= 1)
+    # a step with no successor leads back to the start: a walk that ends early then
+    # revisits the start, like one around a cycle shorter than k
+    flat = np.where(n_next == 1, succ, start[:, None]).reshape(-1)
+    rk = np.arange(E_k) * k
+    order = np.empty((E_k, k), np.int64)
+    order[:, 0] = pos = start
+    for step in range(1, k):
+        pos = flat[rk + pos]
+        order[:, step] = pos
+        ok &= pos != start
+    order[~ok] = np.arange(k)
+    return order, ok, n_starts
 
 
 def _bent(points, a, b, c, d, feature_angle: float) -> np.ndarray:
