@@ -226,3 +226,77 @@ def test_search_sorted_and_lookup_match_numpy(q):
     present = np.isin(queries, keys)
     assert np.array_equal(got >= 0, present)
     assert np.array_equal(keys[got[present]], queries[present])
+
+
+@pytest.mark.parametrize("key_bits", [1, 20, 40, 45, 53, 62])
+def test_stable_sort_matches_numpy_stable_argsort(key_bits):
+    """Every path of ``_stable_sort`` (one packed value sort, two packed passes for keys
+    up to twice as wide, argsort beyond) against NumPy's stable argsort, with many ties."""
+    from jtet._topology import _stable_sort
+
+    rng = np.random.default_rng(key_bits)
+    for n in (1, 2, 1000, 70_000):
+        distinct = rng.integers(0, 2**key_bits, max(n // 7, 1), dtype=np.int64)
+        keys = rng.choice(distinct, n)  # ~7 entries per key: ties must keep their order
+        perm, sorted_keys = _stable_sort(keys, key_bits)
+        ref = np.argsort(keys, kind="stable")
+        np.testing.assert_array_equal(perm, ref)
+        np.testing.assert_array_equal(sorted_keys, keys[ref])
+
+
+def _rings_reference(ptr, c, d, entry_tet):
+    """``_order_rings`` edge by edge in plain Python: a chain starts at its only step
+    without a predecessor, a cycle at its first step; anything else is non-manifold and
+    keeps its order."""
+    tets, rings, boundary, manifold = [], [], [], []
+    for e in range(len(ptr) - 1):
+        idx = list(range(ptr[e], ptr[e + 1]))
+        succ = {i: [j for j in idx if c[j] == d[i]] for i in idx}
+        pred = {i: [j for j in idx if d[j] == c[i]] for i in idx}
+        starts = [i for i in idx if not pred[i]]
+        ok = all(len(succ[i]) <= 1 and len(pred[i]) <= 1 for i in idx) and len(starts) <= 1
+        order = [starts[0] if starts else idx[0]]
+        while ok and len(order) < len(idx):
+            nxt = succ[order[-1]]
+            ok = len(nxt) == 1 and nxt[0] not in order
+            order.append(nxt[0] if ok else -1)
+        order = order if ok else idx
+        tets += [entry_tet[i] for i in order]
+        rings += [c[i] for i in order]
+        if starts:  # a chain (or a broken ring with a start) gets its last vertex
+            rings.append(d[order[-1]] if ok and len(starts) == 1 else -1)
+        boundary.append(bool(starts))
+        manifold.append(ok)
+    return np.array(tets), np.array(rings), np.array(boundary), np.array(manifold)
+
+
+@pytest.mark.parametrize("dtype", [np.int64, np.int32])
+def test_order_rings_matches_a_plain_python_walk(dtype):
+    """Random rings: cycles and chains in shuffled order, some with a corrupted step
+    (non-manifold), sizes 1-13 and 255-257 (wider counters), int32 or int64 steps."""
+    from jtet._topology import _order_rings
+
+    rng = np.random.default_rng(7)
+    counts = np.concatenate([rng.integers(1, 14, 300), [255, 256, 257]])
+    ptr = np.concatenate([[0], np.cumsum(counts)])
+    c, d = np.empty(ptr[-1], np.int64), np.empty(ptr[-1], np.int64)
+    for e, k in enumerate(counts):
+        v = rng.permutation(k + 40)[: k + 1]
+        cycle = rng.random() < 0.5
+        cs, ds = v[:k], (np.roll(v[:k], -1) if cycle else v[1:])
+        p = rng.permutation(k)
+        c[ptr[e] : ptr[e + 1]], d[ptr[e] : ptr[e + 1]] = cs[p], ds[p]
+        if rng.random() < 0.2:
+            c[ptr[e] + rng.integers(k)] = rng.integers(k + 40)
+    entry_tet = rng.integers(0, 10**6, ptr[-1])
+    tets, ring_ptr, ring, boundary, manifold = _order_rings(
+        ptr, c.astype(dtype), d.astype(dtype), entry_tet
+    )
+    ref_tets, ref_ring, ref_boundary, ref_manifold = _rings_reference(ptr, c, d, entry_tet)
+    assert 0.5 < ref_manifold.mean() < 1 and 0 < ref_boundary.mean() < 1
+    np.testing.assert_array_equal(tets, ref_tets)
+    np.testing.assert_array_equal(ring, ref_ring)
+    np.testing.assert_array_equal(boundary, ref_boundary)
+    np.testing.assert_array_equal(manifold, ref_manifold)
+    np.testing.assert_array_equal(np.diff(ring_ptr), counts + boundary)
+    assert ring.dtype == np.int64
