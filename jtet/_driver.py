@@ -30,7 +30,9 @@ class StepResult:
     changed: np.ndarray  # (m_new,) tets whose neighbourhood changed
 
 
-def _edge_step(mesh: TetMesh, opts: Options, quality, dirty, prune: bool = True) -> StepResult:
+def _edge_step(
+    mesh: TetMesh, opts: Options, quality, dirty, prune: bool = True, sites=None
+) -> StepResult:
     from ._edge_removal import edge_removal_pass
 
     out, stats, keep = edge_removal_pass(
@@ -41,11 +43,12 @@ def _edge_step(mesh: TetMesh, opts: Options, quality, dirty, prune: bool = True)
         dirty=dirty,
         min_improvement=opts.min_improvement,
         prune=prune,
+        sites=sites,
     )
     return _replaced(mesh, out, stats, keep)
 
 
-def _face_step(mesh: TetMesh, opts: Options, quality, dirty) -> StepResult:
+def _face_step(mesh: TetMesh, opts: Options, quality, dirty, sites=None) -> StepResult:
     from ._multiface import multiface_removal_pass
 
     out, stats, keep = multiface_removal_pass(
@@ -55,6 +58,7 @@ def _face_step(mesh: TetMesh, opts: Options, quality, dirty) -> StepResult:
         quality=quality,
         dirty=dirty,
         min_improvement=opts.min_improvement,
+        sites=sites,
     )
     return _replaced(mesh, out, stats, keep)
 

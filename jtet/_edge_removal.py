@@ -156,6 +156,7 @@ def edge_removal_pass(
     dirty: np.ndarray | None = None,
     min_improvement: float = 1e-9,
     prune: bool = True,
+    sites: np.ndarray | None = None,
 ) -> tuple[TetMesh, PassStats, np.ndarray | None]:
     """One pass: try every candidate edge at once, apply a conflict-free set of winners.
 
@@ -167,6 +168,8 @@ def edge_removal_pass(
         dirty: (m,) bool; only edges touching a dirty tet are tried (None: all edges).
         min_improvement: a winner must raise its worst tet by more than this (guards
             against flipping back and forth between configurations equal to round-off).
+        prune: let the kernels skip triangulations that cannot beat the old worst tet.
+        sites: (k,) edge ids from ``edge_candidates`` to try instead (``dirty`` unused).
 
     Returns:
         (new mesh, stats, keep): ``keep`` (m,) marks the old tets that survive, in order,
@@ -176,7 +179,10 @@ def edge_removal_pass(
     stats = PassStats("edge")
     T = mesh.topology
     q = mesh.quality(measure) if quality is None else quality
-    edges, too_big = edge_candidates(mesh, max_ring, dirty, with_skipped=True)
+    if sites is None:
+        edges, too_big = edge_candidates(mesh, max_ring, dirty, with_skipped=True)
+    else:
+        edges, too_big = np.asarray(sites, np.int64), 0
     stats.overflow = too_big
     if len(edges) == 0:
         return mesh, stats, None

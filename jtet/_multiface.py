@@ -483,6 +483,7 @@ def multiface_removal_pass(
     quality: np.ndarray | None = None,
     dirty: np.ndarray | None = None,
     min_improvement: float = 1e-9,
+    sites: np.ndarray | None = None,
 ) -> tuple[TetMesh, PassStats, np.ndarray | None]:
     """One pass: try every candidate face at once, apply a conflict-free set of winners.
 
@@ -496,6 +497,7 @@ def multiface_removal_pass(
         quality: (m,) quality of ``mesh``'s tets under ``measure`` if already known.
         dirty: (m,) bool; only faces touching a dirty tet are tried (None: all faces).
         min_improvement: a winner must raise its worst tet by more than this.
+        sites: (k,) face ids from ``candidate_faces`` to try instead (``dirty`` unused).
 
     Returns:
         (new mesh, stats, keep): ``keep`` (m,) marks the old tets that survive, in order,
@@ -505,7 +507,7 @@ def multiface_removal_pass(
     """
     stats = PassStats("face")
     q = mesh.quality(measure) if quality is None else np.asarray(quality)
-    faces = candidate_faces(mesh, q, dirty)
+    faces = candidate_faces(mesh, q, dirty) if sites is None else np.asarray(sites, np.int64)
     a, b, root = find_roots(mesh, faces)
     has = root >= 0
     a, b, root = a[has], b[has], root[has]

@@ -64,7 +64,8 @@ def test_improve_output_mesh(improved, small):
     out = jtet.load(improved["out"])
     assert src.n_tets == 1928
     assert out.is_valid().ok
-    assert out.n_points == src.n_points  # no vertex is inserted or deleted
+    # no vertex is deleted; perturbation rounds may insert some (1-4 splits)
+    assert out.n_points >= src.n_points
     assert set(np.unique(out.region)) == set(np.unique(src.region)) == {1, 2}
     # measured: worst min_sine 0.015 -> 0.56; the bound only asks for a real improvement
     assert out.quality().min() > src.quality().min()

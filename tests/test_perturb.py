@@ -13,6 +13,8 @@ from jtet._invariants import InvariantChecker
 from jtet._perturb import (
     JIGGLE,
     JIGGLES,
+    SITE_SLACK,
+    SITES,
     SLACKS,
     WINDOWS,
     _neighbourhood,
@@ -49,15 +51,21 @@ def test_better_never_accepts_a_lower_worst():
 
 def test_kicks_order_and_ops():
     ladder = kicks(("edge", "face", "smooth"))
-    flips = [k for k in ladder if k[2] in ("edge", "face")]
+    batched = [k for k in ladder if k[3] is None]
+    flips = [k for k in batched if k[2] in ("edge", "face")]
     assert len(flips) == len(SLACKS) * len(WINDOWS) * 2
     # gentlest slack first, each slack with the narrow window before the wide one
     assert [k[0] for k in flips] == sorted(k[0] for k in flips)
-    assert ladder[0] == (SLACKS[0], WINDOWS[0], "edge")
-    # then vertex insertion, once per window, and the jiggles last (wide window)
-    inserts = [(None, w, "insert") for w in WINDOWS]
-    jiggles = [(None, WINDOWS[-1], f"jiggle{d}") for d in range(JIGGLES)]
-    assert ladder[len(flips) :] == inserts + jiggles
+    assert ladder[0] == (SLACKS[0], WINDOWS[0], "edge", None)
+    # then vertex insertion, once per window, and the jiggles (wide window)
+    inserts = [(None, w, "insert", None) for w in WINDOWS]
+    jiggles = [(None, WINDOWS[-1], f"jiggle{d}", None) for d in range(JIGGLES)]
+    assert batched[len(flips) :] == inserts + jiggles
+    assert ladder[: len(batched)] == batched
+    # last, each site of the worst tets on its own, edge and face in turn
+    assert ladder[len(batched) :] == [
+        (SITE_SLACK, WINDOWS[0], op, i) for i in range(SITES) for op in ("edge", "face")
+    ]
     assert {k[2] for k in kicks(("face", "smooth"))} == {"face", "insert"} | {k[2] for k in jiggles}
     assert {k[2] for k in kicks(("edge", "face"))} == {"edge", "face"}  # no smoothing
     assert kicks(("smooth",)) == jiggles
@@ -195,9 +203,10 @@ def test_perturbation_starts_from_the_converged_mesh_and_never_loses(demo_runs):
     assert worst == sorted(worst)
     assert {e["successes"] for e in rounds} <= {0, 1}
     assert all(
-        e["attempts"] == 1 and e["kick"] in set(k[2] for k in kicks(("edge", "face", "smooth")))
+        e["attempts"] == 1 and e["kick"] in {k[2] for k in kicks(("edge", "face", "smooth"))}
         for e in rounds
     )
+    assert all(e["site"] is None or e["kick"] in ("edge", "face") for e in rounds)
     # inserted vertices: one per split tet of a kept insertion round, at most
     inserted = perturbed.mesh.n_points - plain.mesh.n_points
     assert 0 <= inserted <= sum(e["changes"] for e in rounds if e["kick"] == "insert")
@@ -304,6 +313,50 @@ def test_submesh_splice_round_trip_and_boundary_guard():
     np.testing.assert_array_equal(keep, ~sel)
     np.testing.assert_array_equal(out.points, mesh.points)
     assert _tet_set(out) == _tet_set(mesh)
-    # a submesh that lost a tet has another boundary: it cannot be spliced back
-    smaller = part.mesh.replace(tets=part.mesh.tets[1:], region=part.mesh.region[1:])
+    # a submesh that lost a tet on a cut face no longer fits the mesh around it
+    T = part.mesh.topology
+    t = T.face_tets[T.face_ids(part.cut[:1]), 0]
+    smaller = part.mesh.replace(
+        tets=np.delete(part.mesh.tets, t, 0), region=np.delete(part.mesh.region, t)
+    )
     assert part.splice(mesh, smaller) is None
+
+
+def _two_cubes():
+    """Two unit cubes side by side along x, 6 tets each around their (0,0,0)-(1,1,1)
+    diagonal: every square face is two coplanar triangles, and the shared square x = 1
+    has the same diagonal on both sides."""
+    corners = np.array([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], float)
+    cube = np.array([[0, a, b, 7] for a, b in [(1, 3), (1, 5), (2, 3), (2, 6), (4, 5), (4, 6)]])
+    points, ids = np.unique(
+        np.concatenate([corners, corners + [1.0, 0.0, 0.0]]), axis=0, return_inverse=True
+    )
+    tets = ids.reshape(-1)[np.concatenate([cube, cube + 8])]
+    inside_out = orient3d_tets(points, tets) < 0
+    tets[inside_out] = tets[inside_out][:, [0, 2, 1, 3]]
+    return jtet.TetMesh(points, tets)
+
+
+def _flip(mesh, p, q):
+    """``mesh`` after removing its edge between points ``p`` and ``q`` (a 2-2 flip)."""
+    from jtet._edge_removal import edge_removal_pass
+
+    ids = [int(np.flatnonzero((mesh.points == x).all(axis=1))[0]) for x in (p, q)]
+    e = np.flatnonzero((np.sort(mesh.topology.edges, axis=1) == sorted(ids)).all(axis=1))
+    out, stats, keep = edge_removal_pass(mesh, min_improvement=-1.0, sites=e)
+    assert stats.successes == 1
+    return out
+
+
+def test_splice_keeps_flips_of_the_mesh_boundary_and_refuses_cut_ones():
+    """The left cube as the submesh: a 2-2 flip of two coplanar faces of the mesh's
+    hull (which the climb makes on the whole mesh too) splices back into a valid mesh
+    with the same surfaces; a flip of the two coplanar cut faces at x = 1 does not."""
+    mesh = _two_cubes()
+    part = _Submesh(mesh, mesh.points[mesh.tets].mean(axis=1)[:, 0] < 1)
+    assert len(part.cut) == 2
+    hull = _flip(part.mesh, [0, 0, 0], [0, 1, 1])  # diagonal of the face x = 0
+    out, keep = part.splice(mesh, hull)
+    assert out.is_valid().ok and (~keep).sum() == 6 and out.n_tets == 12
+    InvariantChecker(mesh).check(out, 0, "perturb")
+    assert part.splice(mesh, _flip(part.mesh, [1, 0, 0], [1, 1, 1])) is None
