@@ -258,12 +258,12 @@ def _protected_area(mesh) -> float:
     return float(np.linalg.norm(cross, axis=1).sum()) / 2
 
 
-@pytest.mark.parametrize("seed", [0, 2])
-def test_kept_rounds_with_regions_and_protected_faces(seed):
+@pytest.mark.parametrize(("seed", "kick"), [(3, "edge"), (6, "insert")])
+def test_kept_rounds_with_regions_and_protected_faces(seed, kick):
     """Delaunay meshes of a cube (their worst tets are pinned to the flat hull), two
-    regions and protected interior faces: rounds that insert vertices are kept, with
-    every invariant checked after every step (``check=True``), and the protected
-    faces' surface is still there."""
+    regions and protected interior faces: rounds that flip or insert vertices are kept
+    (seeds picked for that), with every invariant checked after every step
+    (``check=True``), and the protected faces' surface is still there."""
     rng = np.random.default_rng(seed)
     mesh = delaunay_mesh(300, seed=seed, surface_points=40)
     centroids = mesh.points[mesh.tets].mean(axis=1)
@@ -276,8 +276,8 @@ def test_kept_rounds_with_regions_and_protected_faces(seed):
     assert r.status == "converged"
     rounds = [e for e in r.history if e["op"] == "perturb"]
     kept = [e for e in rounds if e["successes"]]
-    assert kept and {"insert"} <= {e["kick"] for e in kept}
-    assert r.mesh.n_points > mesh.n_points
+    assert kept and {kick} <= {e["kick"] for e in kept}
+    assert (r.mesh.n_points > mesh.n_points) == (kick == "insert")
     q0, q1 = plain.mesh.quality(r.options.quality), r.mesh.quality(r.options.quality)
     assert q1.min() >= q0.min()
     # protected triangles may be flipped only into triangles covering the same area
