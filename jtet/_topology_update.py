@@ -338,10 +338,11 @@ def _merge(old_keys, dead, nk: _NewKeys):
     ``old_keys`` (G0,) sorted unique, ``dead`` (D,) sorted ids of the old entities that
     do not survive, ``nk`` the candidate keys (duplicates and already-present ones
     allowed). Returns ``keys`` (G1,) sorted, ``gmap`` (G0,) new id of each old entity (-1
-    if gone), ``src`` (G1,) where each new entity comes from (an old id, or G0 + j for
-    the j-th added key) and ``add_src`` (A,) the index among the candidates of each
-    added key. Only the few added and dead entities are searched; ``gmap`` and ``src`` are
-    piecewise shifted ranges, made by one cumulative sum each (no whole-set sort or mask).
+    if gone; int32 when the ids fit, see ``_id_type``), ``src`` (G1,) where each new
+    entity comes from (an old id, or G0 + j for the j-th added key), ``add_src`` (A,) the
+    index among the candidates of each added key and ``add_pos`` (A,) its new id. Only
+    the few added and dead entities are searched; ``gmap`` and ``src`` are piecewise
+    shifted ranges, made by one cumulative sum each (no whole-set sort or mask).
     """
     G0 = len(old_keys)
     fresh = (nk.hit < 0) | (_lookup(dead, nk.hit) >= 0)
@@ -351,20 +352,25 @@ def _merge(old_keys, dead, nk: _NewKeys):
     ins = np.searchsorted(old_keys, add)  # old ids below each added key: ins[j]
     add_pos = np.arange(A) + ins - np.searchsorted(dead, ins)
     # survivor i moves by the added keys below it minus the dead ids below it
-    shift = np.zeros(G0 + 1, np.int64)
-    np.add.at(shift, ins, 1)
-    np.add.at(shift, dead + 1, -1)
-    gmap = np.arange(G0) + np.cumsum(shift[:G0])
+    gmap = _shifted_range(G0, ins, dead + 1, _id_type(max(G0, G1)))
     gmap[dead] = -1
     # new id j of a survivor comes from j + (dead ids before it) - (added keys before j)
-    back = np.zeros(G1 + 1, np.int64)
-    np.add.at(back, dead - np.arange(D) + np.searchsorted(ins, dead, side="right"), 1)
-    np.add.at(back, add_pos + 1, -1)
-    src = np.arange(G1) + np.cumsum(back[:G1])
+    up = dead - np.arange(D) + np.searchsorted(ins, dead, side="right")
+    src = _shifted_range(G1, up, add_pos + 1, np.int64)
     src[add_pos] = G0 + np.arange(A)
     keys = np.take(old_keys, src, mode="clip")  # added ones (src >= G0) overwritten
     keys[add_pos] = add
-    return keys, gmap, src, add_src
+    return keys, gmap, src, add_src, add_pos
+
+
+def _shifted_range(size: int, up: np.ndarray, down: np.ndarray, dtype) -> np.ndarray:
+    """(size,) ``dtype``: i + #(up <= i) - #(down <= i), one cumulative sum of unit
+    steps in place (no arange, sum or cast copies: 2M ids 6.7 -> 2.5 ms)."""
+    step = np.ones(size + 1, dtype)
+    step[0] = 0
+    np.add.at(step, up, 1)
+    np.add.at(step, down, -1)
+    return np.cumsum(step[:size], dtype=dtype, out=step[:size])
 
 
 def _id_type(size: int) -> type:
@@ -388,18 +394,17 @@ def _merged(old_rows, old_keys, dead, new_rows, nk: _NewKeys, old_tet_ids, keep_
     """The new mesh's faces (edges) and every tet's face (edge) ids.
 
     Merges the surviving old entities with the new tets' ``new_rows`` (keys
-    ``nk``, w per new tet) as ``_merge``. Returns (keys, gmap, src, add_src) of
+    ``nk``, w per new tet) as ``_merge``. Returns (keys, gmap, src, add_pos) of
     ``_merge``, the rows (G1, k) and the per-tet ids (K + A_tets, w): kept tets
     renumbered through ``gmap``, new tets looked up.
     """
-    keys, gmap, src, add_src = _merge(old_keys, dead, nk)
-    rows = _take_rows(old_rows, new_rows[add_src], src)
+    keys, gmap, src, add_src, add_pos = _merge(old_keys, dead, nk)
+    rows = _take_rows(old_rows, new_rows[add_src], src, add_pos)
     w = old_tet_ids.shape[1]
     tet_ids = np.empty((len(keep_idx) + len(nk.inverse) // w, w), np.int64)
-    narrow = gmap.astype(_id_type(max(len(gmap), len(keys))))  # old ids -> new ids
-    tet_ids[: len(keep_idx)] = _renumbered_rows(narrow, old_tet_ids, keep_idx)
+    tet_ids[: len(keep_idx)] = _renumbered_rows(gmap, old_tet_ids, keep_idx)
     tet_ids[len(keep_idx) :] = np.searchsorted(keys, nk.ukeys)[nk.inverse].reshape(-1, w)
-    return keys, gmap, src, add_src, rows, tet_ids
+    return keys, gmap, src, add_pos, rows, tet_ids
 
 
 def _renumbered_rows(mapping, ids, rows):
@@ -414,14 +419,13 @@ def _renumbered_rows(mapping, ids, rows):
     return np.take(np.take(mapping, ids, mode="wrap"), rows, axis=0, mode="clip")
 
 
-def _take_rows(old_rows, add_rows, src):
-    """Rows ``concat(old_rows, add_rows)[src]`` (``src`` >= len(old_rows) for the added
-    ones, in order); np.take along axis 0 is several times faster than fancy or boolean
-    row indexing on large arrays, and no concatenated copy of the old rows is made."""
-    G0 = len(old_rows)
+def _take_rows(old_rows, add_rows, src, add_pos):
+    """Rows ``concat(old_rows, add_rows)[src]`` (``src`` >= len(old_rows) exactly at the
+    added ones' positions ``add_pos``, in order); np.take along axis 0 is several times
+    faster than fancy or boolean row indexing on large arrays, and no concatenated copy
+    of the old rows is made."""
     rows = np.take(old_rows, src, axis=0, mode="clip")
-    added = np.flatnonzero(src >= G0) if len(add_rows) else np.zeros(0, np.int64)
-    rows[added] = add_rows
+    rows[add_pos] = add_rows
     return rows
 
 
@@ -514,15 +518,16 @@ def _update_faces(old: Topology, tets, keep, keep_idx, removed, renum, n):
     touched = _touched(old.tet_faces, removed, nk, len(fk0))
     ft = old.face_tets[touched]  # (T, 2)
     kept_slot = (ft >= 0) & keep[np.maximum(ft, 0)]
-    fkeys, fmap, src, add_src, faces, tet_faces = _merged(
+    fkeys, fmap, src, add_pos, faces, tet_faces = _merged(
         old.faces, fk0, touched[~kept_slot.any(axis=1)], nf, nk, old.tet_faces, keep_idx
     )
-    A = len(add_src)
+    A = len(add_pos)
 
     # carried faces: renumbered tets, same slots (regrouped ones are overwritten below)
     none = np.full((A, 2), -1, np.int64)
-    face_tets = np.take(renum, _take_rows(old.face_tets, none, src), mode="wrap").astype(np.int64)
-    face_apex = _take_rows(old.face_apex, none, src)
+    face_tets = np.take(renum, _take_rows(old.face_tets, none, src, add_pos), mode="wrap")
+    face_tets = face_tets.astype(np.int64)
+    face_apex = _take_rows(old.face_apex, none, src, add_pos)
     # entries (face, slot = tet * 4 + local vertex) of the touched faces, as build sorts them
     kt = renum[ft[kept_slot]].astype(np.int64)
     apex = old.face_apex[touched][kept_slot]
