@@ -643,17 +643,19 @@ def _update_edges(old: Topology, tets, keep, keep_idx, removed, renum, n):
     # carried: the untouched edges (touched ones are either gone or regrouped)
     carry = np.ones(len(ek0), bool)
     carry[touched] = False
-    lens0 = np.diff(old.edge_tets_ptr)
+    # old and new ids of the carried edges (the new edges not regrouped, in order), found
+    # once for the three per-edge copies below
+    c_old, c_new = np.flatnonzero(carry), np.flatnonzero(~redo)
     lens1 = np.zeros(E, np.int64)
-    lens1[emap[carry]] = lens0[carry]
+    lens1[c_new] = np.take(np.diff(old.edge_tets_ptr), c_old)
     lens1[redo_ids] = np.diff(ptr)
     edge_tets_ptr, edge_tets = _splice(
         old.edge_tets, old.edge_tets_ptr, carry, lens1, redo, r_tets, renum
     )
     bnd = np.zeros(E, bool)
     man = np.zeros(E, bool)
-    bnd[emap[carry]] = old.edge_boundary[carry]
-    man[emap[carry]] = old.edge_manifold[carry]
+    bnd[c_new] = np.take(old.edge_boundary, c_old)
+    man[c_new] = np.take(old.edge_manifold, c_old)
     bnd[redo_ids] = r_bnd
     man[redo_ids] = r_man
     ring_ptr, ring = _splice(old.edge_ring, old.edge_ring_ptr, carry, lens1 + bnd, redo, r_ring)
