@@ -65,6 +65,8 @@ def match_rows(table: np.ndarray, queries: np.ndarray, n: int) -> np.ndarray:
     """Index in ``table`` of each sorted query row, or -1 (rows compared as sets)."""
     if len(queries) == 0:
         return np.zeros(0, np.int64)
+    if len(table) == 0:
+        return np.full(len(queries), -1, np.int64)
     both = np.concatenate([np.sort(table, axis=1), np.sort(queries, axis=1)])
     keys = row_keys(both, n)
     tk, qk = keys[: len(table)], keys[len(table) :]

@@ -300,3 +300,9 @@ def test_order_rings_matches_a_plain_python_walk(dtype):
     np.testing.assert_array_equal(manifold, ref_manifold)
     np.testing.assert_array_equal(np.diff(ring_ptr), counts + boundary)
     assert ring.dtype == np.int64
+
+
+def test_match_rows_with_an_empty_table_finds_nothing():
+    queries = np.array([[0, 1, 2], [2, 3, 1]])
+    np.testing.assert_array_equal(match_rows(np.zeros((0, 3), np.int64), queries, 4), [-1, -1])
+    assert match_rows(queries, np.zeros((0, 3), np.int64), 4).shape == (0,)
