@@ -64,7 +64,8 @@ SITE_SLACK = 0.6
 def kicks(ops: tuple[str, ...]) -> list[tuple[float | None, float, str, int | None]]:
     """(slack, window, kick, site) of every attempt of a round, in the order they are
     tried: the flips of ``ops`` at each slack (site None: every site at once), then
-    vertex insertion ("insert", no slack) when ``ops`` smooth as well, then each flip
+    vertex insertion ("insert", no slack) when ``ops`` also smooth, then the jiggles
+    ("jiggle0" ..., random moves of free vertices) when ``ops`` smooth, then each flip
     site of the worst tets on its own."""
     flips = [op for op in ("edge", "face") if op in ops]
     ladder = [(s, w, op, None) for s in SLACKS for w in WINDOWS for op in flips]
