@@ -55,7 +55,7 @@ class Options:
             fixed); otherwise the mesh goes back. Stops at the first round that keeps
             nothing. It frees worst tets whose vertices are all pinned (boundary fixed)
             and local optima of the climb: holeplate 29.1-29.5 -> 32.7-34.4 degrees over
-            seeds 0-4, for +1-4 s. Inserted vertices are appended to the points.
+            seeds 0-4, for +1-6 s. Inserted vertices are appended to the points.
         time_limit: seconds of wall time, or None.
         min_improvement: an operation must raise its worst tet by more than this.
         min_progress: a pass counts as progress when the worst quality or a thresholded
