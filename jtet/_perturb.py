@@ -137,10 +137,10 @@ def jiggle_step(draw: int):
             back = np.unique(tets[bad])
             pts[back] = pts0[back]
             ids = np.setdiff1d(ids, back)
-        moved = star_tets(topo, ids, mesh.n_tets)
         out = mesh.replace(points=pts)
         out.__dict__["topology"] = topo  # the same tets: the topology stays valid
-        return StepResult(out, PassStats("jiggle", len(ids), len(ids)), None, moved)
+        # ``stars``: the tets of the vertices that kept their moves (the loop's last pass)
+        return StepResult(out, PassStats("jiggle", len(ids), len(ids)), None, stars)
 
     return run
 
@@ -159,7 +159,8 @@ def _sites(op: str, mesh, opts, quality, workable) -> np.ndarray:
 
 def kick_step(op: str, slack: float | None, site: int | None = None):
     """A step function (``_driver.STEPS`` signature) of edge or multi-face removal whose
-    winners may lower the worst tet they touch by up to ``slack``, or ``insert_step``.
+    winners may lower the worst tet they touch by up to ``slack``, or ``insert_step``, or
+    a ``jiggle_step`` (op "jiggle<draw>").
     With ``site`` i, only the i-th candidate edge / face is tried (no change if fewer)."""
     from ._driver import _edge_step, _face_step, _replaced
     from ._edge_removal import PassStats
