@@ -13,6 +13,7 @@ from jtet._invariants import InvariantChecker
 from jtet._perturb import (
     JIGGLE,
     JIGGLES,
+    MIN_RAISE,
     SITE_SLACK,
     SITES,
     SLACKS,
@@ -47,6 +48,26 @@ def test_better_never_accepts_a_lower_worst():
     # fewer tets near the old worst, but the worst itself fell by 1e-12 (below tol)
     new = np.array([0.50 - 1e-12, 0.9, 0.9])
     assert not better(new, old, near=0.005, tol=1e-9)
+
+
+def test_rounds_judge_with_the_raise_floor(demo, monkeypatch):
+    """Every attempt is judged with a raise floor of at least MIN_RAISE: without it the
+    demo keeps rounds that raise its worst tet by 1e-7 to 7e-5 (measured), which spend
+    the budget. The decisions are those of ``better`` with that tolerance."""
+    from jtet import _perturb
+
+    calls = []
+
+    def spy(new_q, old_q, near, tol):
+        calls.append((tol, better(new_q, old_q, near, tol)))
+        return calls[-1][1]
+
+    monkeypatch.setattr(_perturb, "better", spy)
+    r = jtet.improve(demo, perturb=8)
+    assert calls and {tol for tol, _ in calls} == {max(r.options.min_improvement, MIN_RAISE)}
+    # a round is kept only where ``better`` said so (the splice may still refuse it)
+    kept = sum(e["successes"] for e in r.history if e["op"] == "perturb")
+    assert 0 < kept <= sum(better_ for _, better_ in calls)
 
 
 def test_kicks_order_and_ops():
