@@ -381,3 +381,39 @@ def test_splice_keeps_flips_of_the_mesh_boundary_and_refuses_cut_ones():
     assert out.is_valid().ok and (~keep).sum() == 6 and out.n_tets == 12
     InvariantChecker(mesh).check(out, 0, "perturb")
     assert part.splice(mesh, _flip(part.mesh, [1, 0, 0], [1, 1, 1])) is None
+
+
+@pytest.mark.parametrize("op", ["edge", "face"])
+def test_single_site_kick_changes_only_around_its_candidate(op):
+    """A kick with ``site`` i flips at most the i-th candidate edge / face of the worst
+    tets: every tet it removes contains that edge (both end points), or, for a face,
+    the removed tets include the face's two tets; past the last candidate, no change."""
+    from jtet._edge_removal import edge_candidates
+    from jtet._multiface import candidate_faces
+    from jtet._perturb import kick_step
+
+    mesh = delaunay_mesh(300, seed=1, surface_points=40)
+    opts = jtet.Options()
+    q = mesh.quality(opts.quality)
+    workable = q < np.quantile(q, 0.1)
+    if op == "edge":
+        candidates = edge_candidates(mesh, opts.max_ring, workable)
+    else:
+        candidates = candidate_faces(mesh, q, workable)
+    changed = 0
+    for site in range(min(len(candidates), 12)):  # seed 1: faces 7, 8, 9, 11 flip
+        step = kick_step(op, 1.0, site)(mesh, opts, q, workable)
+        if step.keep is None:
+            continue
+        changed += 1
+        removed = mesh.tets[~step.keep]
+        T = mesh.topology
+        if op == "edge":
+            a, b = T.edges[candidates[site]]
+            assert ((removed == a).any(axis=1) & (removed == b).any(axis=1)).all()
+        else:
+            two = T.face_tets[candidates[site]]
+            assert (~step.keep[two[two >= 0]]).all()
+    assert changed > 0
+    past = kick_step(op, 1.0, len(candidates))(mesh, opts, q, workable)
+    assert past.keep is None and not past.changed.any()
