@@ -455,9 +455,8 @@ def _splice(old_vals, old_ptr, old_carry, new_lens, new_redo, redo_vals, mapping
     ptr = np.zeros(len(new_lens) + 1, np.int64)
     np.cumsum(new_lens, out=ptr[1:])
     vals = np.empty(ptr[-1], np.int64)
-    carried = np.logical_not(_entry_mask(old_ptr, np.diff(old_ptr), ~old_carry))
+    carried = old_vals[~_entry_mask(old_ptr, np.diff(old_ptr), ~old_carry)]
     redo = _entry_mask(ptr, new_lens, new_redo)
-    carried = old_vals[carried]
     vals[~redo] = carried if mapping is None else np.take(mapping, carried, mode="clip")
     vals[redo] = redo_vals
     return ptr, vals
