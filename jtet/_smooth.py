@@ -61,8 +61,8 @@ SOLVERS = ("bfgs", "ncg", "bfgs_tr", "active_set", "hybrid")
 # Stars up to 56 tets share one kernel shape (K = 56). A second, smaller shape (K = 32)
 # cost a second ~10 s CPU compile in a new process and a second executable to load, and
 # its calls were no faster overall (fewer stars per batch). The kernel is bound by the
-# work per padded slot (~1.8 us per slot and star at batch 32: every slot is evaluated
-# ~45 times), so the capacity is the smallest multiple of 8 above the stars of Gmsh and
+# work per padded slot (every slot's quality is evaluated ~45 times per star; measured
+# when each evaluation was the six dihedral pieces, now only the 5 worst tets' are), so the capacity is the smallest multiple of 8 above the stars of Gmsh and
 # optimized fTetWild meshes (at most 50 tets measured; a mean of ~27): calls 12 % faster
 # than at K = 64, the same output on the benchmark meshes (K = 40 rounds some reductions
 # differently; 48 sends the rare 49-50-tet stars to the 128 shape, a second compile).
@@ -208,17 +208,6 @@ def _smallest(c: Float[Array, " N"], k: int) -> Int[Array, " k"]:
     return jax.lax.fori_loop(0, k, pick, start)[0]
 
 
-def _smallest_pieces(c: Float[Array, "K C"], k: int) -> Int[Array, " k"]:
-    """Flat indices (tet * C + piece) of the k smallest entries of ``c`` (k <= K), as
-    ``_smallest(c.reshape(-1), k)`` up to the order of ties: the k smallest pieces lie in
-    the k tets of smallest minimum, so the search runs over K tet minima and then k * C
-    pieces instead of K * C pieces (2.2x cheaper at K = 32, C = 6, measured)."""
-    C = c.shape[1]
-    tets = _smallest(jnp.min(c, axis=1), k)
-    j = _smallest(c[tets].reshape(-1), k)
-    return tets[j // C] * C + j % C
-
-
 GRAD_STEP = 1e-6  # central-difference step of the active pieces' gradients, units of h
 
 
@@ -234,23 +223,37 @@ def _solve_active_set(t0, B, rel, mask, measure, max_iters, n_trials, active_rel
     minimum alone): a too wide set can hold 0 in its hull although the true objective
     still rises (measured: stalls ~4e-3 below the optimum without the retries). Stops when
     the narrowest set fails too.
+
+    Only the ``n_active`` worst tets are seen as their C pieces (``star_components``);
+    every other tet, and every trial, is its true quality, one number per tet. The k
+    smallest pieces lie in the k tets of smallest quality, so the active set is the same;
+    a tet outside them enters the step length through its quality (the piece that is its
+    minimum). Evaluating the true quality costs about half of the six pieces, and the
+    rates and trials are most of the kernel's work.
     """
-    C = star_components(jnp.zeros(3), rel, measure).shape[-1]
-    cmask = jnp.repeat(mask, C)
+    C = star_components(jnp.zeros(3), rel[:1], measure).shape[-1]
     widths = jnp.array([active_rel, active_rel * 0.1, active_rel * 0.01, 0.0])
     scales = 2.0 ** (1.0 - jnp.arange(n_trials))
+    slots = jnp.arange(rel.shape[0])
 
-    def comps(t):
-        return jnp.where(cmask, star_components(B @ t, rel, measure).reshape(-1), jnp.inf)
+    def values(t):  # true quality of every star tet, +inf in padded slots
+        return star_qualities(B @ t, rel, mask, measure)
 
     def body(state):
-        i, t, c, level = state
-        cmin = jnp.min(c)
-        # the n_active smallest components, those within the current width of the minimum;
-        # gradients only for those (their tets), the other rates by a difference along d
-        top = _smallest_pieces(c.reshape(-1, C), n_active)
+        i, t, q, level = state
+        qmin = jnp.min(q)
+        # the n_active worst tets as pieces, and the n_active smallest of their pieces
+        tets = _smallest(q, n_active)
+        rel_worst = rel[tets]
+        real = mask[tets][:, None]
+
+        def worst_pieces(t):
+            return jnp.where(real, star_components(B @ t, rel_worst, measure), jnp.inf)
+
+        pieces = worst_pieces(t)  # (n_active, C)
+        top = _smallest(pieces.reshape(-1), n_active)
         top_tet, top_comp = top // C, top % C
-        rel_top = rel[top_tet]
+        rel_top = rel_worst[top_tet]
 
         def top_comps(t):
             return star_components(B @ t, rel_top, measure)[jnp.arange(n_active), top_comp]
@@ -261,37 +264,49 @@ def _solve_active_set(t0, B, rel, mask, measure, max_iters, n_trials, active_rel
         # 5.5 s CPU, experiments/results/compile.md).
         steps = GRAD_STEP * jnp.eye(3)
         G = ((jax.vmap(top_comps)(t + steps) - jax.vmap(top_comps)(t - steps)) / (2 * GRAD_STEP)).T
-        active_top = c[top] <= cmin + widths[level] * jnp.abs(cmin) + 1e-14
+        active_top = pieces.reshape(-1)[top] <= qmin + widths[level] * jnp.abs(qmin) + 1e-14
         d = _min_norm_in_hull(G, active_top)
-        slots = jnp.arange(cmask.shape[0])
-        active = jnp.any((slots[:, None] == top[None, :]) & active_top[None, :], axis=1)
         dn = jnp.sqrt(d @ d)
         rate_a = jnp.min(jnp.where(active_top, G @ d, jnp.inf))
-        # Rates of all components along d only place the trial steps (the trials are
-        # scored exactly), so a forward difference does: one evaluation instead of a JVP
-        # (2.7x an evaluation, measured). A step of 1e-6 / |d| (units of h) keeps
-        # truncation ~1e-6 and round-off ~1e-10 relative.
+        # Rates along d only place the trial steps (the trials are scored exactly), so a
+        # forward difference does: one evaluation instead of a JVP (2.7x an evaluation,
+        # measured). A step of 1e-6 / |d| (units of h) keeps truncation ~1e-6 and
+        # round-off ~1e-10 relative.
         fd = 1e-6 / jnp.maximum(dn, 1e-300)
-        rate = jnp.where(cmask, (comps(t + fd * d) - c) / fd, 0.0)
-        closing = cmask & ~active & (rate < rate_a)
-        alpha_k = jnp.where(closing, (c - cmin) / jnp.where(closing, rate_a - rate, 1.0), jnp.inf)
+        t_fd = t + fd * d
+        # the worst tets' inactive pieces, then every other tet as its quality
+        p_flat = pieces.reshape(-1)
+        p_rate = (worst_pieces(t_fd).reshape(-1) - p_flat) / fd
+        p_active = jnp.any((jnp.arange(p_flat.shape[0])[:, None] == top) & active_top, axis=1)
+        p_closing = jnp.isfinite(p_flat) & ~p_active & (p_rate < rate_a)
+        p_alpha = (p_flat - qmin) / jnp.where(p_closing, rate_a - p_rate, 1.0)
+        others = mask & ~jnp.any(slots[:, None] == tets[None, :], axis=1)
+        q_rate = jnp.where(others, (values(t_fd) - q) / fd, 0.0)
+        q_closing = others & (q_rate < rate_a)
+        q_alpha = (q - qmin) / jnp.where(q_closing, rate_a - q_rate, 1.0)
         alpha_max = 0.5 / jnp.maximum(dn, 1e-300)  # never more than h/2 per step
-        alpha = jnp.minimum(jnp.min(alpha_k), alpha_max)
+        alpha = jnp.minimum(
+            jnp.minimum(
+                jnp.min(jnp.where(p_closing, p_alpha, jnp.inf)),
+                jnp.min(jnp.where(q_closing, q_alpha, jnp.inf)),
+            ),
+            alpha_max,
+        )
         T = t[None, :] + (alpha * scales)[:, None] * d[None, :]
-        CT = jax.vmap(comps)(T)  # (n_trials, N): kept, the next step needs no re-evaluation
-        vals = jnp.min(CT, axis=-1)
+        QT = jax.vmap(values)(T)  # (n_trials, K): kept, the next step needs no re-evaluation
+        vals = jnp.min(QT, axis=-1)
         vals = jnp.where(jnp.isfinite(vals), vals, -jnp.inf)
         j = jnp.argmax(vals)
-        improved = (vals[j] > cmin) & (dn > 1e-14) & (rate_a > 0)
+        improved = (vals[j] > qmin) & (dn > 1e-14) & (rate_a > 0)
         t_new = jnp.where(improved, T[j], t)
-        c_new = jnp.where(improved, CT[j], c)
-        return i + 1, t_new, c_new, jnp.where(improved, 0, level + 1)
+        q_new = jnp.where(improved, QT[j], q)
+        return i + 1, t_new, q_new, jnp.where(improved, 0, level + 1)
 
     def cond(state):
         i, _, _, level = state
         return (i < max_iters) & (level < len(widths))
 
-    _, t, _, _ = jax.lax.while_loop(cond, body, (0, t0, comps(t0), 0))
+    _, t, _, _ = jax.lax.while_loop(cond, body, (0, t0, values(t0), 0))
     return t
 
 
