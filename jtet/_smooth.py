@@ -62,10 +62,11 @@ SOLVERS = ("bfgs", "ncg", "bfgs_tr", "active_set", "hybrid")
 # cost a second ~10 s CPU compile in a new process and a second executable to load, and
 # its calls were no faster overall (fewer stars per batch). The kernel is bound by the
 # work per padded slot (every slot's quality is evaluated ~45 times per star; measured
-# when each evaluation was the six dihedral pieces, now only the 5 worst tets' are), so the capacity is the smallest multiple of 8 above the stars of Gmsh and
-# optimized fTetWild meshes (at most 50 tets measured; a mean of ~27): calls 12 % faster
-# than at K = 64, the same output on the benchmark meshes (K = 40 rounds some reductions
-# differently; 48 sends the rare 49-50-tet stars to the 128 shape, a second compile).
+# when each evaluation was six dihedral pieces, now only the 5 worst tets' are), so the
+# capacity is the smallest multiple of 8 above the stars of Gmsh and optimized fTetWild
+# meshes (at most 50 tets measured; a mean of ~27): calls 12 % faster than at K = 64,
+# the same output on the benchmark meshes (K = 40 rounds some reductions differently;
+# 48 sends the rare 49-50-tet stars to the 128 shape, a second compile).
 DEFAULT_CAPACITIES = (56, 128)
 
 # ---------------------------------------------------------------------------------------
