@@ -286,13 +286,10 @@ def _solve_active_set(t0, B, rel, mask, measure, max_iters, n_trials, active_rel
         q_closing = others & (q_rate < rate_a)
         q_alpha = (q - qmin) / jnp.where(q_closing, rate_a - q_rate, 1.0)
         alpha_max = 0.5 / jnp.maximum(dn, 1e-300)  # never more than h/2 per step
-        alpha = jnp.minimum(
-            jnp.minimum(
-                jnp.min(jnp.where(p_closing, p_alpha, jnp.inf)),
-                jnp.min(jnp.where(q_closing, q_alpha, jnp.inf)),
-            ),
-            alpha_max,
+        closing_alpha = jnp.concatenate(
+            [jnp.where(p_closing, p_alpha, jnp.inf), jnp.where(q_closing, q_alpha, jnp.inf)]
         )
+        alpha = jnp.minimum(jnp.min(closing_alpha), alpha_max)
         T = t[None, :] + (alpha * scales)[:, None] * d[None, :]
         QT = jax.vmap(values)(T)  # (n_trials, K): kept, the next step needs no re-evaluation
         vals = jnp.min(QT, axis=-1)
