@@ -144,6 +144,7 @@ def split_tets(mesh: TetMesh, which: np.ndarray) -> tuple[TetMesh, np.ndarray]:
     out = mesh._derive(
         points=np.concatenate([mesh.points, centroids]),
         tets=np.concatenate([mesh.tets[keep], new.reshape(-1, 4)]),
+        tets_checked=int(keep.sum()),
         region=np.concatenate([mesh.region[keep], np.repeat(mesh.region[split], 4)]),
     )
     return out, keep

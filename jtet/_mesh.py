@@ -183,9 +183,10 @@ class TetMesh:
 
         This mesh's arrays were checked when it was made and are read-only, so fields not
         in ``changes`` are reused as they are, and the first ``tets_checked`` rows of new
-        ``tets`` are trusted to be rows of a checked mesh over the same points (a flip
-        step keeps most tets: checking only the appended ones keeps its cost with the
-        change, not the mesh). The same errors as the constructor otherwise.
+        ``tets`` are trusted to be rows of a checked mesh over the same points, or over
+        their first ones when points were appended (a flip step keeps most tets: checking
+        only the appended ones keeps its cost with the change, not the mesh). The same
+        errors as the constructor otherwise.
         """
         unknown = set(changes) - {f for f in self.__dataclass_fields__}
         if unknown:
@@ -193,12 +194,12 @@ class TetMesh:
         points = self.points
         if "points" in changes:
             points = _checked_points(changes["points"])
-            if len(points) != self.n_points:
+            if len(points) < self.n_points:  # appended points keep old rows in range
                 tets_checked = 0
         tets = self.tets
         if "tets" in changes:
             tets = _checked_tets(changes["tets"], len(points), tets_checked)
-        elif len(points) != self.n_points:
+        elif len(points) < self.n_points:
             tets = _checked_tets(tets, len(points))
         region = self.region
         if "region" in changes or len(tets) != self.n_tets:

@@ -111,6 +111,19 @@ def csr_rows(ptr: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.arange(int(lens.sum())) + np.repeat(ptr[ids] - starts, lens), starts
 
 
+def corner_counts(vertex_mask: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(m,) uint32: how many of the 4 corners of each tet of ``tets`` (m, 4) are in
+    ``vertex_mask`` (n,) bool.
+
+    The four gathered bytes of a tet are read as one 32-bit word, whose byte sum the
+    multiply by 0x01010101 leaves in its top byte (at most 4: no carries): 10 ms for
+    983k tets against 31 ms for ``vertex_mask[tets].sum(axis=1)`` (measured), which
+    reduces along rows of 4."""
+    corners = np.ascontiguousarray(vertex_mask, bool).view(np.uint8)[tets]
+    words = np.ascontiguousarray(corners).view(np.uint32).reshape(-1)
+    return (words * np.uint32(0x01010101)) >> np.uint32(24)
+
+
 def search_sorted(sorted_keys: np.ndarray, queries: np.ndarray) -> np.ndarray:
     """``np.searchsorted(sorted_keys, queries)``, with many queries searched in increasing
     order: consecutive searches then walk the keys in one direction and stay in cache

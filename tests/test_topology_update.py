@@ -296,6 +296,33 @@ def test_replace_tets_checks_the_new_tets():
     assert moved.tets is mesh.tets and np.array_equal(moved.points, mesh.points + 1.0)
 
 
+def test_derive_with_appended_points_checks_only_the_new_tets():
+    """Appending points keeps the trusted rows valid (the splice of a perturbation round
+    and a 1-4 split append vertices): the new rows are still checked with the
+    constructor's errors, and fewer points check every row again."""
+    mesh = delaunay_mesh(100, seed=2)
+    n, m = mesh.n_points, mesh.n_tets
+    points = np.vstack([mesh.points, mesh.points[mesh.tets[:2]].mean(axis=1)])
+    new = np.array([[n, *mesh.tets[0, 1:]], [n + 1, n + 1, *mesh.tets[1, 2:]]])
+    tets = np.vstack([mesh.tets, new])
+    with pytest.raises(MeshInputError, match=f"tet {m + 1} repeats a vertex"):
+        mesh._derive(points=points, tets=tets, tets_checked=m)
+    new[1, 1] = n + 2
+    with pytest.raises(MeshInputError, match=f"tet {m + 1} has vertex indices"):
+        mesh._derive(points=points, tets=np.vstack([mesh.tets, new]), tets_checked=m)
+    new[1, 1] = mesh.tets[1, 1]
+    region = np.concatenate([mesh.region, mesh.region[:2]])
+    out = mesh._derive(
+        points=points, tets=np.vstack([mesh.tets, new]), region=region, tets_checked=m
+    )
+    assert out.n_points == n + 2 and np.array_equal(out.tets[m:], new)
+    # more points, same tets: nothing to check, the tets are reused
+    assert mesh.replace(points=points).tets is mesh.tets
+    # fewer points: the trusted rows are checked again
+    with pytest.raises(MeshInputError, match="out of range"):
+        mesh._derive(points=mesh.points[:-1], tets=mesh.tets, tets_checked=m)
+
+
 def test_id_maps_are_narrow_only_when_every_id_fits():
     """The renumbering maps are int32 (faster gathers) exactly when every id and -1 fit;
     the topology's own arrays stay int64 (checked field by field in the tests above)."""
