@@ -357,11 +357,10 @@ def perturb(run, t0: float) -> str:
             spliced = part.splice(run.current, sub.current) if kept else None
             if spliced is not None:
                 out, keep = spliced
-                # tets touching the new ones: a vertex mask, not the new mesh's face
-                # adjacency (its topology would be a full build: the points changed)
-                touched = np.zeros(out.n_points, bool)
-                touched[out.tets[int(keep.sum()) :].reshape(-1)] = True
-                result = StepResult(out, step.stats, keep, corner_counts(touched, out.tets) > 0)
+                # tets sharing a vertex with the new ones (through a vertex mask, not the
+                # new mesh's adjacency: its topology would be a full build)
+                new_tets = np.arange(out.n_tets) >= int(keep.sum())
+                result = StepResult(out, step.stats, keep, _neighbourhood(out, new_tets, 1))
                 run.step("perturb", lambda *_, done=result: done, None, record=False)
             else:
                 sub.restore(start)
