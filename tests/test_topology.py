@@ -5,7 +5,16 @@ import pytest
 from helpers import delaunay_mesh, grid_mesh
 
 import jtet
-from jtet._topology import CORNER, FREE, SEGMENT, SURFACE, Topology, local_index, match_rows
+from jtet._topology import (
+    CORNER,
+    FREE,
+    SEGMENT,
+    SURFACE,
+    Topology,
+    corner_counts,
+    local_index,
+    match_rows,
+)
 
 
 def _volume6(p):
@@ -306,3 +315,18 @@ def test_match_rows_with_an_empty_table_finds_nothing():
     queries = np.array([[0, 1, 2], [2, 3, 1]])
     np.testing.assert_array_equal(match_rows(np.zeros((0, 3), np.int64), queries, 4), [-1, -1])
     assert match_rows(queries, np.zeros((0, 3), np.int64), 4).shape == (0,)
+
+
+def test_corner_counts_match_a_row_sum():
+    """Marked corners per tet, read as 32-bit words, against NumPy's row sum of the
+    gathered mask: every count 0..4 occurs, int32 / int64 ids, non-contiguous tets, and
+    no tets at all."""
+    rng = np.random.default_rng(7)
+    for n, p in ((1, 1.0), (6, 0.5), (1000, 0.3)):
+        mask = rng.random(n) < p
+        tets = rng.integers(0, n, (4000, 4))
+        ref = mask[tets].sum(axis=1)
+        for t in (tets, tets.astype(np.int32), np.repeat(tets, 2, axis=1)[:, ::2]):
+            assert np.array_equal(corner_counts(mask, t), ref)
+    assert set(np.unique(ref)) == {0, 1, 2, 3, 4}
+    assert corner_counts(np.ones(5, bool), np.zeros((0, 4), np.int64)).shape == (0,)
