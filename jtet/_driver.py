@@ -28,6 +28,9 @@ class StepResult:
     stats: object  # has .as_dict(), .attempts, .successes
     keep: np.ndarray | None  # (m_old,) tets kept in order (None: tets unchanged)
     changed: np.ndarray  # (m_new,) tets whose neighbourhood changed
+    # (quality, min dihedral, max dihedral) of the tets np.flatnonzero(changed), when the
+    # operation evaluated them already (smoothing); () otherwise
+    measures: tuple = ()
 
 
 def _edge_step(
@@ -89,7 +92,7 @@ def _smooth_step(mesh: TetMesh, opts: Options, quality, dirty) -> StepResult:
         candidates=candidates,
         seed=opts.seed,
     )
-    return StepResult(out, stats, None, stats.moved_tets)
+    return StepResult(out, stats, None, stats.moved_tets, stats.moved_measures)
 
 
 STEPS = {"edge": _edge_step, "face": _face_step, "smooth": _smooth_step}
@@ -349,7 +352,13 @@ def _stats_dict(op: str, stats) -> dict:
     if hasattr(stats, "as_dict"):
         d = stats.as_dict()
     else:
-        d = {k: v for k, v in dataclasses.asdict(stats).items() if not isinstance(v, np.ndarray)}
+        # the fields themselves, not dataclasses.asdict: that deep-copies the arrays it
+        # is about to drop (a mesh-sized mask per smoothing pass)
+        d = {
+            f.name: getattr(stats, f.name)
+            for f in dataclasses.fields(stats)
+            if not isinstance(getattr(stats, f.name), np.ndarray | tuple)
+        }
     return {"op": op, **{k: v for k, v in d.items() if k != "op"}}
 
 
@@ -434,6 +443,9 @@ def _updated_tet_measures(step: StepResult, measure: str, q, lo, hi):
     else:  # same tets: those with a moved vertex changed
         redo = np.flatnonzero(step.changed)
         q, lo, hi = q.copy(), lo.copy(), hi.copy()
+        if step.measures:
+            q[redo], lo[redo], hi[redo] = step.measures
+            return q, lo, hi
     if len(redo):
         q[redo], lo[redo], hi[redo] = _tet_measures(mesh.points, mesh.tets[redo], measure)
     return q, lo, hi
