@@ -438,16 +438,21 @@ def solve_forest(
         )  # fmt: skip
 
     kernel = functools.partial(solve_trees, measure=measure)
-    # every tree capacity's kernel compiled (or loaded) at once on the worker threads
-    first = {cap: (cap, sel) for cap, sel in reversed(tasks)}
-    prefetch([("solve_trees", (measure,), kernel, arguments(t)) for t in first.values()])
+    # every tree capacity's kernel compiled (or loaded) at once on the worker threads;
+    # the first task of each capacity keeps the arguments built for that (a late pass
+    # has one or two tasks: building them twice was a third of its host work)
+    firsts = {cap: i for i, (cap, _) in reversed(list(enumerate(tasks)))}
+    built = {i: arguments(tasks[i]) for i in firsts.values()}
+    prefetch([("solve_trees", (measure,), kernel, args) for args in built.values()])
 
-    def solve(task):
-        out = cached_call("solve_trees", (measure,), kernel, *arguments(task))
-        return [np.asarray(x)[: len(task[1])] for x in out]
+    def solve(i):
+        args = built.pop(i, None)
+        out = cached_call("solve_trees", (measure,), kernel, *(args or arguments(tasks[i])))
+        return [np.asarray(x)[: len(tasks[i][1])] for x in out]
 
     # the trees' chunks are independent: solved on the worker threads, in order
-    for (cap, sel), (qo, qn, ch) in zip(tasks, _config.parallel_map(solve, tasks), strict=True):
+    results = _config.parallel_map(solve, list(range(len(tasks))))
+    for (cap, sel), (qo, qn, ch) in zip(tasks, results, strict=True):
         q_old[sel] = qo
         q_new[sel] = qn
         chosen[sel, :cap] = ch

@@ -18,7 +18,6 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._config import parallel_map
 from ._topology import (
     _EDGE_OTHERS,
     TET_EDGES,
@@ -35,6 +34,7 @@ from ._topology import (
     csr_rows,
     local_index,
     row_keys,
+    run_parts,
     sorted_lookup,
 )
 
@@ -117,13 +117,13 @@ def _update(old: Topology, old_mesh, new_mesh, keep, feature_angle) -> Topology 
 
     # faces, edges and vertices are regrouped independently: side by side on the worker
     # threads (NumPy's sorts and gathers release the GIL), as in ``Topology.build``
-    (fu, flags), eu, (vert_tets_ptr, vert_tets) = parallel_map(
-        lambda part: part(),
+    (fu, flags), eu, (vert_tets_ptr, vert_tets) = run_parts(
         [
             faces_and_flags,
             lambda: _update_edges(old, tets, keep, keep_idx, removed, renum, n),
             lambda: _update_vertices(old, old_mesh.tets, tets, keep, removed, renum),
         ],
+        len(tets),
     )
     if fu is None or flags is None:
         return None  # the full build reports the non-conforming or missing face
