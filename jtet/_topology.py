@@ -205,17 +205,17 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return np.divide(v, nrm, out=np.zeros_like(v), where=nrm > 0)
 
 
-# Below this many tets, the groupings of a build or an update run one after the other:
-# they are then many small NumPy calls that hold the GIL, and two threads trading it
-# cost more than they share (a 1092-tet update in a perturbation round: 5.5 ms one after
-# the other, 7.8 ms on two threads; builds break even at ~5000 tets).
+# Below this many tets, the three groupings of a build run one after the other: they
+# are then many small NumPy calls that hold the GIL, and two threads trading it cost
+# more than they share (builds break even at ~5000 tets: 2000 tets 12.4 ms one after the
+# other, 12.7 ms on two threads; 33k tets 88.7 and 80.4 ms).
 THREADED_MIN_TETS = 5000
 
 
-def run_parts(parts: list, n_tets: int) -> list:
+def run_parts(parts: list, n_tets: int, threshold: int | None = None) -> list:
     """``[part() for part in parts]``, on the worker threads for a mesh of ``n_tets``
-    tets of at least ``THREADED_MIN_TETS``."""
-    if n_tets < THREADED_MIN_TETS:
+    tets of at least ``threshold`` (default ``THREADED_MIN_TETS``)."""
+    if n_tets < (THREADED_MIN_TETS if threshold is None else threshold):
         return [part() for part in parts]
     from ._config import parallel_map
 

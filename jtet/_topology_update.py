@@ -42,6 +42,12 @@ from ._topology import (
 # kinds) are recomputed for all edges (vertices): the same arrays, found faster by the
 # global pass (measured crossover on a 182k-tet cube: ~5-10 %).
 LOCAL_FRACTION = 0.05
+# Below this many tets the update's three parts run one after the other (see
+# ``_topology.run_parts``). Its parts are lighter than a build's, so the threads pay off
+# later; small steps of the holeplate and Gmsh cubes, one after the other / on two
+# threads: 1092 tets 5.5 / 7.8 ms, 5338 tets 6.4 / 9.4 ms, 31.6k tets 22.9 / 27.6 ms, 53k
+# tets 27.6 / 23.5 ms, 169k tets 74.8 / 53.2 ms.
+UPDATE_THREADED_MIN_TETS = 40_000
 # Above this fraction of changed tets (removed + added, relative to the old count) the
 # full build runs. Measured on a 182k-tet cube (same process, loaded machine): the
 # update takes 1.1x the build's time at 47 % changed (the first flip step of an
@@ -124,6 +130,7 @@ def _update(old: Topology, old_mesh, new_mesh, keep, feature_angle) -> Topology 
             lambda: _update_vertices(old, old_mesh.tets, tets, keep, removed, renum),
         ],
         len(tets),
+        UPDATE_THREADED_MIN_TETS,
     )
     if fu is None or flags is None:
         return None  # the full build reports the non-conforming or missing face

@@ -31,15 +31,18 @@ def assert_same(got: Topology, want: Topology):
 
 def direct_updates(T, old_mesh, new_mesh, keep):
     """``U._update`` with the local recomputation of edge protection and vertex kinds
-    forced, then the global one (the size switch picks either on real meshes)."""
+    forced, then the global one (the size switch picks either on real meshes); the first
+    with the update's parts one after the other, the second on the worker threads (the
+    test meshes are below the size where real runs use them)."""
     out = []
-    for fraction in (1.0, 0.0):
-        saved, U.LOCAL_FRACTION = U.LOCAL_FRACTION, fraction
+    for fraction, threaded in ((1.0, 10**9), (0.0, 0)):
+        saved = U.LOCAL_FRACTION, U.UPDATE_THREADED_MIN_TETS
+        U.LOCAL_FRACTION, U.UPDATE_THREADED_MIN_TETS = fraction, threaded
         try:
             angle = new_mesh._feature_angle
             out.append(U._update(T, old_mesh, new_mesh, np.asarray(keep, bool), angle))
         finally:
-            U.LOCAL_FRACTION = saved
+            U.LOCAL_FRACTION, U.UPDATE_THREADED_MIN_TETS = saved
     return out
 
 
