@@ -23,6 +23,7 @@ rounds, 33.64 / 127.67 with 16 (experiments/results/bench_improve.md, session 10
 
 from __future__ import annotations
 
+import itertools
 import time
 
 import numpy as np
@@ -304,12 +305,110 @@ class _Submesh:
         return out, keep
 
 
+_ROUND_IDS = itertools.count()
+
+
+class Outcome:
+    """What one attempt of a round did, wherever it ran (``RoundState.attempt``).
+
+    ``key`` is the kick's change (None: nothing to kick, or no change); ``mesh`` the
+    submesh after the climb (None for a kick already tried) and ``q`` its qualities;
+    ``stop`` the status of a climb that stopped (time limit, Ctrl-C)."""
+
+    def __init__(self, key=None, mesh=None, q=None, stats=None, seconds=0.0, stop=None):
+        self.key, self.mesh, self.q, self.stats = key, mesh, q, stats
+        self.seconds, self.stop = seconds, stop
+
+    def for_pipe(self) -> Outcome:
+        """This outcome with the submesh as plain arrays (``submesh`` rebuilds it)."""
+        mesh = self.mesh
+        if mesh is not None:
+            mesh = (mesh.points, mesh.tets, mesh.region, mesh.protected_faces,
+                    mesh.protected_edges, mesh._feature_angle)  # fmt: skip
+        return Outcome(self.key, mesh, self.q, self.stats, self.seconds, self.stop)
+
+    def submesh(self):
+        """The submesh after the climb, as a ``TetMesh``."""
+        if not isinstance(self.mesh, tuple):
+            return self.mesh
+        from ._mesh import TetMesh
+
+        points, tets, region, faces, edges, angle = self.mesh
+        return TetMesh(points, tets, region, faces, edges)._with_feature_angle(angle)
+
+
+class RoundState:
+    """A round's submesh and the climb state of its start; ``attempt`` runs one kick and
+    the climb after it from there, and goes back to the start. Attempts depend only on
+    this state, so any process may run any of them (``_helper_process``)."""
+
+    def __init__(self, mesh, q, lo, hi, opts, worst: float, good: float, t0: float):
+        from ._driver import _Run
+
+        self.sub = _Run(opts, mesh, q, lo, hi, None)
+        # the climb after a kick looks at what the kick changed (and what it changes in
+        # turn). Letting it work on the whole submesh was measured too: holeplate 33.28
+        # -> 33.67 degrees (8 rounds), but the 983k-tet cube 30.22 -> 28.76 (16 rounds)
+        self.sub.dirty = {op: np.zeros(len(q), bool) for op in opts.ops}
+        self.start_state = self.sub.snapshot()
+        self.worst, self.good, self.t0 = worst, good, t0
+
+    def for_pipe(self) -> tuple:
+        """The round's start, for ``start`` in another process (from the snapshot: an
+        attempt may be changing ``sub`` on another thread meanwhile)."""
+        m, q, lo, hi, _ = self.start_state
+        mesh = (m.points, m.tets, m.region, m.protected_faces, m.protected_edges)
+        elapsed = time.perf_counter() - self.t0
+        return (mesh, m._feature_angle, q, lo, hi, self.sub.opts, self.worst, self.good,
+                elapsed)  # fmt: skip
+
+    @classmethod
+    def start(cls, piped: tuple) -> RoundState:
+        """The state ``for_pipe`` sent (the helper's run clock starts where the
+        optimizer's was)."""
+        from ._mesh import TetMesh
+
+        mesh, angle, q, lo, hi, opts, worst, good, elapsed = piped
+        sub = TetMesh(*mesh)._with_feature_angle(angle)
+        return cls(sub, q, lo, hi, opts, worst, good, time.perf_counter() - elapsed)
+
+    def attempt(self, attempt: tuple, tried=frozenset()) -> Outcome:
+        """Attempt ``(slack, window, kick, site)``: the kick, then (unless its change is
+        in ``tried``) the climb. The state is back at the round's start afterwards."""
+        from ._driver import _Stop
+
+        slack, window, op, site = attempt
+        ts = time.perf_counter()
+        sub = self.sub
+        # the worst tets, and only those below the good-enough quality
+        workable = sub.q < min(self.worst + window, self.good)
+        if not workable.any():
+            return Outcome()
+        try:
+            # op "perturb": the kick leaves every operation's dirty tets to retry
+            step = sub.step("perturb", kick_step(op, slack, site), workable, record=False)
+            if step.keep is None and not step.changed.any():  # no change: nothing to undo
+                return Outcome()
+            # another slack or window often picks the same flips: climbing from the
+            # same kicked mesh again would end where the last attempt ended
+            key = _change_key(step)
+            if key in tried:
+                return Outcome(key)
+            sub.climb(self.t0, record=False, patience=CLIMB_PATIENCE)
+            return Outcome(key, sub.current, sub.q, step.stats, time.perf_counter() - ts)
+        except _Stop as stop:
+            return Outcome(stop=stop.status)
+        finally:
+            sub.restore(self.start_state)
+
+
 def perturb(run, t0: float) -> str:
     """Perturbation rounds on a converged ``run`` (a ``_driver._Run``), at most
     ``opts.perturb`` kept ones; returns the run's status, "converged". Each attempt is
     one history entry, op "perturb"; its climb may run up to ``max_passes`` passes of
-    its own."""
-    from ._driver import StepResult, _Run
+    its own. Attempts are judged in the round's order; a helper process
+    (``_helper_process``) runs some of them side by side, with the same result."""
+    from . import _helper_process
 
     opts = run.opts
     attempts = kicks(opts.ops)
@@ -317,6 +416,7 @@ def perturb(run, t0: float) -> str:
     # the cut faces pin the submesh's boundary vertices; "slide" would let them move
     sub_opts = opts.replace(boundary="fixed", check=False, progress=False)
     kept_rounds = 0
+    began = time.perf_counter()
     while kept_rounds < opts.perturb and attempts:
         worst = float(run.q.min())
         seeds = run.q < min(worst + max(WINDOWS), good)
@@ -324,61 +424,83 @@ def perturb(run, t0: float) -> str:
             return "converged"
         part = _Submesh(run.current, _neighbourhood(run.current, seeds, RINGS))
         sel = part.sel
-        sub = _Run(sub_opts, part.mesh, run.q[sel], run.lo_t[sel], run.hi_t[sel], None)
-        # the climb after a kick looks at what the kick changed (and what it changes in
-        # turn). Letting it work on the whole submesh was measured too: holeplate 33.28
-        # -> 33.67 degrees (8 rounds), but the 983k-tet cube 30.22 -> 28.76 (16 rounds)
-        sub.dirty = {op: np.zeros(int(sel.sum()), bool) for op in opts.ops}
-        start = sub.snapshot()
+        state = RoundState(
+            part.mesh, run.q[sel], run.lo_t[sel], run.hi_t[sel], sub_opts, worst, good, t0
+        )
+        round_id = next(_ROUND_IDS)  # unique in the process: the helper keeps one round
         outside = run.q[~sel]
         tried = set()  # the kicks of this round so far (they all start from one mesh)
-        for slack, window, op, site in attempts:
-            run.check_stop(t0)
-            ts = time.perf_counter()
-            # the worst tets, and only those below the good-enough quality
-            workable = sub.q < min(worst + window, good)
-            if not workable.any():
-                continue
-            # op "perturb": the kick leaves every operation's dirty tets to retry
-            step = sub.step("perturb", kick_step(op, slack, site), workable, record=False)
-            if step.keep is None and not step.changed.any():  # no change: nothing to undo
-                continue
-            # another slack or window often picks the same flips: climbing from the
-            # same kicked mesh again would end where the last attempt ended
-            change = _change_key(step)
-            if change in tried:
-                sub.restore(start)
-                continue
-            tried.add(change)
-            # a stop (Ctrl-C, time limit) inside the climb leaves ``run`` as it was
-            sub.climb(t0, record=False, patience=CLIMB_PATIENCE)
-            new_q = np.concatenate([outside, sub.q])
-            kept = better(new_q, run.q, WINDOWS[0], max(opts.min_improvement, MIN_RAISE))
-            spliced = part.splice(run.current, sub.current) if kept else None
-            if spliced is not None:
-                out, keep = spliced
-                # tets sharing a vertex with the new ones (through a vertex mask, not the
-                # new mesh's adjacency: its topology would be a full build)
-                new_tets = np.arange(out.n_tets) >= int(keep.sum())
-                result = StepResult(out, step.stats, keep, _neighbourhood(out, new_tets, 1))
-                run.step("perturb", lambda *_, done=result: done, None, record=False)
-            else:
-                sub.restore(start)
-            entry = {
-                "pass": run.passes,
-                "op": "perturb",
-                "attempts": 1,
-                "successes": int(spliced is not None),
-                "kick": op,
-                "site": site,
-                "slack": slack,
-                "changes": int(step.stats.successes),
-                "tets": int(sel.sum()),
-            }
-            run.record(entry, time.perf_counter() - ts)
-            if spliced is not None:
-                kept_rounds += 1
-                break
-        else:
+        # attempts run in the ladder's order, here or in the helper, and are judged in
+        # that order: the outcome is the one of running them all here
+        ladder = _helper_process.Ladder(len(attempts))
+        helper = _helper_process.running()
+        if helper is not None:
+            helper.serve(round_id, state, attempts, ladder)
+        try:
+            kept = _judge_round(
+                run, t0, part, state, attempts, (round_id, ladder), tried, outside, began
+            )
+        finally:
+            ladder.close()
+        if kept is None:
             return "converged"  # every attempt of the round failed
+        kept_rounds += 1
     return "converged"
+
+
+def _judge_round(run, t0, part, state, attempts, rung, tried, outside, began):
+    """Judge the round's attempts in order, running those nobody has started (and
+    starting the helper once the rounds have lasted ``START_AFTER``); splice the first
+    kept one into ``run`` and return its index, or None if none is kept. ``rung``: the
+    round's id and ``Ladder``."""
+    from . import _helper_process
+    from ._driver import StepResult, _Stop
+
+    opts = run.opts
+    round_id, ladder = rung
+    helper = _helper_process.running()
+    for index, (slack, _, op, site) in enumerate(attempts):
+        while index not in ladder.outcomes:
+            run.check_stop(t0)
+            if helper is None and time.perf_counter() - began >= _helper_process.START_AFTER:
+                helper = _helper_process.start(opts)
+                if helper is not None:
+                    helper.serve(round_id, state, attempts, ladder)
+            mine = ladder.claim()
+            if mine is not None:  # this one, or a later one while the helper runs this
+                ladder.put(mine, state.attempt(attempts[mine], tried))
+            elif not ladder.wait(index, helper):  # the helper ended: run it here
+                ladder.put(index, state.attempt(attempts[index], tried))
+        outcome = ladder.outcomes.pop(index)
+        if outcome is None:  # the helper failed it: run it here
+            outcome = state.attempt(attempts[index], tried)
+        if outcome.stop is not None:  # a stop inside the climb leaves ``run`` as it was
+            raise _Stop(outcome.stop)
+        if outcome.key is None or outcome.key in tried:
+            continue
+        tried.add(outcome.key)
+        new_q = np.concatenate([outside, outcome.q])
+        kept = better(new_q, run.q, WINDOWS[0], max(opts.min_improvement, MIN_RAISE))
+        spliced = part.splice(run.current, outcome.submesh()) if kept else None
+        if spliced is not None:
+            out, keep = spliced
+            # tets sharing a vertex with the new ones (through a vertex mask, not the new
+            # mesh's adjacency: its topology would be a full build)
+            new_tets = np.arange(out.n_tets) >= int(keep.sum())
+            result = StepResult(out, outcome.stats, keep, _neighbourhood(out, new_tets, 1))
+            run.step("perturb", lambda *_, done=result: done, None, record=False)
+        entry = {
+            "pass": run.passes,
+            "op": "perturb",
+            "attempts": 1,
+            "successes": int(spliced is not None),
+            "kick": op,
+            "site": site,
+            "slack": slack,
+            "changes": int(outcome.stats.successes),
+            "tets": int(part.sel.sum()),
+        }
+        run.record(entry, outcome.seconds)
+        if spliced is not None:
+            return index
+    return None

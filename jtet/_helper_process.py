@@ -1,0 +1,277 @@
+"""A second Python process that runs perturbation attempts beside the optimizer's own.
+
+A perturbation round (``_perturb``) tries kicks one after the other, each from the same
+submesh, until one is kept. Until then its attempts are independent, so two can run at
+once: the optimizer's process runs one, this helper the next, and the optimizer judges
+the outcomes in the round's order, exactly as if it had run them all itself (the same
+output, bit for bit). An attempt is many small NumPy calls on a ~1000-5000-tet submesh
+that hold the GIL: two improve() calls on threads ran 1.1x as fast as one after the
+other, so the second core needs a second process.
+
+The helper is started by the first run whose perturbation rounds last ``START_AFTER``
+seconds (short ones never pay its ~3 s of CPU to import jtet and load the kernels), only
+when the persistent compilation cache is on (it loads the kernels the run compiled;
+without the cache it would compile them all again) and jtet may use more than one
+thread (``JTET_THREADS``; ``JTET_HELPER=0`` turns it off). It stays for later runs of
+the process and ends with it (or when its pipe closes). Messages are pickled over its
+stdin / stdout; a helper that fails or dies is dropped and its attempt run here.
+"""
+
+from __future__ import annotations
+
+import atexit
+import os
+import pickle
+import queue
+import struct
+import subprocess
+import sys
+import threading
+
+# Seconds of perturbation rounds after which a run starts the helper.
+START_AFTER = 1.0
+
+_HEADER = struct.Struct("<Q")
+_shared: Helper | None = None
+_lock = threading.Lock()
+# a helper ended on its own (crashed, killed): the process starts no other one
+_failed = False
+
+
+def enabled() -> bool:
+    """Whether this process may start a helper (see the module docstring)."""
+    from . import _config
+
+    return (
+        os.name == "posix"
+        and _config.CACHE_DIR is not None
+        and _config.WORKERS > 1
+        and os.environ.get("JTET_HELPER", "1") != "0"
+    )
+
+
+def running() -> Helper | None:
+    """The process's helper if one was started (ready or still loading), else None."""
+    return _shared if _shared is not None and _shared.alive else None
+
+
+def start(opts) -> Helper | None:
+    """The process's helper, started now if there is none (None if not ``enabled``).
+    Returns at once: the helper is usable when ``ready()``."""
+    global _shared
+    with _lock:
+        if _shared is not None and _shared.alive:
+            return _shared
+        if _failed or not enabled():
+            return None
+        try:
+            _shared = Helper(opts)
+        except OSError:
+            return None
+        return _shared
+
+
+def _send(stream, obj) -> None:
+    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+    stream.write(_HEADER.pack(len(data)))
+    stream.write(data)
+    stream.flush()
+
+
+def _receive(stream):
+    """The next message, or None at the end of the stream."""
+    head = stream.read(_HEADER.size)
+    if len(head) < _HEADER.size:
+        return None
+    (size,) = _HEADER.unpack(head)
+    data = stream.read(size)
+    if len(data) < size:
+        return None
+    return pickle.loads(data)
+
+
+class Ladder:
+    """A round's attempts, claimed in order by the optimizer and the helper, and their
+    outcomes (shared by the optimizer's thread and the helper's reader thread)."""
+
+    def __init__(self, n: int):
+        self.n, self.next, self.closed = n, 0, False
+        self.outcomes: dict = {}  # index -> outcome (None: the helper failed it)
+        self.cond = threading.Condition()
+
+    def claim(self) -> int | None:
+        """The next attempt nobody has started, or None."""
+        with self.cond:
+            if self.closed or self.next >= self.n:
+                return None
+            self.next += 1
+            return self.next - 1
+
+    def put(self, index: int, outcome) -> None:
+        with self.cond:
+            self.outcomes[index] = outcome
+            self.cond.notify_all()
+
+    def wait(self, index: int, helper: Helper | None) -> bool:
+        """Wait until attempt ``index`` has an outcome; False if the helper that runs it
+        ended first."""
+        with self.cond:
+            while index not in self.outcomes:
+                if helper is None or not helper.alive:
+                    return False
+                self.cond.wait(timeout=0.2)
+            return True
+
+    def close(self) -> None:
+        """The round is over: the helper claims nothing more."""
+        with self.cond:
+            self.closed = True
+
+
+class Helper:
+    """The helper process, seen from the optimizer: ``serve`` hands it a round; it then
+    claims attempts from the round's ``Ladder`` until none is left, and their outcomes
+    land there."""
+
+    def __init__(self, opts):
+        env = dict(os.environ)
+        # the helper imports jtet from where this process did
+        root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [root, env.get("PYTHONPATH")]))
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "jtet._helper_process"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            env=env,
+            start_new_session=True,  # Ctrl-C in a terminal reaches the optimizer only
+        )
+        self.alive = True
+        self._closing = False
+        self.is_ready = False
+        self.done = 0  # attempts it ran
+        self._round = None  # (round id, state, attempts, Ladder) being served
+        self._lock = threading.Lock()  # guards _round and is_ready
+        # messages go out on a thread of their own: a round's state is larger than a pipe
+        # buffer, and the helper reads only between attempts
+        self._outbox: queue.Queue = queue.Queue()
+        atexit.register(self.close)
+        self._post(("warm", opts))
+        threading.Thread(target=self._read, daemon=True, name="jtet-helper-in").start()
+        threading.Thread(target=self._write, daemon=True, name="jtet-helper-out").start()
+
+    def serve(self, round_id, state, attempts: list, ladder: Ladder) -> None:
+        """Let the helper claim attempts of this round (``state``: a ``RoundState``)."""
+        with self._lock:
+            self._round = (round_id, state, attempts, ladder)
+            if self.is_ready:
+                self._post_round()
+
+    def _post_round(self) -> None:
+        round_id, state, attempts, _ = self._round
+        self._post(("round", round_id, state.for_pipe(), attempts))
+
+    def _read(self) -> None:
+        """Reader thread: answers the helper's claims, files its outcomes."""
+        try:
+            while (msg := _receive(self.proc.stdout)) is not None:
+                self._handle(msg)
+        except Exception:  # noqa: BLE001  (a broken pipe ends the helper like EOF)
+            pass
+        if not self._closing:  # it ended on its own
+            global _failed
+            _failed = True
+        self.alive = False
+        current = self._round
+        if current is not None:  # wake an optimizer waiting for an outcome
+            with current[3].cond:
+                current[3].cond.notify_all()
+
+    def _handle(self, msg) -> None:
+        kind = msg[0]
+        with self._lock:
+            if kind == "ready":
+                self.is_ready = True
+                if self._round is not None:
+                    self._post_round()
+                return
+            current = self._round
+            if current is None or current[0] != msg[1]:
+                if kind == "claim":  # a round that ended: nothing to claim
+                    self._post(("index", msg[1], None))
+                return
+            ladder = current[3]
+            if kind == "claim":
+                self._post(("index", msg[1], ladder.claim()))
+                return
+        # ("result" | "error", round, index, outcome | message)
+        self.done += kind == "result"
+        ladder.put(msg[2], msg[3] if kind == "result" else None)
+
+    def _post(self, msg) -> None:
+        self._outbox.put(msg)
+
+    def _write(self) -> None:
+        """Writer thread: sends the outbox in order; None closes the helper's stdin."""
+        try:
+            while (msg := self._outbox.get()) is not None:
+                _send(self.proc.stdin, msg)
+            self.proc.stdin.close()  # EOF: the helper's loop ends
+        except (OSError, ValueError):
+            self.alive = False
+
+    def close(self) -> None:
+        """End the helper (at exit): it holds nothing worth waiting for."""
+        self._closing = True
+        self.alive = False
+        proc = getattr(self, "proc", None)
+        if proc is None or proc.poll() is not None:
+            return
+        self._outbox.put(None)
+        proc.kill()
+        proc.wait()
+
+
+def _serve(inp, out) -> None:
+    """The helper's loop: warm the kernels, then run the attempts it claims."""
+    from ._perturb import RoundState
+
+    state = round_id = attempts = None
+    while (msg := _receive(inp)) is not None:
+        kind = msg[0]
+        if kind == "warm":
+            _warm(msg[1])
+            _send(out, ("ready",))
+            continue
+        if kind == "round":
+            _, round_id, piped, attempts = msg
+            state = RoundState.start(piped)
+        elif kind == "index":
+            if msg[1] != round_id or msg[2] is None:
+                continue  # nothing left: idle until the next round
+            index = msg[2]
+            try:
+                outcome = state.attempt(attempts[index]).for_pipe()
+                _send(out, ("result", round_id, index, outcome))
+            except Exception as e:  # noqa: BLE001  (the optimizer runs it itself)
+                _send(out, ("error", round_id, index, repr(e)))
+        _send(out, ("claim", round_id))
+
+
+def _warm(opts) -> None:
+    """Load (or compile) the kernels an attempt calls."""
+    from ._aot import prefetch
+    from ._driver import _pass_kernel_specs
+    from ._quality import prefetch_kernels, warm_start_kernels
+
+    specs = _pass_kernel_specs(opts)
+    warm_start_kernels({spec[:2] for spec in specs})
+    prefetch_kernels()
+    prefetch(specs)
+
+
+if __name__ == "__main__":
+    # the protocol owns the original stdout; anything printed goes to stderr
+    _out = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
+    os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
+    _serve(sys.stdin.buffer, _out)

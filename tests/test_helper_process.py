@@ -1,0 +1,116 @@
+"""The helper process of the perturbation rounds (jtet._helper_process): a run whose
+attempts it shares returns exactly what a run without it returns, also when the helper
+dies in the middle of a round."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import pytest
+
+import jtet
+from jtet import _config, _helper_process, _perturb
+
+
+def _summary(r):
+    """What must not depend on where the attempts ran: the mesh, and the history
+    without its timings."""
+    history = [{k: v for k, v in e.items() if k != "seconds"} for e in r.history]
+    return r.mesh.points.tobytes(), r.mesh.tets.tobytes(), history
+
+
+@pytest.fixture(scope="module")
+def demo():
+    return jtet.demo_mesh()
+
+
+@pytest.fixture(scope="module")
+def alone(demo):
+    """The demo improved with every attempt run in this process."""
+    return jtet.improve(demo, perturb=8)
+
+
+@pytest.fixture
+def helper(monkeypatch, demo):
+    """A helper process, loaded and idle; closed afterwards."""
+    if _config.CACHE_DIR is None or _config.WORKERS < 2:
+        pytest.skip("the helper needs the compilation cache and two threads")
+    monkeypatch.setenv("JTET_HELPER", "1")
+    monkeypatch.setattr(_helper_process, "_shared", None)
+    monkeypatch.setattr(_helper_process, "_failed", False)
+    h = _helper_process.start(jtet.Options())
+    assert h is not None and h.alive
+    deadline = time.monotonic() + 120
+    while not h.is_ready and h.alive and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert h.is_ready, "the helper did not load within 2 minutes"
+    yield h
+    h.close()
+
+
+def test_attempts_in_the_helper_give_the_same_run(demo, alone, helper):
+    shared = jtet.improve(demo, perturb=8)
+    assert helper.done > 0, "the helper ran no attempt"
+    assert _summary(shared) == _summary(alone)
+    assert not helper.proc.poll(), "the helper stays for the next run"
+
+
+def test_a_helper_that_dies_in_a_round_changes_nothing(demo, alone, helper, monkeypatch):
+    attempt = _perturb.RoundState.attempt
+    calls = []
+
+    def kill_then_attempt(self, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:  # the helper is running an attempt of this round by now
+            helper.proc.kill()
+        return attempt(self, *args, **kwargs)
+
+    monkeypatch.setattr(_perturb.RoundState, "attempt", kill_then_attempt)
+    r = jtet.improve(demo, perturb=8)
+    assert _summary(r) == _summary(alone)
+    helper.proc.wait(timeout=10)
+    deadline = time.monotonic() + 10
+    while helper.alive and time.monotonic() < deadline:  # the reader sees the pipe end
+        time.sleep(0.05)
+    assert not helper.alive
+    # and no other helper is started after one failed
+    assert _helper_process.running() is None
+    assert _helper_process.start(jtet.Options()) is None
+
+
+def test_ladder_claims_in_order_until_closed():
+    ladder = _helper_process.Ladder(3)
+    assert [ladder.claim(), ladder.claim()] == [0, 1]
+    ladder.close()
+    assert ladder.claim() is None  # a kept attempt ended the round
+
+
+def test_ladder_wait_returns_the_outcome_or_gives_up_on_a_dead_helper():
+    class Dead:
+        alive = False
+
+    class Alive:
+        alive = True
+
+    ladder = _helper_process.Ladder(2)
+    assert not ladder.wait(0, None)  # no helper runs it: the caller must
+    assert not ladder.wait(0, Dead())
+    threading.Timer(0.1, ladder.put, (1, "outcome")).start()
+    assert ladder.wait(1, Alive())
+    assert ladder.outcomes[1] == "outcome"
+
+
+def test_helper_is_off_without_cache_threads_or_consent(monkeypatch):
+    monkeypatch.setenv("JTET_HELPER", "1")
+    monkeypatch.setattr(_config, "WORKERS", 1)
+    assert not _helper_process.enabled()
+    monkeypatch.setattr(_config, "WORKERS", 2)
+    monkeypatch.setattr(_config, "CACHE_DIR", None)
+    assert not _helper_process.enabled()
+    monkeypatch.setattr(_config, "CACHE_DIR", "/tmp")
+    monkeypatch.setenv("JTET_HELPER", "0")
+    assert not _helper_process.enabled()
+    monkeypatch.setenv("JTET_HELPER", "1")
+    assert _helper_process.enabled() == (os.name == "posix")
