@@ -167,6 +167,10 @@ def run(cfg: DictConfig, out: Path, choices: dict) -> dict:
 @hydra.main(version_base=None, config_path="../configs", config_name="config")
 def main(cfg: DictConfig) -> dict:
     hc = HydraConfig.get()
+    if hc.mode.name == "MULTIRUN" and int(hc.launcher.get("n_jobs") or 1) > 1:
+        # jobs side by side already use the cores: a helper process per job for the
+        # perturbation rounds (jtet._helper_process) would only compete with them
+        os.environ["JTET_HELPER"] = "0"
     out = Path(hc.runtime.output_dir)
     choices = {k: v for k, v in hc.runtime.choices.items() if not k.startswith("hydra/")}
     row = run(cfg, out, choices)

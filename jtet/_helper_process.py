@@ -56,8 +56,9 @@ def running() -> Helper | None:
 
 
 def start(opts) -> Helper | None:
-    """The process's helper, started now if there is none (None if not ``enabled``).
-    Returns at once: the helper is usable when ``ready()``."""
+    """The process's helper, started now if there is none (None if not ``enabled`` or
+    one failed before). Returns at once: the helper claims attempts once it has loaded
+    jtet and the kernels of ``opts``."""
     global _shared
     with _lock:
         if _shared is not None and _shared.alive:
