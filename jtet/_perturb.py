@@ -14,7 +14,9 @@ which the climb then moves and connects; then random moves of the free vertices 
 them ("jiggle"), a random restart of the climb there; last, each flip around the worst
 tets on its own, with a deep slack (``SITES``). A round works on a submesh, the tets within
 ``RINGS`` vertex rings of the worst ones with the cut faces pinned, and splices back the
-attempt it keeps, so an attempt costs the neighbourhood, not the mesh.
+attempt it keeps, so an attempt costs the neighbourhood, not the mesh. A round's
+attempts all start from that submesh: a helper process (``_helper_process``) runs some of
+them beside this one, and they are judged in the round's order all the same.
 
 Measured on the Gmsh holeplate with the boundary fixed, where the climb alone converges
 at 29.10 degrees (Stellar's flips + smoothing reach 31.4): 33.28 / 128.38 with 8 kept
