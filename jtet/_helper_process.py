@@ -92,11 +92,12 @@ def _receive(stream):
 
 
 class Ladder:
-    """A round's attempts, claimed in order by the optimizer and the helper, and their
-    outcomes (shared by the optimizer's thread and the helper's reader thread)."""
+    """The ``n`` attempts of round ``round_id`` (unique in the process), claimed in order
+    by the optimizer and the helper, and their outcomes (shared by the optimizer's thread
+    and the helper's reader thread)."""
 
-    def __init__(self, n: int):
-        self.n, self.next, self.closed = n, 0, False
+    def __init__(self, round_id, n: int):
+        self.round_id, self.n, self.next, self.closed = round_id, n, 0, False
         self.outcomes: dict = {}  # index -> outcome (None: the helper failed it)
         self.cond = threading.Condition()
 
@@ -151,7 +152,7 @@ class Helper:
         self._closing = False
         self.is_ready = False
         self.done = 0  # attempts it ran
-        self._round = None  # (round id, state, attempts, Ladder) being served
+        self._round = None  # (state, attempts, Ladder) of the round being served
         self._lock = threading.Lock()  # guards _round and is_ready
         # messages go out on a thread of their own: a round's state is larger than a pipe
         # buffer, and the helper reads only between attempts
@@ -161,16 +162,17 @@ class Helper:
         threading.Thread(target=self._read, daemon=True, name="jtet-helper-in").start()
         threading.Thread(target=self._write, daemon=True, name="jtet-helper-out").start()
 
-    def serve(self, round_id, state, attempts: list, ladder: Ladder) -> None:
-        """Let the helper claim attempts of this round (``state``: a ``RoundState``)."""
+    def serve(self, state, attempts: list, ladder: Ladder) -> None:
+        """Let the helper claim attempts of the ladder's round (``state``: its
+        ``RoundState``)."""
         with self._lock:
-            self._round = (round_id, state, attempts, ladder)
+            self._round = (state, attempts, ladder)
             if self.is_ready:
                 self._post_round()
 
     def _post_round(self) -> None:
-        round_id, state, attempts, _ = self._round
-        self._post(("round", round_id, state.for_pipe(), attempts))
+        state, attempts, ladder = self._round
+        self._post(("round", ladder.round_id, state.for_pipe(), attempts))
 
     def _read(self) -> None:
         """Reader thread: answers the helper's claims, files its outcomes."""
@@ -185,8 +187,8 @@ class Helper:
         self.alive = False
         current = self._round
         if current is not None:  # wake an optimizer waiting for an outcome
-            with current[3].cond:
-                current[3].cond.notify_all()
+            with current[2].cond:
+                current[2].cond.notify_all()
 
     def _handle(self, msg) -> None:
         kind = msg[0]
@@ -196,12 +198,11 @@ class Helper:
                 if self._round is not None:
                     self._post_round()
                 return
-            current = self._round
-            if current is None or current[0] != msg[1]:
+            ladder = None if self._round is None else self._round[2]
+            if ladder is None or ladder.round_id != msg[1]:
                 if kind == "claim":  # a round that ended: nothing to claim
                     self._post(("index", msg[1], None))
                 return
-            ladder = current[3]
             if kind == "claim":
                 self._post(("index", msg[1], ladder.claim()))
                 return

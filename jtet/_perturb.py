@@ -429,19 +429,17 @@ def perturb(run, t0: float) -> str:
         state = RoundState(
             part.mesh, run.q[sel], run.lo_t[sel], run.hi_t[sel], sub_opts, worst, good, t0
         )
-        round_id = next(_ROUND_IDS)  # unique in the process: the helper keeps one round
         outside = run.q[~sel]
         tried = set()  # the kicks of this round so far (they all start from one mesh)
         # attempts run in the ladder's order, here or in the helper, and are judged in
         # that order: the outcome is the one of running them all here
-        ladder = _helper_process.Ladder(len(attempts))
+        # (round ids are unique in the process: the helper keeps one round)
+        ladder = _helper_process.Ladder(next(_ROUND_IDS), len(attempts))
         helper = _helper_process.running()
         if helper is not None:
-            helper.serve(round_id, state, attempts, ladder)
+            helper.serve(state, attempts, ladder)
         try:
-            kept = _judge_round(
-                run, t0, part, state, attempts, (round_id, ladder), tried, outside, began
-            )
+            kept = _judge_round(run, t0, part, state, attempts, ladder, tried, outside, began)
         finally:
             ladder.close()
         if kept is None:
@@ -450,16 +448,14 @@ def perturb(run, t0: float) -> str:
     return "converged"
 
 
-def _judge_round(run, t0, part, state, attempts, rung, tried, outside, began):
+def _judge_round(run, t0, part, state, attempts, ladder, tried, outside, began):
     """Judge the round's attempts in order, running those nobody has started (and
     starting the helper once the rounds have lasted ``START_AFTER``); splice the first
-    kept one into ``run`` and return its index, or None if none is kept. ``rung``: the
-    round's id and ``Ladder``."""
+    kept one into ``run`` and return its index, or None if none is kept."""
     from . import _helper_process
     from ._driver import StepResult, _Stop
 
     opts = run.opts
-    round_id, ladder = rung
     helper = _helper_process.running()
     for index, (slack, _, op, site) in enumerate(attempts):
         while index not in ladder.outcomes:
@@ -467,7 +463,7 @@ def _judge_round(run, t0, part, state, attempts, rung, tried, outside, began):
             if helper is None and time.perf_counter() - began >= _helper_process.START_AFTER:
                 helper = _helper_process.start(opts)
                 if helper is not None:
-                    helper.serve(round_id, state, attempts, ladder)
+                    helper.serve(state, attempts, ladder)
             mine = ladder.claim()
             if mine is not None:  # this one, or a later one while the helper runs this
                 ladder.put(mine, state.attempt(attempts[mine], tried))

@@ -81,7 +81,7 @@ def test_a_helper_that_dies_in_a_round_changes_nothing(demo, alone, helper, monk
 
 
 def test_ladder_claims_in_order_until_closed():
-    ladder = _helper_process.Ladder(3)
+    ladder = _helper_process.Ladder(0, 3)
     assert [ladder.claim(), ladder.claim()] == [0, 1]
     ladder.close()
     assert ladder.claim() is None  # a kept attempt ended the round
@@ -94,7 +94,7 @@ def test_ladder_wait_returns_the_outcome_or_gives_up_on_a_dead_helper():
     class Alive:
         alive = True
 
-    ladder = _helper_process.Ladder(2)
+    ladder = _helper_process.Ladder(1, 2)
     assert not ladder.wait(0, None)  # no helper runs it: the caller must
     assert not ladder.wait(0, Dead())
     threading.Timer(0.1, ladder.put, (1, "outcome")).start()
