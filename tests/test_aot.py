@@ -397,3 +397,12 @@ def test_a_refused_mesh_compiles_nothing(cache):
     assert _aot._memo == {} and _aot._building == {}
     assert not any(t.is_alive() for t in set(_aot._background) - threads_before)
     assert not list(cache.parent.glob("*/*.bin"))  # nothing exported either
+
+
+def test_key_names_dtypes_as_str_does():
+    """Kernel keys memoize the dtype names; they must be ``str(dtype)`` (the keys are
+    also written to the cache's ``.calls`` files), on first use and from the memo."""
+    args = [np.zeros((2, 3)), np.zeros(4, np.int32), np.zeros((1,), bool), jnp.zeros(2)]
+    want = ("k", (1,), tuple((tuple(a.shape), str(a.dtype)) for a in args))
+    assert _aot._key("k", (1,), args) == want
+    assert _aot._key("k", (1,), args) == want  # the memoized names
