@@ -23,6 +23,7 @@ import atexit
 import os
 import pickle
 import queue
+import socket
 import struct
 import subprocess
 import sys
@@ -32,6 +33,11 @@ import threading
 START_AFTER = 1.0
 
 _HEADER = struct.Struct("<Q")
+# Sends to the helper must not raise SIGPIPE: Python ignores it, but C libraries may
+# restore its default action (gmsh.initialize() does), under which a write to a helper
+# that died ends the whole process. Blocking the signal on the writing thread does not
+# help (Linux sends it to the process); a socket send with this flag fails with EPIPE.
+_NO_SIGPIPE = getattr(socket, "MSG_NOSIGNAL", 0)
 _shared: Helper | None = None
 _lock = threading.Lock()
 # a helper ended on its own (crashed, killed): the process starts no other one
@@ -72,10 +78,14 @@ def start(opts) -> Helper | None:
         return _shared
 
 
-def _send(stream, obj) -> None:
+def _pack(obj) -> bytes:
+    """A message as its length and pickle."""
     data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
-    stream.write(_HEADER.pack(len(data)))
-    stream.write(data)
+    return _HEADER.pack(len(data)) + data
+
+
+def _send(stream, obj) -> None:
+    stream.write(_pack(obj))
     stream.flush()
 
 
@@ -140,14 +150,19 @@ class Helper:
         # the helper imports jtet from where this process did
         root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [root, env.get("PYTHONPATH")]))
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "jtet._helper_process"],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.DEVNULL,
-            env=env,
-            start_new_session=True,  # Ctrl-C in a terminal reaches the optimizer only
-        )
+        # its stdin is a socket, not a pipe, for sends that cannot raise SIGPIPE
+        self._to_helper, theirs = socket.socketpair()
+        if hasattr(socket, "SO_NOSIGPIPE"):  # the BSDs' and macOS's form of the flag
+            self._to_helper.setsockopt(socket.SOL_SOCKET, socket.SO_NOSIGPIPE, 1)
+        with theirs:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "jtet._helper_process"],
+                stdin=theirs,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
+                env=env,
+                start_new_session=True,  # Ctrl-C in a terminal reaches the optimizer only
+            )
         self.alive = True
         self._closing = False
         self.is_ready = False
@@ -217,8 +232,8 @@ class Helper:
         """Writer thread: sends the outbox in order; None closes the helper's stdin."""
         try:
             while (msg := self._outbox.get()) is not None:
-                _send(self.proc.stdin, msg)
-            self.proc.stdin.close()  # EOF: the helper's loop ends
+                self._to_helper.sendall(_pack(msg), _NO_SIGPIPE)
+            self._to_helper.close()  # EOF: the helper's loop ends
         except (OSError, ValueError):
             self.alive = False
 

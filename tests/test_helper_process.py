@@ -114,3 +114,38 @@ def test_helper_is_off_without_cache_threads_or_consent(monkeypatch):
     assert not _helper_process.enabled()
     monkeypatch.setenv("JTET_HELPER", "1")
     assert _helper_process.enabled() == (os.name == "posix")
+
+
+_WRITE_TO_A_DEAD_HELPER = """
+import signal, threading
+import jtet
+from jtet import _helper_process
+# what gmsh.initialize() does to the process (measured): SIGPIPE back to its default,
+# under which a write to a closed pipe ends the process instead of raising
+signal.signal(signal.SIGPIPE, signal.SIG_DFL)
+h = _helper_process.Helper(jtet.Options())
+h.proc.kill()
+h.proc.wait()
+h._post(("warm", jtet.Options()))  # the writer thread meets the closed pipe
+writer = next(t for t in threading.enumerate() if t.name == "jtet-helper-out")
+writer.join(timeout=30)
+print("writing" if writer.is_alive() else "dropped" if not h.alive else "alive")
+"""
+
+
+def test_a_write_to_a_dead_helper_does_not_end_the_process():
+    """Under SIGPIPE's default action (gmsh.initialize sets it) the optimizer's writes
+    to a helper that died must fail like any OSError, not kill the optimizer."""
+    import subprocess
+    import sys
+
+    env = dict(os.environ, JTET_HELPER="1")
+    done = subprocess.run(
+        [sys.executable, "-c", _WRITE_TO_A_DEAD_HELPER],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, f"the process ended with {done.returncode}: {done.stderr}"
+    assert done.stdout.strip() == "dropped"
