@@ -45,6 +45,7 @@ import config_schema  # noqa: E402
 import meshgen  # noqa: E402
 
 import jtet  # noqa: E402
+from jtet import _helper_process  # noqa: E402
 from jtet._report import quality_cell_data, write_report, write_text_atomic  # noqa: E402
 
 config_schema.register()
@@ -122,6 +123,8 @@ def run(cfg: DictConfig, out: Path, choices: dict) -> dict:
         "seed": opts.seed,
         "mesh_seed": params.get("seed"),
         "revision": revision(),
+        # whether a perturbation helper process may run beside this one (timings differ)
+        "perturb_helper": _helper_process.enabled(),
     }
     try:
         t0 = time.perf_counter()
@@ -164,10 +167,22 @@ def run(cfg: DictConfig, out: Path, choices: dict) -> dict:
     return row
 
 
+def jobs_side_by_side(launcher: DictConfig) -> bool:
+    """Whether a sweep's launcher runs several jobs at once on this machine: joblib
+    unless ``n_jobs`` is 1 (its -1, Hydra's default, means one per core), and submitit's
+    local mode (the array at once). The basic launcher runs them one after the other,
+    and SLURM gives each its own cores."""
+    target = str(launcher.get("_target_", ""))
+    if target.endswith(".JoblibLauncher"):
+        n_jobs = launcher.get("n_jobs")
+        return n_jobs is not None and int(n_jobs) != 1
+    return target.endswith("submitit_launcher.LocalLauncher")
+
+
 @hydra.main(version_base=None, config_path="../configs", config_name="config")
 def main(cfg: DictConfig) -> dict:
     hc = HydraConfig.get()
-    if hc.mode.name == "MULTIRUN" and int(hc.launcher.get("n_jobs") or 1) > 1:
+    if hc.mode.name == "MULTIRUN" and jobs_side_by_side(hc.launcher):
         # jobs side by side already use the cores: a helper process per job for the
         # perturbation rounds (jtet._helper_process) would only compete with them
         os.environ["JTET_HELPER"] = "0"

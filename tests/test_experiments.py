@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -25,6 +26,7 @@ from hydra.errors import ConfigCompositionException, MissingConfigException  # n
 from omegaconf import OmegaConf  # noqa: E402
 
 import jtet  # noqa: E402
+from jtet import _config  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -126,6 +128,25 @@ def test_default_launcher_is_local_parallel():
     cfg = _compose(hydra_config=True)
     assert "joblib" in cfg.hydra.launcher._target_.lower()
     assert cfg.hydra.launcher.n_jobs == 2
+
+
+@pytest.mark.parametrize(
+    ("overrides", "side_by_side"),
+    [
+        ([], True),  # configs/hydra/launcher/local.yaml: joblib, 2 jobs
+        (["hydra.launcher.n_jobs=1"], False),
+        (["hydra/launcher=joblib"], True),  # Hydra's n_jobs=-1: a job per core
+        (["hydra/launcher=submitit_local"], True),
+        (["hydra/launcher=slurm"], False),  # each job on cores of its own
+        (["hydra/launcher=basic"], False),
+    ],
+)
+def test_jobs_side_by_side_per_launcher(overrides, side_by_side):
+    """Which sweeps run.py turns the perturbation helper process off for."""
+    import run
+
+    cfg = _compose(overrides, hydra_config=True)
+    assert run.jobs_side_by_side(cfg.hydra.launcher) is side_by_side
 
 
 @pytest.mark.parametrize(
@@ -244,9 +265,11 @@ def test_file_generator(tmp_path):
 # sweeps end to end
 
 
-def _run(args: list[str], cwd: Path, timeout: float = 600) -> subprocess.CompletedProcess:
+def _run(
+    args: list[str], cwd: Path, timeout: float = 600, env: dict | None = None
+) -> subprocess.CompletedProcess:
     proc = subprocess.run(
-        [sys.executable, *args], cwd=cwd, capture_output=True, text=True, timeout=timeout
+        [sys.executable, *args], cwd=cwd, capture_output=True, text=True, timeout=timeout, env=env
     )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return proc
@@ -292,8 +315,10 @@ def _aggregate(sweep: Path, n_runs: int) -> None:
 
 def test_sweep_2x2_basic_launcher_and_reproducible(tmp_path):
     """The smoke experiment (2 tiny meshes x 2 measures) in-process, then aggregate.py;
-    one configuration run again on its own gives the same metrics (seeds are configs)."""
+    one configuration run again on its own gives the same metrics (seeds are configs).
+    Jobs one after the other may use a perturbation helper process."""
     sweep = tmp_path / "sweep"
+    helper_on = dict(os.environ, JTET_HELPER="1")
     _run(
         [
             str(EXPERIMENTS / "run.py"),
@@ -303,9 +328,12 @@ def test_sweep_2x2_basic_launcher_and_reproducible(tmp_path):
             f"hydra.sweep.dir={sweep}",
         ],
         cwd=tmp_path,
+        env=helper_on,
     )
     rows = _check_sweep(sweep, 4)
     assert {r["regions"] for r in rows.values()} == {1, 2}
+    may_help = _config.CACHE_DIR is not None and _config.WORKERS > 1
+    assert {r["perturb_helper"] for r in rows.values()} == {may_help}
     _aggregate(sweep, 4)
 
     single = tmp_path / "single"
@@ -319,6 +347,7 @@ def test_sweep_2x2_basic_launcher_and_reproducible(tmp_path):
             f"hydra.run.dir={single}",
         ],
         cwd=tmp_path,
+        env=helper_on,
     )
     again = json.loads((single / "metrics.json").read_text())
     first = rows["tiny_two_regions/radius_ratio"]
@@ -331,7 +360,7 @@ def test_sweep_2x2_basic_launcher_and_reproducible(tmp_path):
 @pytest.mark.parametrize("launcher", ["joblib", "submitit_local"])
 def test_sweep_parallel_launchers(tmp_path, launcher):
     """The same sweep through the parallel launchers (joblib: the default; submitit_local:
-    the local mode of the SLURM launcher)."""
+    the local mode of the SLURM launcher). Jobs side by side run no helper process."""
     if launcher == "submitit_local":
         pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     sweep = tmp_path / "sweep"
@@ -348,8 +377,10 @@ def test_sweep_parallel_launchers(tmp_path, launcher):
         ],
         cwd=tmp_path,
         timeout=1200,
+        env=dict(os.environ, JTET_HELPER="1"),
     )
-    _check_sweep(sweep, 4)
+    rows = _check_sweep(sweep, 4)
+    assert not any(r["perturb_helper"] for r in rows.values())
     _aggregate(sweep, 4)
 
 
