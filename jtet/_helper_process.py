@@ -14,7 +14,8 @@ when the persistent compilation cache is on (it loads the kernels the run compil
 without the cache it would compile them all again) and jtet may use more than one
 thread (``JTET_THREADS``; ``JTET_HELPER=0`` turns it off). It stays for later runs of
 the process and ends with it (or when its pipe closes). Messages are pickled over its
-stdin / stdout; a helper that fails or dies is dropped and its attempt run here.
+stdin / stdout; a helper that fails or dies is dropped and its attempt run here. A
+child forked from the optimizer's process leaves the helper to its parent.
 """
 
 from __future__ import annotations
@@ -76,6 +77,21 @@ def start(opts) -> Helper | None:
         except OSError:
             return None
         return _shared
+
+
+def _leave_to_parent() -> None:
+    """In a forked child: the parent's helper answers the parent's threads, none of which
+    came along. The child forgets it (and must not kill it at exit) and may start its own."""
+    global _shared, _lock
+    if _shared is not None:
+        _shared.alive = False
+        _shared.proc = None  # close() at the child's exit leaves the process alone
+        _shared = None
+    _lock = threading.Lock()  # it may have been held by a thread that did not come along
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_leave_to_parent)
 
 
 def _pack(obj) -> bytes:

@@ -149,3 +149,23 @@ def test_a_write_to_a_dead_helper_does_not_end_the_process():
     )
     assert done.returncode == 0, f"the process ended with {done.returncode}: {done.stderr}"
     assert done.stdout.strip() == "dropped"
+
+
+def test_a_forked_child_leaves_the_helper_to_its_parent(monkeypatch):
+    """A child forked after the helper started (multiprocessing's default on Linux) has
+    none of the threads that talk to it: it must not use it, nor kill it at its exit."""
+    monkeypatch.setattr(_helper_process, "_shared", None)
+    h = _helper_process.Helper(jtet.Options())
+    monkeypatch.setattr(_helper_process, "_shared", h)
+    try:
+        pid = os.fork()
+        if pid == 0:  # the child: report through the exit status only
+            ok = _helper_process.running() is None and not _helper_process._lock.locked()
+            h.close()  # what its atexit would do
+            os._exit(0 if ok else 1)
+        _, status = os.waitpid(pid, 0)
+        assert os.waitstatus_to_exitcode(status) == 0
+        assert h.proc.poll() is None, "the child killed its parent's helper"
+        assert _helper_process.running() is h
+    finally:
+        h.close()
