@@ -151,6 +151,9 @@ def test_a_write_to_a_dead_helper_does_not_end_the_process():
     assert done.stdout.strip() == "dropped"
 
 
+# JAX warns that a fork of its threaded process may deadlock; the child here runs no
+# JAX and leaves through os._exit
+@pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")
 def test_a_forked_child_leaves_the_helper_to_its_parent(monkeypatch):
     """A child forked after the helper started (multiprocessing's default on Linux) has
     none of the threads that talk to it: it must not use it, nor kill it at its exit."""
