@@ -280,13 +280,11 @@ def improve(
             Inverted and degenerate tets and a non-manifold boundary are fine.
     """
     from ._aot import prefetch_in_background
-    from ._malloc import keep_freed_memory, release_freed_memory
     from ._quality import prefetch_kernels, tet_all_measures, warm_start_kernels
     from ._stats import mesh_stats
 
     opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
     t0 = time.perf_counter()
-    keep_freed_memory()  # a run reallocates mesh-sized arrays at every step
     # the run's topologies (the checks', every step's) treat subfacets bent by less than
     # the feature angle as one surface; the caller's mesh object is left as it was
     mesh = mesh._with_feature_angle(opts.feature_angle)
@@ -336,7 +334,7 @@ def improve(
     finally:
         ctrl_c.__exit__(None, None, None)
     current, history = run.current, run.history
-    result = ImproveResult(
+    return ImproveResult(
         mesh=current,
         stats_before=stats_before,
         stats_after=mesh_stats(current),
@@ -345,9 +343,6 @@ def improve(
         seconds=time.perf_counter() - t0,
         options=opts,
     )
-    del run  # its steps' arrays are garbage now: the trim can hand their memory back
-    release_freed_memory()
-    return result
 
 
 def _stats_dict(op: str, stats) -> dict:
