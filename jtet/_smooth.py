@@ -650,7 +650,7 @@ def smooth_pass(
     min_gain: float = 1e-9,
     sharpness: tuple[float, ...] = (20.0, 80.0),
     slide_tol: float = 1e-10,
-    batch_sizes: tuple[int, int] = (8, 32),
+    batch_sizes: tuple[int, int] = (32, 32),
     levels: int = 4,
     seed: int = 0,
 ):
@@ -674,11 +674,13 @@ def smooth_pass(
         slide_tol: flatness / straightness tolerance for sliding (see ``motion_bases``).
         batch_sizes: (small, large) vertices per kernel call: full large batches, the rest
             in small ones (or one large one if that wastes less); fixed sizes so the
-            kernel compiles at most twice per capacity K (``_aot`` keeps both traced on
-            disk for later processes). A call costs its padded size: the perturbation
-            rounds' climbs smooth a few vertices per colour (holeplate: 540 of 724 calls
-            held 1-8 vertices, 3.8 ms each padded to 32, 1.5 ms padded to 8; the whole
-            run 6.9 -> 5.9 s); (4, 32) was no faster than (8, 32).
+            kernel compiles at most twice per capacity K. Default one size, 32: each
+            shape is one more build for a new machine and one more load for every new
+            process. (8, 32) made the perturbation rounds' climbs cheaper (holeplate:
+            540 of 724 calls hold 1-8 vertices, 3.8 ms each padded to 32, 1.5 ms at 8;
+            ``jtet improve`` 7.9-8.7 -> 6.3-6.9 s) but raised the cold compile overhead
+            on the cube from 6.1 to 10.5-11.0 s and the warm one from 0.52 to 0.85 s;
+            one size of 16 cost the 983k-tet cube 20 %.
         levels: the worst-star quality is cut into this many quantile levels; worse levels
             are smoothed first, random order within a level (see ``independent_sets``).
         seed: seed of the random tie-breaking.
@@ -798,9 +800,8 @@ _KERNEL_OPTIONS = ("solver", "max_iters", "min_gain", "sharpness", "n_trials")
 
 
 def pass_kernel_specs(measure: str = "min_sine", **options) -> list[tuple]:
-    """``_aot.prefetch`` specs of the kernels that ``smooth_pass(mesh, measure=measure,
-    **options)`` calls for most stars: the smallest capacity at both batch sizes (full
-    batches on a whole mesh, small ones on the few stars of late passes). ``options``: any
+    """``_aot.prefetch`` specs of the kernel that ``smooth_pass(mesh, measure=measure,
+    **options)`` calls for most stars (smallest capacity, small batch). ``options``: any
     of ``smooth_pass``'s solver, max_iters, min_gain, sharpness, n_trials, capacities,
     batch_sizes (its defaults otherwise).
 
@@ -814,8 +815,7 @@ def pass_kernel_specs(measure: str = "min_sine", **options) -> list[tuple]:
     params = inspect.signature(smooth_pass).parameters
     o = {k: options.get(k, params[k].default) for k in known}
     kernel = _pass_kernel(measure, *(o[k] for k in _KERNEL_OPTIONS))
-    K = min(o["capacities"])
-    return call_specs(kernel, [_kernel_structs(K, b) for b in sorted(set(o["batch_sizes"]))])
+    return call_specs(kernel, [_kernel_structs(min(o["capacities"]), min(o["batch_sizes"]))])
 
 
 def _colour_tasks(verts, size, capacities, batch_sizes) -> list[tuple]:
