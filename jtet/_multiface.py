@@ -433,7 +433,9 @@ def solve_forest(
         return (
             pa[:, 0], pa[:, 1], pa[:, 2], pb[:, 0], pb[:, 1], pb[:, 2],
             xyz[..., 0], xyz[..., 1], xyz[..., 2],
-            np.maximum(forest.parent[pad, :cap], 0), forest.pslot[pad, :cap], child,
+            # ids in the kernel's int64, whatever the topology's index type
+            *(np.asarray(x, np.int64) for x in (
+                np.maximum(forest.parent[pad, :cap], 0), forest.pslot[pad, :cap], child)),
             qt, valid, np.asarray(forest.count[sel].max(), np.int32),
         )  # fmt: skip
 

@@ -29,6 +29,16 @@ _EDGE_OTHERS = np.array([[3, 2], [1, 3], [2, 1], [3, 0], [0, 2], [1, 0]])
 FREE, SURFACE, SEGMENT, CORNER = 0, 1, 2, 3
 
 
+def index_dtype(largest: int) -> type:
+    """The integer type of topology ids and CSR pointers whose values are at most
+    ``largest``: int32 while they fit, int64 beyond. Half the bytes of every incidence
+    array to copy, gather and fault in: the 983k-tet cube's topology is 430 MB in
+    int64 and each flip step's update copies all of it. Keys that combine ids (a * n +
+    b) are computed in int64 explicitly (under NumPy 2, int32 * Python int stays
+    int32)."""
+    return np.int32 if largest < np.iinfo(np.int32).max else np.int64
+
+
 def _perm_parity(p: np.ndarray) -> np.ndarray:
     """Parity (0 even, 1 odd) of each row permutation of range(k), vectorized."""
     p = np.asarray(p)
@@ -222,6 +232,20 @@ def run_parts(parts: list, n_tets: int, threshold: int | None = None) -> list:
     return parallel_map(lambda part: part(), parts)
 
 
+# The fields of ``Topology`` that hold ids or CSR pointers (``index_dtype``).
+INDEX_FIELDS = (
+    "faces", "tet_faces", "face_tets", "face_apex", "tet_neighbors", "surface_id",
+    "edges", "tet_edges", "edge_tets_ptr", "edge_tets", "edge_ring_ptr", "edge_ring",
+    "edge_n_subfacets", "vert_tets_ptr", "vert_tets",
+)  # fmt: skip
+
+
+def index_bound(m: int, n: int) -> int:
+    """The largest id or pointer value of the topology of m tets and n points: ring
+    entries (at most 6m tets plus one chain end per edge) bound every other field."""
+    return max(12 * m, n) + 1
+
+
 @dataclass(frozen=True, eq=False)
 class Topology:
     """Adjacency of a TetMesh (see the module docstring for conventions).
@@ -237,7 +261,7 @@ class Topology:
     boundary_face: np.ndarray  # (F,) bool, face of exactly one tet
     interface_face: np.ndarray  # (F,) bool, face between tets of different regions
     subfacet: np.ndarray  # (F,) bool, boundary | interface | user-protected
-    surface_id: np.ndarray  # (F,) int64 id of the bounding surface of a subfacet, -1 else
+    surface_id: np.ndarray  # (F,) id of the bounding surface of a subfacet, -1 else
     edges: np.ndarray  # (E, 2) sorted vertex pairs
     tet_edges: np.ndarray  # (m, 6) edge id of local edges 01 02 03 12 13 23
     edge_tets_ptr: np.ndarray  # (E+1,) CSR pointers into edge_tets
@@ -253,6 +277,20 @@ class Topology:
     vertex_kind: np.ndarray  # (n,) int8: FREE, SURFACE, SEGMENT, CORNER
     surface_normal: np.ndarray  # (n, 3) unit normal of a SURFACE vertex's flat surface
     segment_direction: np.ndarray  # (n, 3) unit direction of a SEGMENT vertex's line
+
+    def __post_init__(self):
+        # every id / pointer field in one integer type (``index_dtype``): the build and
+        # the update make them so directly; this only converts what comes otherwise
+        it = self.index_dtype
+        for name in INDEX_FIELDS:
+            a = getattr(self, name)
+            if a.dtype != it:
+                object.__setattr__(self, name, a.astype(it))
+
+    @property
+    def index_dtype(self) -> type:
+        """The integer type of the id and pointer fields (``INDEX_FIELDS``)."""
+        return index_dtype(index_bound(len(self.tet_faces), len(self.vert_tets_ptr) - 1))
 
     @property
     def n_edges(self) -> int:
@@ -358,12 +396,13 @@ def _face_groups(tets, n: int, region, protected_faces) -> dict[str, np.ndarray]
             f"non-conforming mesh: face {bad} is shared by {int(counts[f])} tets "
             f"({int((counts > 2).sum())} such faces)"
         )
+    it = index_dtype(index_bound(m, n))
     s0 = fperm[fptr[:-1]]  # first slot (tet * 4 + local vertex) of every face
-    faces = np.take(tf, s0, axis=0)
+    faces = np.take(tf, s0, axis=0).astype(it, copy=False)
     F = len(faces)
-    tet_faces = inv.reshape(m, 4)
-    face_tets = np.full((F, 2), -1, np.int64)
-    face_apex = np.full((F, 2), -1, np.int64)
+    tet_faces = inv.reshape(m, 4).astype(it, copy=False)
+    face_tets = np.full((F, 2), -1, it)
+    face_apex = np.full((F, 2), -1, it)
     flat = tets.reshape(-1)
     face_tets[:, 0] = s0 // 4
     face_apex[:, 0] = flat[s0]
@@ -372,7 +411,7 @@ def _face_groups(tets, n: int, region, protected_faces) -> dict[str, np.ndarray]
     face_tets[two, 1] = s1 // 4
     face_apex[two, 1] = flat[s1]
     side0, side1 = np.take(face_tets[:, 0], tet_faces), np.take(face_tets[:, 1], tet_faces)
-    other = np.where(side0 == np.arange(m)[:, None], side1, side0)
+    other = np.where(side0 == np.arange(m, dtype=it)[:, None], side1, side0)
     protected = np.zeros(F, bool)
     if len(protected_faces):
         idx = match_rows(faces, protected_faces, n)
@@ -398,14 +437,16 @@ def _edge_groups(tets, n: int) -> dict[str, np.ndarray]:
     """The edge fields of ``Topology`` (edges .. edge_manifold, rings ordered) of the
     tets (m, 4) of a mesh with n points."""
     m = len(tets)
+    it = index_dtype(index_bound(m, n))
     te = sorted_rows(tets, TET_EDGES).reshape(-1, 2)  # (6m, 2)
     eperm, eptr, einv = _group(te[:, 0] * np.int64(n) + te[:, 1])
-    edges = np.take(te, eperm[eptr[:-1]], axis=0)
-    tet_edges = einv.reshape(m, 6)
+    edges = np.take(te, eperm[eptr[:-1]], axis=0).astype(it, copy=False)
+    tet_edges = einv.reshape(m, 6).astype(it, copy=False)
 
     c, d = _sorted_steps(tets, n, eperm)
+    eptr = eptr.astype(it, copy=False)
     edge_tets, edge_ring_ptr, edge_ring, edge_boundary, edge_manifold = _order_rings(
-        eptr, c, d, eperm // 6
+        eptr, c, d, (eperm // 6).astype(it, copy=False)
     )
     return dict(
         edges=edges,
@@ -451,8 +492,11 @@ def _slot_steps(tets) -> tuple[np.ndarray, np.ndarray]:
 def _vertex_groups(tets, n: int) -> dict[str, np.ndarray]:
     """vert_tets_ptr (n+1,) and vert_tets of ``Topology``: the tets around each vertex,
     increasing."""
+    it = index_dtype(index_bound(len(tets), n))
     vert_tets_ptr, vorder = _csr(tets.reshape(-1), n)
-    return dict(vert_tets_ptr=vert_tets_ptr, vert_tets=vorder // 4)
+    return dict(
+        vert_tets_ptr=vert_tets_ptr.astype(it, copy=False), vert_tets=(vorder // 4).astype(it)
+    )
 
 
 def _face_flags(face_tets, region, protected):
@@ -496,7 +540,7 @@ def _surface_ids(face_tets, region, boundary_face, interface_face, protected):
     vrank = vrank.reshape(-1)
     code = (vrank[: len(sub)] * np.int64(len(vals)) + vrank[len(sub) :]) * 2 + c2
     _, surface_code = np.unique(code, return_inverse=True)
-    surface_id = np.full(len(face_tets), -1, np.int64)
+    surface_id = np.full(len(face_tets), -1, face_tets.dtype)
     surface_id[sub] = surface_code.reshape(-1)
     return surface_id
 
@@ -515,7 +559,7 @@ def _subsegments(points, faces, subfacet, surface_id, edges, edge_manifold, feat
     ekeys_u = edges[:, 0] * np.int64(n) + edges[:, 1]  # sorted: edges come from a sort
     sf_edge = search_sorted(ekeys_u, fe[:, 0] * np.int64(n) + fe[:, 1])
     sf_face = np.repeat(sub, 3)
-    edge_n_subfacets = np.bincount(sf_edge, minlength=E)
+    edge_n_subfacets = np.bincount(sf_edge, minlength=E).astype(edges.dtype, copy=False)
     subsegment = (edge_n_subfacets != 0) & (edge_n_subfacets != 2)
     subsegment |= ~edge_manifold
     # edges with exactly two subfacets: same surface and coplanar?
@@ -550,8 +594,9 @@ def _order_rings(ptr, c, d, entry_tet):
     steps (``_ring_walk``). Cache-friendly and O(sum E_k k^2) with k ~ 5 on average.
     ``c`` and ``d`` may be int32 (half the bytes to gather and compare).
 
-    Returns the tets in ring order (CSR as ``ptr``), CSR ring vertices (int64; a chain
-    gets its final vertex appended), the boundary flag and a manifold flag per edge.
+    Returns the tets in ring order (CSR as ``ptr``), CSR ring vertices (``ptr``'s type;
+    a chain gets its final vertex appended), the boundary flag and a manifold flag per
+    edge.
     """
     E = len(ptr) - 1
     counts = np.diff(ptr)
@@ -575,13 +620,13 @@ def _order_rings(ptr, c, d, entry_tet):
         chain_end[es[bnd]] = d[base[bnd] + order[bnd, -1]]
     # ring vertices: c of each step; chains also get d of their last step, inserted after
     # their run (a mask, not a scatter of every entry through the ring CSR)
-    edge_ring_ptr = np.zeros(E + 1, np.int64)
+    edge_ring_ptr = np.zeros(E + 1, ptr.dtype)
     np.cumsum(counts + edge_boundary, out=edge_ring_ptr[1:])
     bnd = np.flatnonzero(edge_boundary)
     ends = edge_ring_ptr[bnd + 1] - 1
     steps = np.ones(edge_ring_ptr[-1], bool)
     steps[ends] = False
-    edge_ring = np.empty(edge_ring_ptr[-1], np.int64)
+    edge_ring = np.empty(edge_ring_ptr[-1], ptr.dtype)
     edge_ring[steps] = c[src]
     edge_ring[ends] = chain_end[bnd]
     return entry_tet[src], edge_ring_ptr, edge_ring, edge_boundary, edge_manifold

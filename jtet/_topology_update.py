@@ -32,6 +32,8 @@ from ._topology import (
     _vertex_kinds,
     _vertex_kinds_at,
     csr_rows,
+    index_bound,
+    index_dtype,
     local_index,
     row_keys,
     run_parts,
@@ -91,6 +93,8 @@ def _compatible(old: Topology, old_mesh, new_mesh, keep: np.ndarray) -> bool:
     K = int(keep.sum())
     m1 = new_mesh.n_tets
     if m1 < K or (m0 - K) + (m1 - K) > MAX_CHANGE * m0:
+        return False
+    if index_dtype(index_bound(m1, n)) != old.index_dtype:  # ids outgrew int32
         return False
     # row_keys switches to per-call ranks for huge n: keys would not compare across meshes
     if float(n) ** 3 >= 2.0**62:
@@ -392,7 +396,7 @@ def _id_type(size: int) -> type:
     renumbering gathers read their map at random: an int32 map (half the bytes) stays in
     cache where an int64 one does not, measured 2-4x faster for 4-6M ids through the
     1M-entry tet map or the 2M-entry face map of a 983k-tet mesh (and 6M ids through a
-    6M-entry map 1.3x). Gathered values are stored in the topology's int64 arrays."""
+    6M-entry map 1.3x). See also ``_topology.index_dtype``."""
     return np.int32 if size < np.iinfo(np.int32).max else np.int64
 
 
@@ -415,7 +419,7 @@ def _merged(old_rows, old_keys, dead, new_rows, nk: _NewKeys, old_tet_ids, keep_
     keys, gmap, src, add_src, add_pos = _merge(old_keys, dead, nk)
     rows = _take_rows(old_rows, new_rows[add_src], src, add_pos)
     w = old_tet_ids.shape[1]
-    tet_ids = np.empty((len(keep_idx) + len(nk.inverse) // w, w), np.int64)
+    tet_ids = np.empty((len(keep_idx) + len(nk.inverse) // w, w), old_tet_ids.dtype)
     tet_ids[: len(keep_idx)] = _renumbered_rows(gmap, old_tet_ids, keep_idx)
     tet_ids[len(keep_idx) :] = np.searchsorted(keys, nk.ukeys)[nk.inverse].reshape(-1, w)
     return keys, gmap, src, add_pos, rows, tet_ids
@@ -459,9 +463,9 @@ def _splice(old_vals, old_ptr, old_carry, new_lens, new_redo, redo_vals, mapping
     False, in the same order. ``redo_vals`` lists the redone groups' entries in group
     order. ``mapping`` renumbers the carried entries. Returns (ptr (G1+1,), vals).
     """
-    ptr = np.zeros(len(new_lens) + 1, np.int64)
+    ptr = np.zeros(len(new_lens) + 1, old_ptr.dtype)
     np.cumsum(new_lens, out=ptr[1:])
-    vals = np.empty(ptr[-1], np.int64)
+    vals = np.empty(ptr[-1], old_vals.dtype)
     carried = old_vals[~_entry_mask(old_ptr, np.diff(old_ptr), ~old_carry)]
     redo = _entry_mask(ptr, new_lens, new_redo)
     vals[~redo] = carried if mapping is None else np.take(mapping, carried, mode="clip")
@@ -537,9 +541,10 @@ def _update_faces(old: Topology, tets, keep, keep_idx, removed, renum, n):
     A = len(add_pos)
 
     # carried faces: renumbered tets, same slots (regrouped ones are overwritten below)
-    none = np.full((A, 2), -1, np.int64)
+    it = old.face_tets.dtype
+    none = np.full((A, 2), -1, it)
     face_tets = np.take(renum, _take_rows(old.face_tets, none, src, add_pos), mode="wrap")
-    face_tets = face_tets.astype(np.int64)
+    face_tets = face_tets.astype(it, copy=False)
     face_apex = _take_rows(old.face_apex, none, src, add_pos)
     # entries (face, slot = tet * 4 + local vertex) of the touched faces, as build sorts them
     kt = renum[ft[kept_slot]].astype(np.int64)
@@ -565,7 +570,7 @@ def _update_faces(old: Topology, tets, keep, keep_idx, removed, renum, n):
     face_apex[redo[two], 1] = flat[s1]
 
     # neighbours: carried, except for tets on a regrouped face (as build computes them)
-    tet_neighbors = np.empty((m1, 4), np.int64)
+    tet_neighbors = np.empty((m1, 4), it)
     tet_neighbors[:K] = _renumbered_rows(renum, old.tet_neighbors, keep_idx)
     rows = _ids(m1, slot // 4)
     tf = tet_faces[rows]

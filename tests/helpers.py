@@ -88,3 +88,17 @@ def grid_mesh(
     if two_regions:
         region = (pts[tets].mean(axis=1)[:, 0] > 0.5).astype(np.int64)
     return jtet.TetMesh(pts, tets, region)
+
+
+def shifted(mesh: "jtet.TetMesh", offset: int = 70_000) -> "jtet.TetMesh":
+    """``mesh`` with ``offset`` unreferenced points listed before its own, so every vertex
+    id grows by ``offset``. Above 2**16 a product of two vertex ids (a key a * n + b)
+    no longer fits in int32: a key computed in the topology's int32 ids would wrap."""
+    far = mesh.points.max(axis=0) + 1.0 + np.arange(offset)[:, None] * np.array([1.0, 0, 0])
+    return jtet.TetMesh(
+        np.concatenate([far, mesh.points]),
+        mesh.tets + offset,
+        mesh.region,
+        protected_faces=mesh.protected_faces + offset,
+        protected_edges=mesh.protected_edges + offset,
+    )

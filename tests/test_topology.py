@@ -2,16 +2,18 @@
 
 import numpy as np
 import pytest
-from helpers import delaunay_mesh, grid_mesh
+from helpers import delaunay_mesh, grid_mesh, shifted
 
 import jtet
 from jtet._topology import (
     CORNER,
     FREE,
+    INDEX_FIELDS,
     SEGMENT,
     SURFACE,
     Topology,
     corner_counts,
+    index_dtype,
     local_index,
     match_rows,
 )
@@ -332,3 +334,35 @@ def test_corner_counts_match_a_row_sum():
             assert np.array_equal(corner_counts(mask, t), ref)
     assert set(np.unique(ref)) == {0, 1, 2, 3, 4}
     assert corner_counts(np.ones(5, bool), np.zeros((0, 4), np.int64)).shape == (0,)
+
+
+def test_ids_are_int32_and_exact_for_vertex_ids_above_2_to_16():
+    """The id and pointer fields are int32 (half the bytes of int64), and every key that
+    combines vertex ids is still exact: with 70k unreferenced points first, a key a * n
+    + b computed in int32 would wrap. Reference: the same mesh without those points."""
+    mesh = grid_mesh(4, perturb=0.3, seed=5, two_regions=True)
+    T0 = mesh.topology
+    mesh = mesh.replace(protected_faces=T0.faces[[3]], protected_edges=T0.edges[[7]])
+    T, off = mesh.topology, 70_000
+    B = shifted(mesh, off).topology
+    for name in INDEX_FIELDS:
+        assert getattr(T, name).dtype == np.int32 and getattr(B, name).dtype == np.int32, name
+    for name in ("faces", "edges", "edge_ring"):  # vertex ids
+        np.testing.assert_array_equal(getattr(B, name), getattr(T, name) + off, name)
+    np.testing.assert_array_equal(B.face_apex, np.where(T.face_apex >= 0, T.face_apex + off, -1))
+    np.testing.assert_array_equal(B.vert_tets_ptr[off:], T.vert_tets_ptr)
+    assert not B.vert_tets_ptr[:off].any()
+    same = ("tet_faces", "face_tets", "tet_neighbors", "surface_id", "tet_edges",
+            "edge_tets_ptr", "edge_tets", "edge_ring_ptr", "edge_n_subfacets", "vert_tets",
+            "boundary_face", "interface_face", "subfacet", "edge_boundary", "edge_manifold",
+            "subsegment")  # fmt: skip
+    for name in same:
+        np.testing.assert_array_equal(getattr(B, name), getattr(T, name), name)
+    np.testing.assert_array_equal(B.vertex_kind[off:], T.vertex_kind)
+    np.testing.assert_array_equal(B.face_ids(T.faces[::-1] + off), np.arange(len(T.faces))[::-1])
+    np.testing.assert_array_equal(B.edge_ids(T.edges[::-1] + off), np.arange(len(T.edges))[::-1])
+
+
+def test_index_dtype_widens_past_int32():
+    assert index_dtype(2**31 - 2) is np.int32
+    assert index_dtype(2**31) is np.int64

@@ -10,7 +10,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from helpers import delaunay_mesh, grid_mesh, orient_positive
+from helpers import delaunay_mesh, grid_mesh, orient_positive, shifted
 from scipy.spatial import Delaunay
 
 import jtet
@@ -109,8 +109,19 @@ def flat_protected_mesh():
         lambda: delaunay_mesh(150, seed=3, clustered=True),
         # bent boundary faces are flipped too: every step's topology keeps the angle
         lambda: ball_mesh(seed=2)._with_feature_angle(30.0),
+        # vertex ids above 2**16: keys of two ids must not wrap in the int32 topology
+        lambda: shifted(delaunay_mesh(100, seed=5, surface_points=60)),
+        lambda: shifted(flat_protected_mesh()),
     ],
-    ids=["boundary", "interface", "protected", "clustered", "feature-angle"],
+    ids=[
+        "boundary",
+        "interface",
+        "protected",
+        "clustered",
+        "feature-angle",
+        "boundary-shifted",
+        "protected-shifted",
+    ],  # fmt: skip
 )
 def test_real_passes(make):
     assert run_passes(make()) > 0
