@@ -182,30 +182,32 @@ def _stable_sort(keys: np.ndarray, key_bits: int) -> tuple[np.ndarray, np.ndarra
     return perm, keys[perm]
 
 
-def _group(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _group(keys: np.ndarray, dtype=np.int64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Group equal keys with ONE sort: (perm, ptr, inverse).
 
     ``perm`` lists entries grouped by key (groups in increasing key order, entries in
     their original order inside a group), ``ptr`` (G+1,) delimits the groups in ``perm``
-    and ``inverse`` (N,) is each entry's group id. np.unique with return_index and
-    return_inverse would sort twice.
+    and ``inverse`` (N,) is each entry's group id; ``ptr`` and ``inverse`` are ``dtype``
+    (the build's ``index_dtype``: no int64 copies to convert). np.unique with
+    return_index and return_inverse would sort twice.
     """
     perm, sk = _stable_sort(keys, int(keys.max()).bit_length() if len(keys) else 0)
     new = np.empty(len(sk), bool)
     new[:1] = True
     np.not_equal(sk[1:], sk[:-1], out=new[1:])
-    gid_sorted = np.cumsum(new) - 1
-    inverse = np.empty(len(keys), np.int64)
+    gid_sorted = np.cumsum(new, dtype=dtype)
+    gid_sorted -= 1
+    inverse = np.empty(len(keys), dtype)
     inverse[perm] = gid_sorted
-    ptr = np.append(np.flatnonzero(new), len(keys)).astype(np.int64)
+    ptr = np.append(np.flatnonzero(new), len(keys)).astype(dtype)
     return perm, ptr, inverse
 
 
-def _csr(groups: np.ndarray, n_groups: int) -> tuple[np.ndarray, np.ndarray]:
-    """(ptr, order): entries sorted by group id, and CSR pointers per group."""
+def _csr(groups: np.ndarray, n_groups: int, dtype=np.int64) -> tuple[np.ndarray, np.ndarray]:
+    """(ptr, order): entries sorted by group id, and CSR pointers (``dtype``) per group."""
     order, _ = _stable_sort(groups, max(n_groups - 1, 1).bit_length())
     counts = np.bincount(groups, minlength=n_groups)
-    ptr = np.zeros(n_groups + 1, np.int64)
+    ptr = np.zeros(n_groups + 1, dtype)
     np.cumsum(counts, out=ptr[1:])
     return ptr, order
 
@@ -387,7 +389,8 @@ def _face_groups(tets, n: int, region, protected_faces) -> dict[str, np.ndarray]
     protected face that is not a face."""
     m = len(tets)
     tf = sorted_rows(tets, TET_FACES).reshape(-1, 3)  # (4m, 3)
-    fperm, fptr, inv = _group(row_keys(tf, n))
+    it = index_dtype(index_bound(m, n))
+    fperm, fptr, inv = _group(row_keys(tf, n), it)
     counts = np.diff(fptr)
     if (counts > 2).any():
         f = int(np.flatnonzero(counts > 2)[0])
@@ -396,11 +399,10 @@ def _face_groups(tets, n: int, region, protected_faces) -> dict[str, np.ndarray]
             f"non-conforming mesh: face {bad} is shared by {int(counts[f])} tets "
             f"({int((counts > 2).sum())} such faces)"
         )
-    it = index_dtype(index_bound(m, n))
     s0 = fperm[fptr[:-1]]  # first slot (tet * 4 + local vertex) of every face
     faces = np.take(tf, s0, axis=0).astype(it, copy=False)
     F = len(faces)
-    tet_faces = inv.reshape(m, 4).astype(it, copy=False)
+    tet_faces = inv.reshape(m, 4)
     face_tets = np.full((F, 2), -1, it)
     face_apex = np.full((F, 2), -1, it)
     flat = tets.reshape(-1)
@@ -439,12 +441,11 @@ def _edge_groups(tets, n: int) -> dict[str, np.ndarray]:
     m = len(tets)
     it = index_dtype(index_bound(m, n))
     te = sorted_rows(tets, TET_EDGES).reshape(-1, 2)  # (6m, 2)
-    eperm, eptr, einv = _group(te[:, 0] * np.int64(n) + te[:, 1])
+    eperm, eptr, einv = _group(te[:, 0] * np.int64(n) + te[:, 1], it)
     edges = np.take(te, eperm[eptr[:-1]], axis=0).astype(it, copy=False)
-    tet_edges = einv.reshape(m, 6).astype(it, copy=False)
+    tet_edges = einv.reshape(m, 6)
 
     c, d = _sorted_steps(tets, n, eperm)
-    eptr = eptr.astype(it, copy=False)
     edge_tets, edge_ring_ptr, edge_ring, edge_boundary, edge_manifold = _order_rings(
         eptr, c, d, (eperm // 6).astype(it, copy=False)
     )
@@ -493,10 +494,8 @@ def _vertex_groups(tets, n: int) -> dict[str, np.ndarray]:
     """vert_tets_ptr (n+1,) and vert_tets of ``Topology``: the tets around each vertex,
     increasing."""
     it = index_dtype(index_bound(len(tets), n))
-    vert_tets_ptr, vorder = _csr(tets.reshape(-1), n)
-    return dict(
-        vert_tets_ptr=vert_tets_ptr.astype(it, copy=False), vert_tets=(vorder // 4).astype(it)
-    )
+    vert_tets_ptr, vorder = _csr(tets.reshape(-1), n, it)
+    return dict(vert_tets_ptr=vert_tets_ptr, vert_tets=(vorder // 4).astype(it))
 
 
 def _face_flags(face_tets, region, protected):
