@@ -343,15 +343,16 @@ class Topology:
         """
         points, tets, region = mesh.points, mesh.tets, mesh.region
         n = len(points)
+        it = index_dtype(index_bound(len(tets), n))  # the id and pointer fields' type
         # the three groupings are independent and NumPy's sorts and gathers release the
         # GIL: side by side on the worker threads they take ~0.7x the time of one after
         # the other (182k tets: 0.65 -> 0.46 s). Faces first: a non-conforming mesh
         # reports its face error, as when they ran first.
         face_part, edge_part, vertex_part = run_parts(
             [
-                lambda: _face_groups(tets, n, region, mesh.protected_faces),
-                lambda: _edge_groups(tets, n),
-                lambda: _vertex_groups(tets, n),
+                lambda: _face_groups(tets, n, region, mesh.protected_faces, it),
+                lambda: _edge_groups(tets, n, it),
+                lambda: _vertex_groups(tets, n, it),
             ],
             len(tets),
         )
@@ -383,13 +384,12 @@ class Topology:
         )
 
 
-def _face_groups(tets, n: int, region, protected_faces) -> dict[str, np.ndarray]:
+def _face_groups(tets, n: int, region, protected_faces, it) -> dict[str, np.ndarray]:
     """The face fields of ``Topology`` (faces .. surface_id) of the tets (m, 4) of a mesh
-    with n points; raises ``MeshInputError`` for a face in more than two tets or a
-    protected face that is not a face."""
+    with n points, ids of type ``it``; raises ``MeshInputError`` for a face in more than
+    two tets or a protected face that is not a face."""
     m = len(tets)
     tf = sorted_rows(tets, TET_FACES).reshape(-1, 3)  # (4m, 3)
-    it = index_dtype(index_bound(m, n))
     fperm, fptr, inv = _group(row_keys(tf, n), it)
     counts = np.diff(fptr)
     if (counts > 2).any():
@@ -435,11 +435,10 @@ def _face_groups(tets, n: int, region, protected_faces) -> dict[str, np.ndarray]
     )
 
 
-def _edge_groups(tets, n: int) -> dict[str, np.ndarray]:
+def _edge_groups(tets, n: int, it) -> dict[str, np.ndarray]:
     """The edge fields of ``Topology`` (edges .. edge_manifold, rings ordered) of the
-    tets (m, 4) of a mesh with n points."""
+    tets (m, 4) of a mesh with n points, ids of type ``it``."""
     m = len(tets)
-    it = index_dtype(index_bound(m, n))
     te = sorted_rows(tets, TET_EDGES).reshape(-1, 2)  # (6m, 2)
     eperm, eptr, einv = _group(te[:, 0] * np.int64(n) + te[:, 1], it)
     edges = np.take(te, eperm[eptr[:-1]], axis=0).astype(it, copy=False)
@@ -490,10 +489,9 @@ def _slot_steps(tets) -> tuple[np.ndarray, np.ndarray]:
     return np.where(swap, cl, ck), np.where(swap, ck, cl)
 
 
-def _vertex_groups(tets, n: int) -> dict[str, np.ndarray]:
-    """vert_tets_ptr (n+1,) and vert_tets of ``Topology``: the tets around each vertex,
-    increasing."""
-    it = index_dtype(index_bound(len(tets), n))
+def _vertex_groups(tets, n: int, it) -> dict[str, np.ndarray]:
+    """vert_tets_ptr (n+1,) and vert_tets (type ``it``) of ``Topology``: the tets around
+    each vertex, increasing."""
     vert_tets_ptr, vorder = _csr(tets.reshape(-1), n, it)
     return dict(vert_tets_ptr=vert_tets_ptr, vert_tets=(vorder // 4).astype(it))
 

@@ -117,8 +117,12 @@ def _update(old: Topology, old_mesh, new_mesh, keep, feature_angle) -> Topology 
     K = int(keep.sum())
     removed = np.flatnonzero(~keep)
     keep_idx = np.flatnonzero(keep)
-    # old tet id -> new id, -1 for removed tets; renum[-1] == -1 maps "no tet" to itself
-    renum = np.full(m0 + 1, -1, _id_type(m0 + 1))
+    # old tet id -> new id, -1 for removed tets; renum[-1] == -1 maps "no tet" to itself.
+    # Id maps are int32 while the ids fit: whole-mesh renumbering gathers read their map
+    # at random, and an int32 map (half the bytes) stays in cache where an int64 one does
+    # not (2-4x faster for 4-6M ids through the 1M-entry tet map or the 2M-entry face map
+    # of a 983k-tet mesh; 6M ids through a 6M-entry map 1.3x)
+    renum = np.full(m0 + 1, -1, index_dtype(m0 + 1))
     renum[keep_idx] = np.arange(K)
 
     def faces_and_flags():
@@ -354,7 +358,7 @@ def _merge(old_keys, dead, nk: _NewKeys):
     ``old_keys`` (G0,) sorted unique, ``dead`` (D,) sorted ids of the old entities that
     do not survive, ``nk`` the candidate keys (duplicates and already-present ones
     allowed). Returns ``keys`` (G1,) sorted, ``gmap`` (G0,) new id of each old entity (-1
-    if gone; int32 when the ids fit, see ``_id_type``), ``src`` (G1,) where each new
+    if gone; int32 when the ids fit, ``index_dtype``), ``src`` (G1,) where each new
     entity comes from (an old id, or G0 + j for the j-th added key), ``add_src`` (A,) the
     index among the candidates of each added key and ``add_pos`` (A,) its new id. Only
     the few added and dead entities are searched; ``gmap`` and ``src`` are piecewise
@@ -370,7 +374,7 @@ def _merge(old_keys, dead, nk: _NewKeys):
     ins = np.searchsorted(old_keys, add)  # old ids below each added key: ins[j]
     add_pos = np.arange(A) + ins - np.searchsorted(dead, ins)
     # survivor i moves by the added keys below it minus the dead ids below it
-    gmap = _shifted_range(G0, ins, dead + 1, _id_type(max(G0, G1)))
+    gmap = _shifted_range(G0, ins, dead + 1, index_dtype(max(G0, G1)))
     gmap[dead] = -1
     # new id j of a survivor comes from j + (dead ids before it) - (added keys before j)
     up = dead - np.arange(D) + np.searchsorted(ins, dead, side="right")
@@ -389,15 +393,6 @@ def _shifted_range(size: int, up: np.ndarray, down: np.ndarray, dtype) -> np.nda
     np.add.at(step, up, 1)
     np.add.at(step, down, -1)
     return np.cumsum(step[:size], dtype=dtype, out=step[:size])
-
-
-def _id_type(size: int) -> type:
-    """Narrowest integer type of an id map over ``size`` ids (and -1). Whole-mesh
-    renumbering gathers read their map at random: an int32 map (half the bytes) stays in
-    cache where an int64 one does not, measured 2-4x faster for 4-6M ids through the
-    1M-entry tet map or the 2M-entry face map of a 983k-tet mesh (and 6M ids through a
-    6M-entry map 1.3x). See also ``_topology.index_dtype``."""
-    return np.int32 if size < np.iinfo(np.int32).max else np.int64
 
 
 def _touched(old_tet_ids, removed, nk: _NewKeys, n_old: int):

@@ -13,7 +13,6 @@ from jtet._topology import (
     SURFACE,
     Topology,
     corner_counts,
-    index_dtype,
     local_index,
     match_rows,
 )
@@ -361,8 +360,3 @@ def test_ids_are_int32_and_exact_for_vertex_ids_above_2_to_16():
     np.testing.assert_array_equal(B.vertex_kind[off:], T.vertex_kind)
     np.testing.assert_array_equal(B.face_ids(T.faces[::-1] + off), np.arange(len(T.faces))[::-1])
     np.testing.assert_array_equal(B.edge_ids(T.edges[::-1] + off), np.arange(len(T.edges))[::-1])
-
-
-def test_index_dtype_widens_past_int32():
-    assert index_dtype(2**31 - 2) is np.int32
-    assert index_dtype(2**31) is np.int64

@@ -121,7 +121,7 @@ def flat_protected_mesh():
         "feature-angle",
         "boundary-shifted",
         "protected-shifted",
-    ],  # fmt: skip
+    ],
 )
 def test_real_passes(make):
     assert run_passes(make()) > 0
@@ -337,14 +337,16 @@ def test_derive_with_appended_points_checks_only_the_new_tets():
         mesh._derive(points=mesh.points[:-1], tets=mesh.tets, tets_checked=m)
 
 
-def test_id_maps_are_narrow_only_when_every_id_fits():
-    """The renumbering maps are int32 (faster gathers) exactly when every id and -1 fit;
-    the topology's own arrays stay int64 (checked field by field in the tests above)."""
-    from jtet._topology_update import _id_type
+def test_ids_are_narrow_only_when_every_id_fits():
+    """The renumbering maps and the topology's id fields are int32 (half the bytes)
+    exactly when every id and -1 fit (the fields' types are checked field by field in
+    the tests above and in test_topology)."""
+    from jtet._topology import index_dtype
 
     top = np.iinfo(np.int32).max
-    assert _id_type(10) is np.int32
-    assert _id_type(top - 1) is np.int32
-    assert _id_type(top) is np.int64
+    assert index_dtype(10) is np.int32
+    assert index_dtype(top - 1) is np.int32
+    assert index_dtype(top) is np.int64
+    assert index_dtype(2**31) is np.int64
     ids = np.arange(top - 3, top, dtype=np.int64)
-    assert np.array_equal(ids.astype(_id_type(top - 1)), ids)  # no wrap-around below the cut
+    assert np.array_equal(ids.astype(index_dtype(top - 1)), ids)  # no wrap-around below the cut
