@@ -288,7 +288,7 @@ def improve(
     # the run's topologies (the checks', every step's) treat subfacets bent by less than
     # the feature angle as one surface; the caller's mesh object is left as it was
     mesh = mesh._with_feature_angle(opts.feature_angle)
-    specs = _pass_kernel_specs(opts)
+    specs = _pass_kernel_specs(opts, mesh.n_tets)
     # the run's kernels that earlier processes left on disk load on background threads
     # while the checks build the mesh's topology (NumPy sorts that release the GIL)
     warm_start_kernels({spec[:2] for spec in specs})
@@ -409,14 +409,20 @@ def _require_conforming(mesh: TetMesh) -> None:
         )
 
 
-def _pass_kernel_specs(opts: Options) -> list[tuple]:
-    """``_aot.prefetch`` specs of the kernels the run's passes call first (their other
-    shapes share these specs' (name, settings) groups)."""
+# From this many tets, the first smoothing passes fill colours with large batches
+# (``_smooth.LARGE_BATCHES_MIN``): a 31k-tet mesh has at most ~460 stars per colour, a
+# 169k-tet one ~2500.
+LARGE_SMOOTHING_TETS = 50_000
+
+
+def _pass_kernel_specs(opts: Options, n_tets: int = 0) -> list[tuple]:
+    """``_aot.prefetch`` specs of the kernels the run's passes call first on a mesh of
+    ``n_tets`` tets (their other shapes share these specs' (name, settings) groups)."""
     specs = []
     if "smooth" in opts.ops:  # the largest kernel first
         from ._smooth import pass_kernel_specs
 
-        specs += pass_kernel_specs(opts.quality)
+        specs += pass_kernel_specs(opts.quality, n_tets >= LARGE_SMOOTHING_TETS)
     if "edge" in opts.ops:
         from ._kernels.klincsek import kernel_specs
 

@@ -68,6 +68,11 @@ SOLVERS = ("bfgs", "ncg", "bfgs_tr", "active_set", "hybrid")
 # the same output on the benchmark meshes (K = 40 rounds some reductions differently;
 # 48 sends the rare 49-50-tet stars to the 128 shape, a second compile).
 DEFAULT_CAPACITIES = (56, 128)
+# A colour calls the large batch size (``smooth_pass``'s ``batch_sizes``) only when it
+# fills at least this many large batches: enough calls for both worker threads, and the
+# reference meshes of 10k-33k tets (at most ~460 stars per colour) never need the large
+# kernel's build. The first smoothing passes of meshes from ~100k tets do.
+LARGE_BATCHES_MIN = 4
 
 # ---------------------------------------------------------------------------------------
 # Quality of a star as a function of the moving vertex.
@@ -650,7 +655,7 @@ def smooth_pass(
     min_gain: float = 1e-9,
     sharpness: tuple[float, ...] = (20.0, 80.0),
     slide_tol: float = 1e-10,
-    batch_sizes: tuple[int, int] = (32, 32),
+    batch_sizes: tuple[int, int] = (32, 128),
     levels: int = 4,
     seed: int = 0,
 ):
@@ -672,11 +677,14 @@ def smooth_pass(
         capacities: star capacities K (padded tets per star); a star larger than the
             largest is skipped and counted.
         slide_tol: flatness / straightness tolerance for sliding (see ``motion_bases``).
-        batch_sizes: (small, large) vertices per kernel call: full large batches, the rest
-            in small ones (or one large one if that wastes less); fixed sizes so the
-            kernel compiles at most twice per capacity K. Default one size, 32: each
-            shape is one more build for a new machine and one more load for every new
-            process. (8, 32) made the perturbation rounds' climbs cheaper (holeplate:
+        batch_sizes: (small, large) vertices per kernel call. A colour with at least
+            ``LARGE_BATCHES_MIN`` large batches of one capacity runs full large batches and
+            the rest in small ones; every other colour runs small batches only. Fixed sizes,
+            so the kernel compiles at most twice per capacity K, and small meshes never call
+            (nor compile) the large one. A call costs ~2.5 ms of fixed work plus its lanes:
+            32 lanes per call spend ~84 us of two cores per star, 128 lanes ~59 (983k-tet
+            cube, 8192 stars, medians of 5), with bit-identical lanes (batch 256 rounds
+            differently). (8, 32) made the perturbation rounds' climbs cheaper (holeplate:
             540 of 724 calls hold 1-8 vertices, 3.8 ms each padded to 32, 1.5 ms at 8;
             ``jtet improve`` 7.9-8.7 -> 6.3-6.9 s) but raised the cold compile overhead
             on the cube from 6.1 to 10.5-11.0 s and the warm one from 0.52 to 0.85 s;
@@ -799,11 +807,14 @@ def _pass_kernel(measure, solver, max_iters, min_gain, sharpness, n_trials):
 _KERNEL_OPTIONS = ("solver", "max_iters", "min_gain", "sharpness", "n_trials")
 
 
-def pass_kernel_specs(measure: str = "min_sine", **options) -> list[tuple]:
+def pass_kernel_specs(
+    measure: str = "min_sine", large_batches: bool = False, **options
+) -> list[tuple]:
     """``_aot.prefetch`` specs of the kernel that ``smooth_pass(mesh, measure=measure,
-    **options)`` calls for most stars (smallest capacity, small batch). ``options``: any
-    of ``smooth_pass``'s solver, max_iters, min_gain, sharpness, n_trials, capacities,
-    batch_sizes (its defaults otherwise).
+    **options)`` calls for most stars (smallest capacity, small batch; with
+    ``large_batches`` the large batch too, which the first passes of large meshes call).
+    ``options``: any of ``smooth_pass``'s solver, max_iters, min_gain, sharpness,
+    n_trials, capacities, batch_sizes (its defaults otherwise).
 
     The smoothing kernel is the largest build of a new process (cold: ~9 s, one core);
     ``improve`` builds it in the background from its start, so it compiles while the
@@ -815,7 +826,9 @@ def pass_kernel_specs(measure: str = "min_sine", **options) -> list[tuple]:
     params = inspect.signature(smooth_pass).parameters
     o = {k: options.get(k, params[k].default) for k in known}
     kernel = _pass_kernel(measure, *(o[k] for k in _KERNEL_OPTIONS))
-    return call_specs(kernel, [_kernel_structs(min(o["capacities"]), min(o["batch_sizes"]))])
+    K = min(o["capacities"])
+    batches = sorted(set(o["batch_sizes"])) if large_batches else [min(o["batch_sizes"])]
+    return call_specs(kernel, [_kernel_structs(K, batch) for batch in batches])
 
 
 def _colour_tasks(verts, size, capacities, batch_sizes) -> list[tuple]:
@@ -841,19 +854,18 @@ def _kernel_structs(K: int, batch: int) -> list:
 
 
 def _chunks(b: int, small: int, large: int):
-    """(slice, padded size) pieces covering b items with full large batches first."""
+    """(slice, padded size) pieces covering b items: full large batches first when there
+    are at least ``LARGE_BATCHES_MIN`` of them, the rest in small batches (the last one
+    padded)."""
     out = []
     start = 0
-    while b - start >= large:
-        out.append((slice(start, start + large), large))
-        start += large
-    rest = b - start
-    if rest > 0 and -(-rest // small) * small * 2 > large:  # small calls would cost more
-        out.append((slice(start, b), large))
-    else:
-        while start < b:
-            out.append((slice(start, min(start + small, b)), small))
-            start += small
+    if b >= LARGE_BATCHES_MIN * large:
+        while b - start >= large:
+            out.append((slice(start, start + large), large))
+            start += large
+    while start < b:
+        out.append((slice(start, min(start + small, b)), small))
+        start += small
     return out
 
 

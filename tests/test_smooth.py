@@ -474,6 +474,38 @@ def test_pass_prefetches_exactly_the_shapes_it_calls(monkeypatch):
     assert len({K for K, _ in called}) > 1 and len(prefetches) == 1
 
 
+def test_chunks_cover_the_colour_with_large_batches_only_when_there_are_enough():
+    """A colour's batches cover its stars once, in order; the large size only as full
+    batches, and only when the colour fills ``LARGE_BATCHES_MIN`` of them (small meshes
+    never call, hence never build, the large kernel); only the last batch is padded."""
+    import jtet._smooth as sm
+
+    small, large = 32, 128
+    for b in range(1, 1200):
+        pieces = sm._chunks(b, small, large)
+        covered = np.concatenate([np.arange(b)[sl] for sl, _ in pieces])
+        assert np.array_equal(covered, np.arange(b))
+        sizes = [(sl.stop - sl.start, padded) for sl, padded in pieces]
+        assert all(n <= padded and padded in (small, large) for n, padded in sizes)
+        assert all(n == padded for n, padded in sizes[:-1])  # only the last is padded
+        uses_large = any(padded == large for _, padded in sizes)
+        assert uses_large == (b >= sm.LARGE_BATCHES_MIN * large)
+        assert sum(padded - n for n, padded in sizes) < small
+    # one size: the plain split of the old default
+    assert [p for _, p in sm._chunks(100, 32, 32)] == [32, 32, 32, 32]
+
+
+def test_large_meshes_prefetch_the_large_smoothing_batch():
+    from jtet import _driver
+
+    opts = jtet.Options()
+    shapes = {
+        n: [s[3][0].shape[0] for s in _driver._pass_kernel_specs(opts, n) if s[0] == "smooth_star"]
+        for n in (10_000, _driver.LARGE_SMOOTHING_TETS)
+    }
+    assert shapes == {10_000: [32], _driver.LARGE_SMOOTHING_TETS: [32, 128]}
+
+
 def np_biased_min_sine(p: np.ndarray, bias: float = 0.7) -> np.ndarray:
     """NumPy biased min-sine of tets p (m, 4, 3): ``np_min_sine`` with the sine of every
     obtuse dihedral angle times ``bias`` (obtuse: the interior angle between the faces'
