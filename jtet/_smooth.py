@@ -59,8 +59,10 @@ STAR_PERM = np.array([[1, 2, 3], [0, 3, 2], [3, 0, 1], [2, 1, 0]], dtype=np.int6
 
 SOLVERS = ("bfgs", "ncg", "bfgs_tr", "active_set", "hybrid")
 # Stars up to 56 tets share one kernel shape (K = 56). A second, smaller shape (K = 32)
-# cost a second ~10 s CPU compile in a new process and a second executable to load, and
-# its calls were no faster overall (fewer stars per batch). The kernel is bound by the
+# for the same 32-star batches cost a second ~10 s CPU compile in a new process and a
+# second executable to load, and its calls were no faster overall (fewer stars per
+# batch); the 128-star batches of large colours do gain from it (``LARGE_CAPACITY``),
+# and only large meshes build it. The kernel is bound by the
 # work per padded slot (every slot's quality is evaluated ~45 times per star; measured
 # when each evaluation was six dihedral pieces, now only the 5 worst tets' are), so the
 # capacity is the smallest multiple of 8 above the stars of Gmsh and optimized fTetWild
@@ -69,10 +71,16 @@ SOLVERS = ("bfgs", "ncg", "bfgs_tr", "active_set", "hybrid")
 # 48 sends the rare 49-50-tet stars to the 128 shape, a second compile).
 DEFAULT_CAPACITIES = (56, 128)
 # A colour calls the large batch size (``smooth_pass``'s ``batch_sizes``) only when it
-# fills at least this many large batches: enough calls for both worker threads, and the
-# reference meshes of 10k-33k tets (at most ~460 stars per colour) never need the large
-# kernel's build. The first smoothing passes of meshes from ~100k tets do.
+# fills at least this many large batches with stars of at most ``LARGE_CAPACITY`` tets:
+# enough calls for both worker threads, and the reference meshes of 10k-33k tets (at
+# most ~460 stars per colour) never need the large kernel's build. The first smoothing
+# passes of meshes from ~100k tets do.
 LARGE_BATCHES_MIN = 4
+# Star capacity of the large batches. A call's work per lane grows with K: 128 stars of at
+# most 32 tets took 38 us per star at K = 32 and 53 at K = 56 (983k-tet cube, two
+# threads, medians of 5), with the same new positions. 92-97 % of the stars of Gmsh
+# meshes have at most 32 tets; the others go to small batches at K = 56.
+LARGE_CAPACITY = 32
 
 # ---------------------------------------------------------------------------------------
 # Quality of a star as a function of the moving vertex.
@@ -678,12 +686,13 @@ def smooth_pass(
             largest is skipped and counted.
         slide_tol: flatness / straightness tolerance for sliding (see ``motion_bases``).
         batch_sizes: (small, large) vertices per kernel call. A colour with at least
-            ``LARGE_BATCHES_MIN`` large batches of one capacity runs full large batches and
-            the rest in small ones; every other colour runs small batches only. Fixed sizes,
-            so the kernel compiles at most twice per capacity K, and small meshes never call
+            ``LARGE_BATCHES_MIN`` large batches of stars of at most ``LARGE_CAPACITY`` tets
+            runs full large batches of them at that capacity; every other star goes to a
+            small batch at the smallest of ``capacities`` holding it. Fixed sizes, so the
+            kernel compiles once per (capacity, batch) pair, and small meshes never call
             (nor compile) the large one. A call costs ~2.5 ms of fixed work plus its lanes:
-            32 lanes per call spend ~84 us of two cores per star, 128 lanes ~59 (983k-tet
-            cube, 8192 stars, medians of 5), with bit-identical lanes (batch 256 rounds
+            32 lanes per call spend ~84 us of two cores per star, 128 lanes ~59 (K = 56;
+            983k-tet cube, 8192 stars, medians of 5), with bit-identical lanes (batch 256 rounds
             differently). (8, 32) made the perturbation rounds' climbs cheaper (holeplate:
             540 of 724 calls hold 1-8 vertices, 3.8 ms each padded to 32, 1.5 ms at 8;
             ``jtet improve`` 7.9-8.7 -> 6.3-6.9 s) but raised the cold compile overhead
@@ -826,19 +835,31 @@ def pass_kernel_specs(
     params = inspect.signature(smooth_pass).parameters
     o = {k: options.get(k, params[k].default) for k in known}
     kernel = _pass_kernel(measure, *(o[k] for k in _KERNEL_OPTIONS))
-    K = min(o["capacities"])
-    batches = sorted(set(o["batch_sizes"])) if large_batches else [min(o["batch_sizes"])]
-    return call_specs(kernel, [_kernel_structs(K, batch) for batch in batches])
+    small, large = o["batch_sizes"]
+    shapes = [(min(o["capacities"]), small)] + ([(LARGE_CAPACITY, large)] if large_batches else [])
+    return call_specs(kernel, [_kernel_structs(K, batch) for K, batch in shapes])
 
 
 def _colour_tasks(verts, size, capacities, batch_sizes) -> list[tuple]:
-    """Kernel calls (capacity K, padded batch size, vertex ids) of one colour: each
-    vertex goes to the smallest capacity holding its star."""
-    bucket = np.searchsorted(np.asarray(capacities), size[verts], side="left")
+    """Kernel calls (capacity K, padded batch size, vertex ids) of one colour: full large
+    batches of stars of at most ``LARGE_CAPACITY`` tets when there are at least
+    ``LARGE_BATCHES_MIN`` of them, then every other vertex in small batches at the
+    smallest capacity holding its star."""
+    small, large = batch_sizes
     tasks = []
+    fits = np.flatnonzero(size[verts] <= LARGE_CAPACITY)
+    if len(fits) >= LARGE_BATCHES_MIN * large:
+        full = len(fits) // large * large
+        tasks += [
+            (LARGE_CAPACITY, large, verts[fits[i : i + large]]) for i in range(0, full, large)
+        ]
+        rest = np.ones(len(verts), bool)
+        rest[fits[:full]] = False
+        verts = verts[rest]
+    bucket = np.searchsorted(np.asarray(capacities), size[verts], side="left")
     for bi, K in enumerate(capacities):
         vb = verts[bucket == bi]
-        tasks += [(K, size_b, vb[chunk]) for chunk, size_b in _chunks(len(vb), *batch_sizes)]
+        tasks += [(K, small, vb[i : i + small]) for i in range(0, len(vb), small)]
     return tasks
 
 
@@ -851,22 +872,6 @@ def _kernel_structs(K: int, batch: int) -> list:
         jax.ShapeDtypeStruct((batch, K, 3, 3), f64),
         jax.ShapeDtypeStruct((batch, K), np.bool_),
     ]
-
-
-def _chunks(b: int, small: int, large: int):
-    """(slice, padded size) pieces covering b items: full large batches first when there
-    are at least ``LARGE_BATCHES_MIN`` of them, the rest in small batches (the last one
-    padded)."""
-    out = []
-    start = 0
-    if b >= LARGE_BATCHES_MIN * large:
-        while b - start >= large:
-            out.append((slice(start, start + large), large))
-            start += large
-    while start < b:
-        out.append((slice(start, min(start + small, b)), small))
-        start += small
-    return out
 
 
 def gather_stars(

@@ -474,36 +474,54 @@ def test_pass_prefetches_exactly_the_shapes_it_calls(monkeypatch):
     assert len({K for K, _ in called}) > 1 and len(prefetches) == 1
 
 
-def test_chunks_cover_the_colour_with_large_batches_only_when_there_are_enough():
-    """A colour's batches cover its stars once, in order; the large size only as full
-    batches, and only when the colour fills ``LARGE_BATCHES_MIN`` of them (small meshes
-    never call, hence never build, the large kernel); only the last batch is padded."""
+def test_colour_tasks_cover_the_colour_with_large_batches_only_when_there_are_enough():
+    """A colour's calls cover its stars once, each at a capacity holding it. Large
+    batches are full, hold stars of at most ``LARGE_CAPACITY`` tets, and exist only when
+    the colour fills ``LARGE_BATCHES_MIN`` of them (small meshes never call, hence never
+    build, the large kernel); small batches go to the smallest capacity holding the star,
+    and only the last one of each capacity is padded."""
     import jtet._smooth as sm
 
-    small, large = 32, 128
-    for b in range(1, 1200):
-        pieces = sm._chunks(b, small, large)
-        covered = np.concatenate([np.arange(b)[sl] for sl, _ in pieces])
-        assert np.array_equal(covered, np.arange(b))
-        sizes = [(sl.stop - sl.start, padded) for sl, padded in pieces]
-        assert all(n <= padded and padded in (small, large) for n, padded in sizes)
-        assert all(n == padded for n, padded in sizes[:-1])  # only the last is padded
-        uses_large = any(padded == large for _, padded in sizes)
-        assert uses_large == (b >= sm.LARGE_BATCHES_MIN * large)
-        assert sum(padded - n for n, padded in sizes) < small
-    # one size: the plain split of the old default
-    assert [p for _, p in sm._chunks(100, 32, 32)] == [32, 32, 32, 32]
+    rng = np.random.default_rng(5)
+    capacities, (small, large) = (56, 128), (32, 128)
+    for n in (1, 31, 100, 511, 512, 600, 700, 1500, 3000):
+        for share_small in (0.0, 0.9, 1.0):
+            size = np.where(rng.random(4000) < share_small, 20, 45)
+            size[rng.random(4000) < 0.01] = 100  # a few big stars
+            verts = np.sort(rng.choice(4000, n, replace=False))
+            tasks = sm._colour_tasks(verts, size, capacities, (small, large))
+            got = np.concatenate([ids for _, _, ids in tasks])
+            assert np.array_equal(np.sort(got), verts)  # every vertex once
+            fitting = int((size[verts] <= sm.LARGE_CAPACITY).sum())
+            big = [(K, b, ids) for K, b, ids in tasks if b == large]
+            assert bool(big) == (fitting >= sm.LARGE_BATCHES_MIN * large)
+            for K, _, ids in big:
+                assert K == sm.LARGE_CAPACITY and len(ids) == large
+                assert (size[ids] <= K).all()
+            for K in capacities:
+                calls = [ids for k, b, ids in tasks if b == small and k == K]
+                assert all(len(ids) == small for ids in calls[:-1])
+                for ids in calls:
+                    assert 0 < len(ids) <= small
+                    want = np.asarray(capacities)[np.searchsorted(capacities, size[ids])]
+                    assert (want == K).all()
 
 
 def test_large_meshes_prefetch_the_large_smoothing_batch():
+    import jtet._smooth as sm
     from jtet import _driver
 
     opts = jtet.Options()
     shapes = {
-        n: [s[3][0].shape[0] for s in _driver._pass_kernel_specs(opts, n) if s[0] == "smooth_star"]
+        n: [
+            (s[3][2].shape[1], s[3][0].shape[0])
+            for s in _driver._pass_kernel_specs(opts, n)
+            if s[0] == "smooth_star"
+        ]
         for n in (10_000, _driver.LARGE_SMOOTHING_TETS)
     }
-    assert shapes == {10_000: [32], _driver.LARGE_SMOOTHING_TETS: [32, 128]}
+    small = (sm.DEFAULT_CAPACITIES[0], 32)
+    assert shapes == {10_000: [small], _driver.LARGE_SMOOTHING_TETS: [small, (32, 128)]}
 
 
 def np_biased_min_sine(p: np.ndarray, bias: float = 0.7) -> np.ndarray:
