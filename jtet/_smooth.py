@@ -74,7 +74,7 @@ DEFAULT_CAPACITIES = (56, 128)
 # fills at least this many large batches with stars of at most ``LARGE_CAPACITY`` tets:
 # enough calls for both worker threads, and the reference meshes of 10k-33k tets (at
 # most ~460 stars per colour) never need the large kernel's build. The first smoothing
-# passes of meshes from ~100k tets do.
+# passes of meshes from ~50k tets do (``_driver.LARGE_SMOOTHING_TETS``).
 LARGE_BATCHES_MIN = 4
 # Star capacity of the large batches. A call's work per lane grows with K: 128 stars of at
 # most 32 tets took 38 us per star at K = 32 and 53 at K = 56 (983k-tet cube, two

@@ -507,6 +507,33 @@ def test_colour_tasks_cover_the_colour_with_large_batches_only_when_there_are_en
                     assert (want == K).all()
 
 
+@pytest.mark.slow  # builds the 128-star kernel (~10 s of CPU cold)
+def test_large_batches_smooth_like_small_ones():
+    """The 128-star calls at K = 32 move every vertex as the 32-star calls at K = 56 do
+    (the reference: ``batch_sizes`` whose large size no colour fills). The same per-lane
+    computation in another executable: XLA may round differently, hence a tolerance of
+    1e-9 grid spacings instead of equality (measured equal on the Gmsh cubes)."""
+    import jtet._smooth as sm
+
+    mesh = grid_mesh(22, perturb=0.3, seed=4)  # interior stars of 24 tets
+    calls = []
+    real_solve = sm._solve_batch
+
+    def record_call(kernel, K, batch, *rest):
+        calls.append((K, batch))
+        return real_solve(kernel, K, batch, *rest)
+
+    sm._solve_batch = record_call
+    try:
+        large, stats_large = smooth_pass(mesh)
+    finally:
+        sm._solve_batch = real_solve
+    assert (sm.LARGE_CAPACITY, 128) in calls  # some colour filled the large batches
+    small, stats_small = smooth_pass(mesh, batch_sizes=(32, 10**9))
+    assert stats_large.successes == stats_small.successes > 0
+    np.testing.assert_allclose(large.points, small.points, rtol=0, atol=1e-9 / 22)
+
+
 def test_large_meshes_prefetch_the_large_smoothing_batch():
     import jtet._smooth as sm
     from jtet import _driver
