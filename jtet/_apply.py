@@ -42,7 +42,7 @@ def replace_tets(
         from ._topology_update import update_topology
 
         # None (large change, or a mesh the full build rejects): stays lazy, as before
-        topo = update_topology(mesh.topology, mesh, out, ~remove, fallback=False)
+        topo = update_topology(mesh.topology, mesh, out, ~remove, fallback=False, kept_first=True)
         if topo is not None:
             out.__dict__["topology"] = topo
     return out, len(kept)

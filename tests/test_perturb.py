@@ -18,6 +18,7 @@ from jtet._perturb import (
     SITES,
     SLACKS,
     WINDOWS,
+    _Baseline,
     _neighbourhood,
     _Submesh,
     better,
@@ -25,6 +26,15 @@ from jtet._perturb import (
     kicks,
 )
 from jtet._predicates import orient3d_tets
+
+
+def reference_better(new_q, old_q, near, tol):
+    """``better``'s rule written out on whole arrays (the independent reference)."""
+    old_worst, new_worst = old_q.min(), new_q.min()
+    if new_worst > old_worst + tol:
+        return True
+    limit = old_worst + near
+    return new_worst >= old_worst and (new_q < limit).sum() < (old_q < limit).sum()
 
 
 def test_better_worst_rose():
@@ -53,21 +63,50 @@ def test_better_never_accepts_a_lower_worst():
 def test_rounds_judge_with_the_raise_floor(demo, monkeypatch):
     """Every attempt is judged with a raise floor of at least MIN_RAISE: without it the
     demo keeps rounds that raise its worst tet by 1e-7 to 7e-5 (measured), which spend
-    the budget. The decisions are those of ``better`` with that tolerance."""
+    the budget. The decisions are those of ``better`` with that tolerance, on the whole
+    mesh's qualities after the attempt."""
     from jtet import _perturb
 
     calls = []
+    init, beaten_by = _perturb._Baseline.__init__, _perturb._Baseline.beaten_by
 
-    def spy(new_q, old_q, near, tol):
-        calls.append((tol, better(new_q, old_q, near, tol)))
+    def spy_init(self, old_q, outside, near):
+        init(self, old_q, outside, near)
+        self.arrays = (old_q.copy(), outside.copy(), near)
+
+    def spy(self, sub_q, tol):
+        old_q, outside, near = self.arrays
+        want = reference_better(np.concatenate([outside, sub_q]), old_q, near, tol)
+        calls.append((tol, beaten_by(self, sub_q, tol), want))
         return calls[-1][1]
 
-    monkeypatch.setattr(_perturb, "better", spy)
+    monkeypatch.setattr(_perturb._Baseline, "__init__", spy_init)
+    monkeypatch.setattr(_perturb._Baseline, "beaten_by", spy)
     r = jtet.improve(demo, perturb=8)
-    assert calls and {tol for tol, _ in calls} == {max(r.options.min_improvement, MIN_RAISE)}
+    assert calls and {tol for tol, _, _ in calls} == {max(r.options.min_improvement, MIN_RAISE)}
+    assert all(got == want for _, got, want in calls)
     # a round is kept only where ``better`` said so (the splice may still refuse it)
     kept = sum(e["successes"] for e in r.history if e["op"] == "perturb")
-    assert 0 < kept <= sum(better_ for _, better_ in calls)
+    assert 0 < kept <= sum(want for _, _, want in calls)
+
+
+def test_round_baseline_judges_as_better_on_the_whole_mesh():
+    """``_Baseline`` reduces the tets outside the submesh once per round; its verdicts
+    are the rule's on the concatenated qualities (seeded random cases with ties, tets
+    near the worst on either side, and empty parts)."""
+    rng = np.random.default_rng(7)
+    for trial in range(300):
+        n_out, n_sub = rng.integers(0, 6), rng.integers(1, 6)
+        levels = np.array([0.5, 0.5 + 1e-12, 0.502, 0.51, 0.7])  # ties and near-ties
+        outside = rng.choice(levels, n_out)
+        old_sub = rng.choice(levels, n_sub)
+        new_sub = rng.choice(levels, rng.integers(1, 7))  # an attempt may add tets
+        old_q = rng.permutation(np.concatenate([outside, old_sub]))
+        for tol in (1e-9, 1e-3):
+            want = reference_better(np.concatenate([outside, new_sub]), old_q, 0.005, tol)
+            got = _Baseline(old_q, outside, 0.005).beaten_by(new_sub, tol)
+            assert got == want, (trial, outside, old_sub, new_sub, tol)
+            assert better(np.concatenate([outside, new_sub]), old_q, 0.005, tol) == want
 
 
 def test_kicks_order_and_ops():
