@@ -431,7 +431,52 @@ def batched_smoother(measure: str, solver: str, max_iters: int, **options):
     settings = (measure, solver, max_iters, tuple(sorted(options.items())))
     # siblings: the first call also starts loading the other star capacities an earlier
     # process exported, so the capacities load side by side, not one after the other
-    return functools.partial(cached_call, "smooth_star", settings, jax.vmap(fn), siblings=True)
+    return functools.partial(cached_call, "smooth_star", settings, _lane_groups(fn), siblings=True)
+
+
+# A small batch (at most GROUPED_LANES stars) runs its lanes in groups of LANE_GROUP, one
+# group after the other, and skips the groups that hold no star (padding). Under one
+# vmap every lane pays for the slowest lane's iterations and padded lanes cost as much
+# as real ones, so a call holding 1-8 stars cost as much as a full one: the climbs after
+# perturbation kicks make mostly such calls (holeplate: 540 of 724 calls held 1-8
+# stars). Measured at K = 56 (holeplate stars, one thread): 1-8 stars of 32 lanes 1.4 ms
+# a call instead of 2.9-3.0; full calls 114 us a star instead of 94. One executable per
+# shape as before (a separate 8-lane shape cost a second ~10 s CPU compile). Large
+# batches (``LARGE_CAPACITY``) are always full: they keep the plain vmap.
+LANE_GROUP = 8
+GROUPED_LANES = 32
+
+
+def _grouped(batch: int) -> bool:
+    """Whether a call of ``batch`` lanes runs them in groups (``_lane_groups``)."""
+    return batch <= GROUPED_LANES and batch % LANE_GROUP == 0 and batch > LANE_GROUP
+
+
+def _lane_groups(fn):
+    """``jax.vmap(fn)`` over (v0 (B, 3), basis (B, 3, 3), opp (B, K, 3, 3), mask (B, K)),
+    in groups of ``LANE_GROUP`` lanes for B <= ``GROUPED_LANES``; lanes whose mask is all
+    False are padding, and a group of padding only returns (v0, 0, 0) unsolved."""
+    lanes = jax.vmap(fn)
+
+    def run(v0, basis, opp, mask):
+        B = v0.shape[0]
+        if not _grouped(B):
+            return lanes(v0, basis, opp, mask)
+        zeros = jnp.zeros(LANE_GROUP, v0.dtype)
+
+        def group(args):
+            v0, basis, opp, mask = args
+            return jax.lax.cond(
+                jnp.any(mask), lambda: lanes(v0, basis, opp, mask), lambda: (v0, zeros, zeros)
+            )
+
+        def split(x):
+            return x.reshape((B // LANE_GROUP, LANE_GROUP) + x.shape[1:])
+
+        out = jax.lax.map(group, tuple(split(x) for x in (v0, basis, opp, mask)))
+        return tuple(x.reshape((B,) + x.shape[2:]) for x in out)
+
+    return run
 
 
 # ---------------------------------------------------------------------------------------
@@ -692,12 +737,13 @@ def smooth_pass(
             kernel compiles once per (capacity, batch) pair, and small meshes never call
             (nor compile) the large one. A call costs ~2.5 ms of fixed work plus its lanes:
             32 lanes per call spend ~84 us of two cores per star, 128 lanes ~59 (K = 56;
-            983k-tet cube, 8192 stars, medians of 5), with bit-identical lanes (batch 256 rounds
-            differently). (8, 32) made the perturbation rounds' climbs cheaper (holeplate:
-            540 of 724 calls hold 1-8 vertices, 3.8 ms each padded to 32, 1.5 ms at 8;
-            ``jtet improve`` 7.9-8.7 -> 6.3-6.9 s) but raised the cold compile overhead
-            on the cube from 6.1 to 10.5-11.0 s and the warm one from 0.52 to 0.85 s;
-            one size of 16 cost the 983k-tet cube 20 %.
+            983k-tet cube, 8192 stars, medians of 5, before the lane groups below made
+            full 32-lane calls ~20 % slower; batch 256 rounds differently). A
+            separate batch size of 8 for the perturbation rounds' climbs (holeplate: 540
+            of 724 calls hold 1-8 vertices) raised the cold compile overhead on the cube
+            from 6.1 to 10.5-11.0 s; the small batch runs its lanes in groups of 8
+            instead, skipping the groups of padding (``_lane_groups``), in the same
+            executable.
         levels: the worst-star quality is cut into this many quantile levels; worse levels
             are smoothed first, random order within a level (see ``independent_sets``).
         seed: seed of the random tie-breaking.
@@ -895,6 +941,11 @@ def _solve_batch(
     b = len(chunk)
     padded = np.concatenate([chunk, np.full(batch - b, chunk[0])]) if b < batch else chunk
     opp, mask = gather_stars(padded, K, pts, ptr, opp_ids)
+    if _grouped(batch):
+        # groups of padding only are skipped (an all-False mask); padding in the last
+        # group with stars stays a copy of the first star, which converges with it (an
+        # empty star's lane would iterate to max_iters and hold its group that long)
+        mask[-(-b // LANE_GROUP) * LANE_GROUP :] = False
     new_pos, q_old, q_new = kernel(pts[padded], basis[padded], opp, mask)
     new_pos, q_old, q_new = (np.asarray(a)[:b] for a in (new_pos, q_old, q_new))
     ok = q_new > q_old
