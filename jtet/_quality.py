@@ -310,19 +310,31 @@ def _angle_extremes(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
 # tets a step created or moved (dihedrals + min_sine of 300 tets: 1.6 ms at 4096, 7.3 ms
 # at 16384; a whole 10k-tet mesh 5.4 vs 7.0 ms).
 TET_CHUNK = 1 << 12
+# At most this many tets go to one call of this size instead (a second shape of the
+# same kernel): the steps of the perturbation rounds' climbs and the late passes
+# re-evaluate tens to hundreds of tets, and a call padded to TET_CHUNK computed the
+# whole chunk (holeplate tets, host work included: 50 tets 0.80 -> 0.44 ms, 500 tets
+# 0.83 -> 0.38 ms, bit-identical values; ~1 s more CPU to build in a new process).
+SMALL_TET_CHUNK = 1 << 9
+
+
+def _chunk(m: int) -> int:
+    """Tets per call for an evaluation of m tets."""
+    return SMALL_TET_CHUNK if m <= SMALL_TET_CHUNK < TET_CHUNK else TET_CHUNK
 
 
 def _per_tet(name: str, settings: tuple, fn, points: np.ndarray, tets: np.ndarray):
-    """``fn`` over the SoA corners of ``tets`` in calls of ``TET_CHUNK`` tets (padding
-    repeats the first tet); each output has one entry per tet along its LAST axis,
-    concatenated over the calls and cut back to ``len(tets)``."""
+    """``fn`` over the SoA corners of ``tets`` in calls of ``_chunk(len(tets))`` tets
+    (padding repeats the first tet); each output has one entry per tet along its LAST
+    axis, concatenated over the calls and cut back to ``len(tets)``."""
     m = len(tets)
-    cap = max(1, -(-m // TET_CHUNK)) * TET_CHUNK
+    chunk = _chunk(m)
+    cap = max(1, -(-m // chunk)) * chunk
     if cap != m:
         pad = np.broadcast_to(tets[:1] if m else np.zeros((1, 4), np.int64), (cap - m, 4))
         tets = np.concatenate([tets, pad]) if m else np.zeros((cap, 4), np.int64)
     xyz = [c for corner in soa_corners(points, tets) for c in corner]
-    parts = [[c[i : i + TET_CHUNK] for c in xyz] for i in range(0, cap, TET_CHUNK)]
+    parts = [[c[i : i + chunk] for c in xyz] for i in range(0, cap, chunk)]
     outs = _config.parallel_map(
         lambda part: jax.device_get(cached_call(name, settings, fn, *part)), parts
     )
@@ -369,14 +381,14 @@ def warm_start_kernels(pass_groups) -> None:
 
 
 def prefetch_kernels() -> None:
-    """Build the per-tet kernel (every measure and the dihedral angles), or wait for the
-    thread loading it; returns when it is ready."""
+    """Build the per-tet kernel (every measure and the dihedral angles) at both call
+    sizes, or wait for the threads loading them; returns when they are ready."""
     global _kernels_prefetched
     _kernels_prefetched = True
-    xyz = [jax.ShapeDtypeStruct((TET_CHUNK,), np.float64)] * 12
     name, names = PER_TET_KERNEL
     fn = functools.partial(_all_measures_soa, names=names)
-    prefetch([(name, names, fn, xyz)])
+    sizes = sorted({TET_CHUNK, _chunk(1)})
+    prefetch([(name, names, fn, [jax.ShapeDtypeStruct((k,), np.float64)] * 12) for k in sizes])
 
 
 def tet_dihedrals(points: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, ...]:

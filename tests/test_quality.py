@@ -353,6 +353,26 @@ def test_host_helpers_on_a_mesh(rng):
         np.testing.assert_array_equal(got, want)
 
 
+def test_small_calls_give_the_values_of_large_ones(rng):
+    """An evaluation of at most SMALL_TET_CHUNK tets runs in calls of that size, a larger
+    one in calls of TET_CHUNK: the optimizer mixes both (whole-mesh values, then the few
+    tets each step changed), so every tet must get the same bits from either."""
+    from jtet import _quality
+
+    P = random_tets(rng, 2500)  # 5000 tets: two large calls
+    points = P.reshape(-1, 3)
+    tets = rng.permutation(len(points)).reshape(-1, 4)
+    assert _quality._chunk(len(tets)) == _quality.TET_CHUNK
+    whole = tet_all_measures(points, tets)
+    for part in (np.arange(1), np.arange(300), rng.choice(len(tets), 512, replace=False)):
+        assert _quality._chunk(len(part)) == _quality.SMALL_TET_CHUNK < _quality.TET_CHUNK
+        small = tet_all_measures(points, tets[part])
+        for got, want in zip(small[:3], whole[:3], strict=True):
+            np.testing.assert_array_equal(got, want[part])
+        for name in NAMES:
+            np.testing.assert_array_equal(small[3][name], whole[3][name][part])
+
+
 def test_unknown_measure():
     with pytest.raises(jtet.JtetError, match="min_sine"):
         get_measure("nope")
