@@ -353,7 +353,7 @@ def test_host_helpers_on_a_mesh(rng):
         np.testing.assert_array_equal(got, want)
 
 
-def test_small_calls_give_the_values_of_large_ones(rng):
+def test_small_calls_give_the_values_of_large_ones(rng, monkeypatch):
     """An evaluation of at most SMALL_TET_CHUNK tets runs in calls of that size, a larger
     one in calls of TET_CHUNK: the optimizer mixes both (whole-mesh values, then the few
     tets each step changed), so every tet must get the same bits from either."""
@@ -362,11 +362,20 @@ def test_small_calls_give_the_values_of_large_ones(rng):
     P = random_tets(rng, 2500)  # 5000 tets: two large calls
     points = P.reshape(-1, 3)
     tets = rng.permutation(len(points)).reshape(-1, 4)
-    assert _quality._chunk(len(tets)) == _quality.TET_CHUNK
+    sizes = []  # the tets per kernel call of each evaluation
+    real_call = _quality.cached_call
+
+    def spy(name, settings, fn, *args):
+        sizes.append(args[0].shape[0])
+        return real_call(name, settings, fn, *args)
+
+    monkeypatch.setattr(_quality, "cached_call", spy)
     whole = tet_all_measures(points, tets)
+    assert set(sizes) == {_quality.TET_CHUNK}
     for part in (np.arange(1), np.arange(300), rng.choice(len(tets), 512, replace=False)):
-        assert _quality._chunk(len(part)) == _quality.SMALL_TET_CHUNK < _quality.TET_CHUNK
+        sizes.clear()
         small = tet_all_measures(points, tets[part])
+        assert sizes == [_quality.SMALL_TET_CHUNK] and _quality.SMALL_TET_CHUNK < _quality.TET_CHUNK
         for got, want in zip(small[:3], whole[:3], strict=True):
             np.testing.assert_array_equal(got, want[part])
         for name in NAMES:

@@ -583,6 +583,15 @@ def test_padding_lanes_leave_the_stars_as_a_full_call_does():
         assert set(ids.tolist()) == {v for v in verts[:b].tolist() if v in at}
         for v, p in zip(ids.tolist(), pos, strict=True):
             np.testing.assert_array_equal(p, at[v])
+    # the groups of padding are not solved: their lanes return (v0, 0, 0), where a solved
+    # empty star would report its minimum over no tets (+inf)
+    chunk = np.concatenate([verts[:3], np.full(29, verts[0])])
+    opp_xyz, mask = sm.gather_stars(chunk, K, pts, ptr, opp)
+    mask[sm.LANE_GROUP :] = False
+    new_pos, q_old, q_new = (np.asarray(x) for x in kernel(pts[chunk], basis[chunk], opp_xyz, mask))
+    np.testing.assert_array_equal(new_pos[sm.LANE_GROUP :], pts[chunk[sm.LANE_GROUP :]])
+    assert (q_old[sm.LANE_GROUP :] == 0).all() and (q_new[sm.LANE_GROUP :] == 0).all()
+    assert np.isfinite(q_old[: sm.LANE_GROUP]).all() and (q_old[: sm.LANE_GROUP] > 0).all()
 
 
 def test_large_meshes_prefetch_the_large_smoothing_batch():
