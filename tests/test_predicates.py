@@ -286,11 +286,15 @@ def test_underflow_guard():
     assert orient3d(a, b, c, d) == -1
     _, decided = P._orient3d_filter(a[None], b[None], c[None], d[None])
     assert not decided[0]
-    # mixed into a batch of ordinary queries too
+    # mixed into a batch of ordinary queries too: a few (each query tested directly) and
+    # many (the batch's bit patterns reduced first)
     rng = np.random.default_rng(0)
-    A, B, C, D = rng.random((4, 50, 3))
-    A[17], B[17], C[17], D[17] = a, b, c, d
-    np.testing.assert_array_equal(orient3d(A, B, C, D), exact_orients(A, B, C, D))
+    for size in (50, P.FEW_QUERIES + 100):
+        A, B, C, D = rng.random((4, size, 3))
+        A[17], B[17], C[17], D[17] = a, b, c, d
+        _, decided = P._orient3d_filter(A, B, C, D)
+        assert not decided[17] and decided.sum() >= size - 5
+        np.testing.assert_array_equal(orient3d(A, B, C, D), exact_orients(A, B, C, D))
 
 
 def test_exact_zero_shortcuts():
