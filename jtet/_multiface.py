@@ -435,23 +435,25 @@ def solve_forest(
 
     def arguments(task):
         cap, sel = task
-        bcap = _CHUNK
-        pad = np.concatenate([sel, np.full(bcap - len(sel), sel[0])])
-        real = np.arange(bcap) < len(sel)
-        f = forest.face[pad, :cap]
-        valid = (f >= 0) & real[:, None]
-        xyz = P[forest.verts[pad, :cap]]  # (B, cap, 3 corners, 3 coords)
-        pa, pb = P[forest.a[pad]], P[forest.b[pad]]
-        qt = np.minimum(quality[forest.ta[pad, :cap]], quality[forest.tb[pad, :cap]])
-        child = np.where(valid[:, :, None], forest.child[pad, :cap], -1)
+        f = forest.face[sel, :cap]
+        valid = f >= 0
+        xyz = P[forest.verts[sel, :cap]]  # (k, cap, 3 corners, 3 coords)
+        pa, pb = P[forest.a[sel]], P[forest.b[sel]]
+        qt = np.minimum(quality[forest.ta[sel, :cap]], quality[forest.tb[sel, :cap]])
+        child = np.where(valid[:, :, None], forest.child[sel, :cap], -1)
+        # padded to _CHUNK trees, copies of the first one with no valid node: only the
+        # real trees are gathered (a late pass solves a handful of trees per call)
         return (
-            pa[:, 0], pa[:, 1], pa[:, 2], pb[:, 0], pb[:, 1], pb[:, 2],
-            xyz[..., 0], xyz[..., 1], xyz[..., 2],
+            *(_padded(x) for x in (pa[:, 0], pa[:, 1], pa[:, 2], pb[:, 0], pb[:, 1], pb[:, 2])),
+            *(_padded(xyz[..., c]) for c in range(3)),
             # ids in the kernel's int64, whatever the topology's index type
-            *(np.asarray(x, np.int64) for x in (
-                np.maximum(forest.parent[pad, :cap], 0), forest.pslot[pad, :cap], child)),
-            qt, valid, np.asarray(forest.count[sel].max(), np.int32),
-        )  # fmt: skip
+            _padded(np.maximum(forest.parent[sel, :cap], 0).astype(np.int64)),
+            _padded(forest.pslot[sel, :cap].astype(np.int64)),
+            _padded(child.astype(np.int64), -1),
+            _padded(qt),
+            _padded(valid, False),
+            np.asarray(forest.count[sel].max(), np.int32),
+        )
 
     kernel = functools.partial(solve_trees, measure=measure)
     # every tree capacity's kernel compiled (or loaded) at once on the worker threads;
@@ -473,6 +475,15 @@ def solve_forest(
         q_new[sel] = qn
         chosen[sel, :cap] = ch
     return q_old, q_new, chosen
+
+
+def _padded(rows: np.ndarray, fill=None) -> np.ndarray:
+    """``rows`` (k, ...) padded to ``_CHUNK`` rows with copies of its first row (or with
+    ``fill``), contiguous."""
+    out = np.empty((_CHUNK, *rows.shape[1:]), rows.dtype)
+    out[: len(rows)] = rows
+    out[len(rows) :] = rows[0] if fill is None else fill
+    return out
 
 
 def new_tets_of(forest: Forest, chosen: np.ndarray, trees: np.ndarray):
