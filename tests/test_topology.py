@@ -282,11 +282,16 @@ def _rings_reference(ptr, c, d, entry_tet):
     return np.array(tets), np.array(rings), np.array(boundary), np.array(manifold)
 
 
+@pytest.mark.parametrize("padded", [False, True])
 @pytest.mark.parametrize("dtype", [np.int64, np.int32])
-def test_order_rings_matches_a_plain_python_walk(dtype):
+def test_order_rings_matches_a_plain_python_walk(dtype, padded, monkeypatch):
     """Random rings: cycles and chains in shuffled order, some with a corrupted step
-    (non-manifold), sizes 1-13 and 255-257 (wider counters), int32 or int64 steps."""
+    (non-manifold), sizes 1-13 and 255-257 (wider counters), int32 or int64 steps; one
+    bucket per ring size, or all rings padded into one (few edges)."""
+    from jtet import _topology
     from jtet._topology import _order_rings
+
+    monkeypatch.setattr(_topology, "PADDED_RING_SLOTS", 10**6 if padded else 0)
 
     rng = np.random.default_rng(7)
     counts = np.concatenate([rng.integers(1, 14, 300), [255, 256, 257]])
