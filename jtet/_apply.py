@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._mesh import TetMesh
-from ._topology import _group, local_index, match_rows, row_keys, sorted_rows
+from ._topology import local_index, match_rows, row_keys, sorted_lookup, sorted_rows
 
 
 def replace_tets(
@@ -83,30 +83,29 @@ def nonconforming_owners(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarra
     coincide with an existing one; costs a lookup of the new faces only. Rejecting a
     candidate restores its old tets, so callers repeat until nothing is rejected.
     """
+    from ._topology_update import _regroup
+
     T = mesh.topology
-    if T.face_keys is None:  # keys do not compare across calls: group everything at once
-        return _nonconforming_owners_grouped(mesh, remove, new_tets, new_owner, n_cand)
     n = mesh.n_points
     nf = new_tets[:, _OUT_FACES].reshape(-1, 3)
-    keys = row_keys(sorted_rows(new_tets, _OUT_FACES).reshape(-1, 3), n)
-    # ONE sort of the new faces, each key with its orientation parity in the lowest bit
-    # (keys < n**3 < 2**62): it groups equal new faces and makes the lookup of the old
-    # faces a search with increasing queries. Before, new and old faces were grouped by
-    # a second sort, after a lookup of the new faces in their own order. 983k-tet cube,
-    # first edge pass (207k new tets): 420-570 -> 180-200 ms; all steps of a run: 0.71
-    # -> 0.31 s.
-    packed = np.sort(keys * 2 + _parity3(nf))
-    first = np.empty(len(packed), bool)
-    first[:1] = True
-    np.not_equal(packed[1:] >> 1, packed[:-1] >> 1, out=first[1:])
-    starts = np.flatnonzero(first)
-    face_key = packed[starts] >> 1
-    count = np.diff(np.append(starts, len(packed)))
-    odd = np.add.reduceat(packed & 1, starts) if len(packed) else np.zeros(0, np.int64)
+    rows = sorted_rows(new_tets, _OUT_FACES).reshape(-1, 3)
+    if T.face_keys is not None:
+        face_keys, keys = T.face_keys, row_keys(rows, n)
+    else:  # keys are per-call ranks: the mesh's faces and the new ones ranked together
+        both = row_keys(np.concatenate([T.faces, rows]), n)
+        face_keys, keys = both[: len(T.faces)], both[len(T.faces) :]
+    # ONE sort of the new faces by (key, orientation parity): it groups equal new faces
+    # and makes the lookup of the old faces a search with increasing queries. Before, new
+    # and old faces were grouped by a second sort, after a lookup of the new faces in
+    # their own order. 983k-tet cube, first edge pass (207k new tets): 420-570 -> 180-200
+    # ms; all steps of a run: 0.71 -> 0.31 s.
+    group_key, parity, ptr = _regroup(keys, _parity3(nf), 2)
+    starts = ptr[:-1]
+    face_key = group_key[starts]
+    count = np.diff(ptr)
+    odd = np.add.reduceat(parity, starts) if len(starts) else np.zeros(0, np.int64)
     # the kept old tets on the new faces that are faces of the mesh already
-    # (increasing queries: a plain binary search walks the keys in one direction)
-    pos = np.minimum(np.searchsorted(T.face_keys, face_key), max(len(T.face_keys) - 1, 0))
-    fid = np.where(T.face_keys[pos] == face_key, pos, -1) if len(T.face_keys) else pos - 1
+    fid = sorted_lookup(face_keys, face_key)
     on_old = np.flatnonzero(fid >= 0)
     kt, ka = T.face_tets[fid[on_old]].reshape(-1), T.face_apex[fid[on_old]].reshape(-1)
     kept = kt >= 0
@@ -122,37 +121,6 @@ def nonconforming_owners(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarra
     if bad_face.any():  # rare: inverted or degenerate tets around
         bad = np.isin(keys, face_key[bad_face])
         reject[np.repeat(new_owner, 4)[bad]] = True
-    return reject
-
-
-def _nonconforming_owners_grouped(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarray:
-    """``nonconforming_owners`` for meshes whose face keys are per-call ranks."""
-    T = mesh.topology
-    n = mesh.n_points
-    nf = new_tets[:, _OUT_FACES].reshape(-1, 3)
-    n_par = _parity3(nf)
-    nf = np.sort(nf, axis=1)
-    # kept old tets on the faces the new tets touch
-    fid = T.face_ids(nf)
-    # distinct face ids, sorted: a mask over the faces, not np.unique (which hashes)
-    seen = np.zeros(len(T.faces), bool)
-    seen[fid[fid >= 0]] = True
-    hit = np.flatnonzero(seen)
-    kt, ka = T.face_tets[hit].reshape(-1), T.face_apex[hit].reshape(-1)
-    ok = kt >= 0
-    ok[ok] = ~remove[kt[ok]]
-    kf, kt, ka = np.repeat(hit, 2)[ok], kt[ok], ka[ok]
-    local = local_index(mesh.tets, kt, ka)
-    k_par = _parity3(np.take_along_axis(mesh.tets[kt], _OUT_FACES[local], 1))
-    faces = np.concatenate([nf, T.faces[kf]])
-    par = np.concatenate([n_par, k_par])
-    owner = np.concatenate([np.repeat(new_owner, 4), np.full(len(kf), -1)])
-    perm, ptr, inv = _group(row_keys(faces, n))
-    cnt = np.diff(ptr)
-    odd = np.add.reduceat(par[perm], ptr[:-1])
-    bad = ((cnt > 2) | ((cnt == 2) & (odd != 1)))[inv] & (owner >= 0)
-    reject = np.zeros(n_cand, bool)
-    reject[owner[bad]] = True
     return reject
 
 

@@ -142,9 +142,12 @@ def search_sorted(sorted_keys: np.ndarray, queries: np.ndarray) -> np.ndarray:
     """``np.searchsorted(sorted_keys, queries)``, with many queries searched in increasing
     order: consecutive searches then walk the keys in one direction and stay in cache
     (NumPy narrows each search by the previous one for sorted queries). Measured into 2M
-    keys: 100k queries 99 -> 25 ms, 5k queries 4.0 -> 1.6 ms, including the sort."""
+    keys: 100k queries 99 -> 25 ms, 5k queries 4.0 -> 1.6 ms, including the sort.
+    Queries already in increasing order are not sorted again (one comparison pass)."""
     queries = np.asarray(queries)
     if queries.ndim != 1 or len(queries) <= SORT_QUERIES_ABOVE:
+        return np.searchsorted(sorted_keys, queries)
+    if (queries[1:] >= queries[:-1]).all():
         return np.searchsorted(sorted_keys, queries)
     order = np.argsort(queries)
     pos = np.empty(len(queries), np.int64)

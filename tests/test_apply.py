@@ -73,9 +73,11 @@ def test_nonconforming_owners_against_brute_force(seed):
     got = _apply.nonconforming_owners(mesh, remove, new_tets, new_owner, n_cand)
     np.testing.assert_array_equal(got, expected)
     assert expected.any() and not expected.all()  # both kinds of candidate occur
-    # the path for meshes whose face keys are per-call ranks agrees
-    grouped = _apply._nonconforming_owners_grouped(mesh, remove, new_tets, new_owner, n_cand)
-    np.testing.assert_array_equal(grouped, expected)
+    # meshes of more than ~1.66M points, whose face keys are per-call ranks, agree
+    ranked = delaunay_mesh(60, seed=seed)
+    ranked.topology.__dict__["face_keys"] = None
+    got = _apply.nonconforming_owners(ranked, remove, new_tets, new_owner, n_cand)
+    np.testing.assert_array_equal(got, expected)
 
 
 def test_nonconforming_owners_of_no_new_tets():
