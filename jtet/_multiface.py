@@ -36,7 +36,7 @@ from ._mesh import TetMesh
 from ._predicates import (
     CROSS_INTERIOR,
     CROSS_NONE,
-    orient3d,
+    orient3d_stacked,
     orient3d_tets,
     segment_crosses_triangle,
 )
@@ -161,18 +161,8 @@ def _walk_star(
         t, A, B = cur[act], a[act], b[act]
         y = np.take_along_axis(tets[t], FACE_CCW[_local(tets, t, A)], axis=1)
         pa, pb = P[A], P[B]
-        # the three planes' signs in one call (each call costs ~40 us of fixed work)
         y0, y1, y2 = P[y[:, 0]], P[y[:, 1]], P[y[:, 2]]
-        s = (
-            orient3d(
-                np.tile(pa, (3, 1)),
-                np.tile(pb, (3, 1)),
-                np.vstack([y1, y2, y0]),
-                np.vstack([y0, y1, y2]),
-            )
-            .reshape(3, -1)
-            .T
-        )
+        s = orient3d_stacked([(pa, pb, y1, y0), (pa, pb, y2, y1), (pa, pb, y0, y2)]).T
         neg = s < 0
         inside = (s > 0).all(axis=1)
         status[act[inside]] = 1
@@ -341,14 +331,8 @@ def build_forest(
         sel = np.flatnonzero(ok)
         v = va[sel]
         Ps, Qs, As, Bs, Vs = (np.take(P, i, axis=0) for i in (p[sel], q[sel], A[sel], B[sel], v))
-        # the three tets' signs in one call (each call costs ~40 us of fixed work)
-        signs = orient3d(
-            np.tile(As, (3, 1)),
-            np.tile(Bs, (3, 1)),
-            np.vstack([Vs, Qs, Ps]),
-            np.vstack([Ps, Vs, Qs]),
-        )
-        npos = (signs.reshape(3, -1) > 0).sum(axis=0)
+        signs = orient3d_stacked([(As, Bs, Vs, Ps), (As, Bs, Qs, Vs), (As, Bs, Ps, Qs)])
+        npos = (signs > 0).sum(axis=0)
         sel = sel[npos >= 2]
         ct, cn, cs, cg = ft[sel], fn[sel], fs[sel], g[sel]
         # a face met twice (already in its tree, or twice this round): a cycle. A tree

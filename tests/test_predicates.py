@@ -542,3 +542,19 @@ def test_segment_broadcasting():
     got = segment_crosses_triangle(p, q, a, b, c)
     assert got.shape == (40,)
     np.testing.assert_array_equal(got, ref_crosses(p, q, a, b, c))
+
+
+def test_orient3d_stacked_equals_each_group_exactly():
+    """Groups of queries in one call give each group's exact signs, in group order
+    (near-coplanar queries, so the later stages run too)."""
+    rng = np.random.default_rng(3)
+    groups = []
+    for _ in range(3):
+        a, b, c = rng.random((3, 40, 3))
+        d = a + 0.5 * (b - a) + 0.25 * (c - a)  # on the plane, up to rounding
+        d[::2] = rng.random((20, 3))
+        groups.append((a, b, c, d))
+    got = P.orient3d_stacked(groups)
+    assert got.shape == (3, 40)
+    for g, (a, b, c, d) in enumerate(groups):
+        np.testing.assert_array_equal(got[g], exact_orients(a, b, c, d))

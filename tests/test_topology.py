@@ -225,7 +225,7 @@ def test_build_is_the_same_on_any_number_of_threads(mesh, monkeypatch, workers):
 
 @pytest.mark.parametrize("q", [10, 5000])
 def test_search_sorted_and_lookup_match_numpy(q):
-    """search_sorted (sorts many queries first) equals np.searchsorted, and sorted_lookup
+    """search_sorted (sorts many unsorted queries first) equals np.searchsorted, and sorted_lookup
     finds exactly the present keys, for queries with repeats, misses and both ends."""
     from jtet._topology import search_sorted, sorted_lookup
 
@@ -234,6 +234,8 @@ def test_search_sorted_and_lookup_match_numpy(q):
     queries = np.concatenate([rng.choice(keys, q // 2), rng.integers(-5, 10**6 + 5, q - q // 2)])
     rng.shuffle(queries)
     assert np.array_equal(search_sorted(keys, queries), np.searchsorted(keys, queries))
+    increasing = np.sort(queries)  # searched as they are (no second sort)
+    assert np.array_equal(search_sorted(keys, increasing), np.searchsorted(keys, increasing))
     got = sorted_lookup(keys, queries)
     present = np.isin(queries, keys)
     assert np.array_equal(got >= 0, present)
