@@ -608,40 +608,36 @@ def _order_rings(ptr, c, d, entry_tet):
     edge_boundary = np.zeros(E, bool)
     edge_manifold = np.zeros(E, bool)
     chain_end = np.full(E, -1, np.int64)
-    # edges by ring size (ids increasing within a size): one value sort, not a scan of
-    # the (E,) counts per size
     kmax = int(counts.max(initial=0))
     if 0 < E * kmax <= PADDED_RING_SLOTS:
         # few edges (the step updates of small meshes): one bucket padded to the largest
         # ring, ~8 ring sizes' worth of fixed NumPy calls saved
-        es = np.arange(E)
-        base = ptr[:-1].astype(np.int64)
-        real = np.arange(kmax) < counts[:, None]
-        slots = np.where(real, base[:, None] + np.arange(kmax), 0)
-        # padded steps never link: c and d sentinels that match no vertex nor each other
-        cc, dd = np.where(real, c[slots], -1), np.where(real, d[slots], -2)
-        order, ok, n_starts = _ring_walk(*_ring_links(cc, dd), counts)
-        src[slots[real]] = (base[:, None] + order)[real]
-        last = order[es, np.maximum(counts - 1, 0)]
-        edge_boundary[:] = n_starts >= 1
-        edge_manifold[:] = ok
-        bnd = ok & (n_starts == 1)
-        chain_end[bnd] = d[base[bnd] + last[bnd]]
-        buckets = ()
-    else:
+        buckets = [(np.arange(E), kmax, counts)]
+    else:  # one bucket per ring size (length None: no padding); edges by ring size (ids
+        # increasing within a size): one value sort, not a scan of the (E,) counts per size
         by_size, sizes = _stable_sort(counts, max(kmax, 1).bit_length())
         cut = np.flatnonzero(np.r_[True, sizes[1:] != sizes[:-1], True])
-        buckets = zip(cut[:-1], cut[1:])
-    for b0, b1 in buckets:  # a loop over ring sizes, each bucket vectorized
-        k, es = int(sizes[b0]), by_size[b0:b1]
+        buckets = [(by_size[b0:b1], int(sizes[b0]), None) for b0, b1 in zip(cut[:-1], cut[1:])]
+    for es, k, length in buckets:  # a loop over ring sizes, each bucket vectorized
         base = ptr[es]
         slots = base[:, None] + np.arange(k)  # (E_k, k)
-        order, ok, n_starts = _ring_walk(*_ring_links(c[slots], d[slots]))
-        src[slots] = base[:, None] + order
+        if length is None:
+            cc, dd = c[slots], d[slots]
+        else:  # padded steps never link: sentinels that match no vertex nor each other
+            real = np.arange(k) < length[:, None]
+            slots = np.where(real, slots, 0)
+            cc, dd = np.where(real, c[slots], -1), np.where(real, d[slots], -2)
+        order, ok, n_starts = _ring_walk(*_ring_links(cc, dd), length)
+        if length is None:
+            src[slots] = base[:, None] + order
+            last = order[:, -1]
+        else:
+            src[slots[real]] = (base[:, None] + order)[real]
+            last = order[np.arange(len(es)), np.maximum(length - 1, 0)]
         edge_boundary[es] = n_starts >= 1
         edge_manifold[es] = ok
         bnd = ok & (n_starts == 1)
-        chain_end[es[bnd]] = d[base[bnd] + order[bnd, -1]]
+        chain_end[es[bnd]] = d[base[bnd] + last[bnd]]
     # ring vertices: c of each step; chains also get d of their last step, inserted after
     # their run (a mask, not a scatter of every entry through the ring CSR)
     edge_ring_ptr = np.zeros(E + 1, ptr.dtype)
