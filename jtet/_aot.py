@@ -380,8 +380,31 @@ def _filename(key: tuple) -> str:
     return f"{_group_prefix(key[:2])}-{hashlib.sha256(repr(key).encode()).hexdigest()}.bin"
 
 
+# XLA:CPU options of every kernel build. Its older (elemental) emitters instead of its MLIR
+# fusion emitters: the smoothing kernel compiled in 2.0 instead of 3.4 s of CPU, and ran
+# as fast (experiments/results/compile.md, session 20). Results may differ from the
+# default build's in the last bits (positions ~1e-11 relative), never in meaning.
+COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+
+@functools.cache
+def compiler_options() -> dict:
+    """``COMPILER_OPTIONS``, or {} when this JAX's XLA does not know one of them (older
+    or newer releases): the kernels then build with XLA's defaults."""
+    try:
+        jax.jit(lambda x: x).lower(0.0).compile(compiler_options=COMPILER_OPTIONS)
+    except Exception:  # noqa: BLE001  (JaxRuntimeError "No such compile option", ...)
+        return {}
+    return dict(COMPILER_OPTIONS)
+
+
+def _jit(fn):
+    """``jax.jit(fn)`` with the kernel build options."""
+    return jax.jit(fn, compiler_options=compiler_options() or None)
+
+
 def _compile(f, structs):
-    return jax.jit(f).lower(*structs).compile()
+    return _jit(f).lower(*structs).compile()
 
 
 def _build(key: tuple, fn, args):
@@ -391,7 +414,7 @@ def _build(key: tuple, fn, args):
     structs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args]
     directory = _directory()
     if directory is None:
-        return jax.jit(fn)
+        return _jit(fn)
     path = directory / _filename(key)
     try:
         t0 = time.perf_counter()
@@ -417,7 +440,7 @@ def _build(key: tuple, fn, args):
     except Exception:  # noqa: BLE001  (any cache problem: trace as usual)
         if fn is None:
             raise
-        return jax.jit(fn)
+        return _jit(fn)
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
