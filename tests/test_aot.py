@@ -408,3 +408,24 @@ def test_key_names_dtypes_as_str_does():
     want = ("k", (1,), tuple((tuple(a.shape), str(a.dtype)) for a in args))
     assert _aot._key("k", (1,), args) == want
     assert _aot._key("k", (1,), args) == want  # the memoized names
+
+
+def test_build_options_xla_refuses_are_dropped(cache, monkeypatch):
+    """An XLA that does not know a build option (another JAX release) builds with its
+    defaults: the kernel still comes from the cache, with the plain jit's results."""
+    import jax
+
+    assert _aot.compiler_options() == _aot.COMPILER_OPTIONS  # this JAX knows them
+    monkeypatch.setattr(_aot, "COMPILER_OPTIONS", {"xla_no_such_option_anywhere": True})
+    _aot.compiler_options.cache_clear()
+    try:
+        assert _aot.compiler_options() == {}
+        got = np.asarray(_aot.cached_call("k", (1,), _kernel, *ARGS))
+        key = _aot._key("k", (1,), ARGS)  # built from the exported file, not a plain-jit fallback
+        assert (
+            isinstance(_aot._memo[key], jax.stages.Compiled)
+            and (cache / _aot._filename(key)).exists()
+        )
+        np.testing.assert_allclose(got, np.asarray(jax.jit(_kernel)(*ARGS)), rtol=1e-14)
+    finally:
+        _aot.compiler_options.cache_clear()
