@@ -380,41 +380,31 @@ def _filename(key: tuple) -> str:
     return f"{_group_prefix(key[:2])}-{hashlib.sha256(repr(key).encode()).hexdigest()}.bin"
 
 
-# XLA:CPU build options by kernel name (a kernel not listed builds with XLA's defaults).
-# XLA's older elemental emitters instead of its MLIR fusion emitters: the smoothing kernel
-# built in 2.9 instead of 4.6 s of CPU and ran as fast, the tree DP ran 0.7-0.8x the
-# time; the per-tet and ring DP kernels ran 1.1-1.2x slower with them and keep the
-# defaults (experiments/results/compile.md, session 20). Results of a listed kernel may
-# differ from a default build's in the last bits (positions ~1e-11 relative).
-_ELEMENTAL = {"xla_cpu_use_fusion_emitters": False}
-KERNEL_OPTIONS = {"smooth_star": _ELEMENTAL, "solve_trees": _ELEMENTAL}
+# XLA:CPU options of every kernel build. Its older (elemental) emitters instead of its MLIR
+# fusion emitters: the smoothing kernel compiled in 2.0 instead of 3.4 s of CPU, and ran
+# as fast (experiments/results/compile.md, session 20). Results may differ from the
+# default build's in the last bits (positions ~1e-11 relative), never in meaning.
+COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
 
 @functools.cache
-def _options_known() -> bool:
-    """Whether this JAX's XLA knows every option of ``KERNEL_OPTIONS`` (other releases
-    may not: the kernels then build with XLA's defaults)."""
-    known = {k: v for options in KERNEL_OPTIONS.values() for k, v in options.items()}
+def compiler_options() -> dict:
+    """``COMPILER_OPTIONS``, or {} when this JAX's XLA does not know one of them (older
+    or newer releases): the kernels then build with XLA's defaults."""
     try:
-        jax.jit(lambda x: x).lower(0.0).compile(compiler_options=known)
+        jax.jit(lambda x: x).lower(0.0).compile(compiler_options=COMPILER_OPTIONS)
     except Exception:  # noqa: BLE001  (JaxRuntimeError "No such compile option", ...)
-        return False
-    return True
+        return {}
+    return dict(COMPILER_OPTIONS)
 
 
-def compiler_options(name: str) -> dict | None:
-    """The XLA build options of kernel ``name``, or None for XLA's defaults."""
-    options = KERNEL_OPTIONS.get(name)
-    return dict(options) if options and _options_known() else None
+def _jit(fn):
+    """``jax.jit(fn)`` with the kernel build options."""
+    return jax.jit(fn, compiler_options=compiler_options() or None)
 
 
-def _jit(fn, name: str):
-    """``jax.jit(fn)`` with the build options of kernel ``name``."""
-    return jax.jit(fn, compiler_options=compiler_options(name))
-
-
-def _compile(f, structs, name: str):
-    return _jit(f, name).lower(*structs).compile()
+def _compile(f, structs):
+    return _jit(f).lower(*structs).compile()
 
 
 def _build(key: tuple, fn, args):
@@ -424,7 +414,7 @@ def _build(key: tuple, fn, args):
     structs = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args]
     directory = _directory()
     if directory is None:
-        return _jit(fn, key[0])
+        return _jit(fn)
     path = directory / _filename(key)
     try:
         t0 = time.perf_counter()
@@ -441,7 +431,7 @@ def _build(key: tuple, fn, args):
             _write_atomic(path, exported.serialize())
             _prune_once()
         t1 = time.perf_counter()
-        call = _compile(exported.call, structs, key[0])
+        call = _compile(exported.call, structs)
         with _lock:
             STATS["loaded" if loaded else "exported"] += 1
             STATS["export_s"] += t1 - t0
@@ -450,7 +440,7 @@ def _build(key: tuple, fn, args):
     except Exception:  # noqa: BLE001  (any cache problem: trace as usual)
         if fn is None:
             raise
-        return _jit(fn, key[0])
+        return _jit(fn)
 
 
 def _write_atomic(path: Path, data: bytes) -> None:

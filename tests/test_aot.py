@@ -203,9 +203,9 @@ def test_quality_in_fixed_calls_matches_one_evaluation(monkeypatch):
     points = rng.random((30, 3))
     tets = rng.integers(0, 30, (21, 4))  # three calls, the last one padded
     corners = _quality.soa_corners(points, tets)
-    # one evaluation built with the per-tet kernel's XLA options (others may round differently)
-    options = _aot.compiler_options(_quality.PER_TET_KERNEL[0])
-    expected = np.asarray(jax.jit(_quality.radius_ratio, compiler_options=options)(*corners))
+    # one evaluation built with the kernels' XLA options (other options may round differently)
+    one_call = jax.jit(_quality.radius_ratio, compiler_options=_aot.compiler_options() or None)
+    expected = np.asarray(one_call(*corners))
     assert np.array_equal(_quality.tet_quality(points, tets, "radius_ratio"), expected)
     angles, lo, hi = _quality.tet_dihedrals(points, tets)
     assert angles.shape == (21, 6) and np.array_equal(lo, angles.min(axis=1))
@@ -410,33 +410,22 @@ def test_key_names_dtypes_as_str_does():
     assert _aot._key("k", (1,), args) == want  # the memoized names
 
 
-def test_kernels_build_with_their_options_or_the_defaults_xla_knows(cache, monkeypatch):
-    """A kernel listed in ``KERNEL_OPTIONS`` builds with its options; an XLA that does not
-    know one of them (another JAX release) builds every kernel with its defaults: the
-    kernel still comes from the cache, with the plain jit's results."""
+def test_build_options_xla_refuses_are_dropped(cache, monkeypatch):
+    """An XLA that does not know a build option (another JAX release) builds with its
+    defaults: the kernel still comes from the cache, with the plain jit's results."""
     import jax
 
-    assert _aot.compiler_options("smooth_star") == {"xla_cpu_use_fusion_emitters": False}
-    assert _aot.compiler_options("tet_all_measures") is None  # not listed: the defaults
-    seen = []
-    real_jit = jax.jit
-    monkeypatch.setattr(
-        _aot.jax,
-        "jit",
-        lambda f, **kw: seen.append(kw.get("compiler_options")) or real_jit(f, **kw),
-    )
-    monkeypatch.setattr(_aot, "KERNEL_OPTIONS", {"k": {"xla_enable_dumping": False}})
-    _aot._options_known.cache_clear()
-    _aot.cached_call("k", (1,), _kernel, *ARGS)
-    assert {"xla_enable_dumping": False} in seen  # the build of "k" passed its options
-    monkeypatch.setattr(_aot, "KERNEL_OPTIONS", {"k": {"xla_no_such_option_anywhere": True}})
-    _aot._options_known.cache_clear()
+    assert _aot.compiler_options() == _aot.COMPILER_OPTIONS  # this JAX knows them
+    monkeypatch.setattr(_aot, "COMPILER_OPTIONS", {"xla_no_such_option_anywhere": True})
+    _aot.compiler_options.cache_clear()
     try:
-        assert _aot.compiler_options("k") is None
-        got = np.asarray(_aot.cached_call("k", (2,), _kernel, *ARGS))
-        key = _aot._key("k", (2,), ARGS)  # built from the exported file, not a plain-jit fallback
-        assert isinstance(_aot._memo[key], jax.stages.Compiled)
-        assert (cache / _aot._filename(key)).exists()
-        np.testing.assert_allclose(got, np.asarray(real_jit(_kernel)(*ARGS)), rtol=1e-14)
+        assert _aot.compiler_options() == {}
+        got = np.asarray(_aot.cached_call("k", (1,), _kernel, *ARGS))
+        key = _aot._key("k", (1,), ARGS)  # built from the exported file, not a plain-jit fallback
+        assert (
+            isinstance(_aot._memo[key], jax.stages.Compiled)
+            and (cache / _aot._filename(key)).exists()
+        )
+        np.testing.assert_allclose(got, np.asarray(jax.jit(_kernel)(*ARGS)), rtol=1e-14)
     finally:
-        _aot._options_known.cache_clear()
+        _aot.compiler_options.cache_clear()
