@@ -382,8 +382,11 @@ def _filename(key: tuple) -> str:
 
 # XLA:CPU options of every kernel build. Its older (elemental) emitters instead of its MLIR
 # fusion emitters: the smoothing kernel compiled in 2.0 instead of 3.4 s of CPU, and ran
-# as fast (experiments/results/compile.md, session 20). Results may differ from the
-# default build's in the last bits (positions ~1e-11 relative), never in meaning.
+# as fast; of the other kernels, the tree DP ran 0.7-0.8x the time, the ring DP and the
+# small per-tet shape 1.1-1.2x, which nets out over a run, while keeping the defaults for
+# those two cost 0.4-1.4 s more of cold compile (experiments/results/compile.md, session
+# 20). Results may differ from the default build's in the last bits (positions ~1e-11
+# relative), never in meaning.
 COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
 

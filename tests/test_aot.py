@@ -416,6 +416,15 @@ def test_build_options_xla_refuses_are_dropped(cache, monkeypatch):
     import jax
 
     assert _aot.compiler_options() == _aot.COMPILER_OPTIONS  # this JAX knows them
+    seen = []  # the options each build passes to jax.jit
+    real_jit = jax.jit
+    monkeypatch.setattr(
+        _aot.jax,
+        "jit",
+        lambda f, **kw: seen.append(kw.get("compiler_options")) or real_jit(f, **kw),
+    )
+    _aot.cached_call("k", (0,), _kernel, *ARGS)
+    assert _aot.COMPILER_OPTIONS in seen
     monkeypatch.setattr(_aot, "COMPILER_OPTIONS", {"xla_no_such_option_anywhere": True})
     _aot.compiler_options.cache_clear()
     try:
@@ -426,6 +435,6 @@ def test_build_options_xla_refuses_are_dropped(cache, monkeypatch):
             isinstance(_aot._memo[key], jax.stages.Compiled)
             and (cache / _aot._filename(key)).exists()
         )
-        np.testing.assert_allclose(got, np.asarray(jax.jit(_kernel)(*ARGS)), rtol=1e-14)
+        np.testing.assert_allclose(got, np.asarray(real_jit(_kernel)(*ARGS)), rtol=1e-14)
     finally:
         _aot.compiler_options.cache_clear()
