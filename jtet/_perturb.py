@@ -11,9 +11,9 @@ The kicks, in the order they are tried (``kicks``): edge removals around the tet
 within ``window`` of the worst quality, allowed to lower the worst tet they touch by up to
 ``slack``, gentlest first; then a new vertex at the centroid of each of those tets (1-4
 split), which the climb then moves and connects; then random moves of the free vertices
-around them ("jiggle"), a random restart of the climb there; then multi-face removals
-with the same slacks; last, each flip around the worst tets on its own, with a deep
-slack (``SITES``). A round works on a submesh, the tets within
+around them ("jiggle"), a random restart of the climb there; then each flip around the
+worst tets on its own, with a deep slack (``SITES``); last, multi-face removals with the
+same slacks as the edge removals. A round works on a submesh, the tets within
 ``RINGS`` vertex rings of the worst ones with the cut faces pinned, and splices back the
 attempt it keeps, so an attempt costs the neighbourhood, not the mesh. A round's
 attempts all start from that submesh: a helper process (``_helper_process``) runs some of
@@ -71,8 +71,8 @@ def kicks(ops: tuple[str, ...]) -> list[tuple[float | None, float, str, int | No
     """(slack, window, kick, site) of every attempt of a round, in the order they are
     tried: edge removal at each slack (site None: every site at once), then vertex
     insertion ("insert", no slack) when ``ops`` also smooth, then the jiggles ("jiggle0"
-    ..., random moves of free vertices) when ``ops`` smooth, then multi-face removal at
-    each slack, then each flip site of the worst tets on its own."""
+    ..., random moves of free vertices) when ``ops`` smooth, then each flip site of the
+    worst tets on its own, then multi-face removal at each slack."""
     flips = [op for op in ("edge", "face") if op in ops]
 
     def batched(op):  # gentlest slack first, the narrow window before the wide one
@@ -83,14 +83,15 @@ def kicks(ops: tuple[str, ...]) -> list[tuple[float | None, float, str, int | No
         ladder += [(None, w, "insert", None) for w in WINDOWS]
     if "smooth" in ops:  # random restarts of the smoothing around the worst tets
         ladder += [(None, WINDOWS[-1], f"jiggle{draw}", None) for draw in range(JIGGLES)]
-    # Multi-face removals come after the jiggles: over seeds 0-4 of the four reference
-    # meshes and the demo they were kept in 9 of 178 tries, against 22-36 % for edge
-    # removal, insertion and the first two jiggles (17 % of the rounds' time). Moved
-    # here, 50 runs (seeds 0-9) ended as before in 44 and better in 6 (e.g. holeplate
-    # seed 5: 32.68 -> 33.12 degrees), and took 0.84x / 0.91x the time in one process
-    # (experiments/results/bench_improve.md, session 21).
-    ladder += batched("face")
     ladder += [(SITE_SLACK, WINDOWS[0], op, i) for i in range(SITES) for op in flips]
+    # Batched multi-face removals come last: over seeds 0-4 of the four reference meshes
+    # and the demo they were kept in 9 of 178 tries, against 22-39 % for the other kicks
+    # but the last jiggle (17 % of the rounds' time). After the jiggles, 50 runs (seeds
+    # 0-9) ended as before in 44 and better in 6 (holeplate seed 5: 32.68 -> 33.12
+    # degrees) in 0.84x / 0.91x the time in one process; after the single sites too, one
+    # more better and none worse, 0.89x the time again (experiments/results/
+    # bench_improve.md, session 21).
+    ladder += batched("face")
     return ladder
 
 

@@ -118,16 +118,15 @@ def test_kicks_order_and_ops():
     face = [(s, w, "face", None) for s, w in by_slack]
     inserts = [(None, w, "insert", None) for w in WINDOWS]
     jiggles = [(None, WINDOWS[-1], f"jiggle{d}", None) for d in range(JIGGLES)]
-    # edge removals, vertex insertion (once per window), the jiggles (wide window), and
-    # multi-face removals, which are kept least often, after them
+    sites = [(SITE_SLACK, WINDOWS[0], op, i) for i in range(SITES) for op in ("edge", "face")]
+    # edge removals, vertex insertion (once per window), the jiggles (wide window), each
+    # site of the worst tets on its own (edge and face in turn), and last the batched
+    # multi-face removals, which are kept least often
     assert batched == edge + inserts + jiggles + face
-    assert ladder[: len(batched)] == batched
-    # last, each site of the worst tets on its own, edge and face in turn
-    assert ladder[len(batched) :] == [
-        (SITE_SLACK, WINDOWS[0], op, i) for i in range(SITES) for op in ("edge", "face")
-    ]
-    assert kicks(("face", "smooth"))[: len(inserts + jiggles + face)] == inserts + jiggles + face
-    assert kicks(("edge", "face"))[: len(edge + face)] == edge + face  # no smoothing
+    assert ladder == edge + inserts + jiggles + sites + face
+    face_sites = [k for k in sites if k[2] == "face"]
+    assert kicks(("face", "smooth")) == inserts + jiggles + face_sites + face
+    assert kicks(("edge", "face")) == edge + sites + face  # no smoothing
     assert kicks(("smooth",)) == jiggles
 
 
