@@ -86,11 +86,10 @@ def kicks(ops: tuple[str, ...]) -> list[tuple[float | None, float, str, int | No
     ladder += [(SITE_SLACK, WINDOWS[0], op, i) for i in range(SITES) for op in flips]
     # Batched multi-face removals come last: over seeds 0-4 of the four reference meshes
     # and the demo they were kept in 9 of 178 tries, against 22-39 % for the other kicks
-    # but the last jiggle (17 % of the rounds' time). After the jiggles, 50 runs (seeds
-    # 0-9) ended as before in 44 and better in 6 (holeplate seed 5: 32.68 -> 33.12
-    # degrees) in 0.84x / 0.91x the time in one process; after the single sites too, one
-    # more better and none worse, 0.89x the time again (experiments/results/
-    # bench_improve.md, session 21).
+    # but the last jiggle (17 % of the rounds' time). Against the old order (interleaved
+    # with the edge removals), 50 runs (seeds 0-9) ended as before in 44 and better in 6
+    # (holeplate seed 5: 32.68 -> 33.12 degrees), with 937 attempts instead of 1274 in
+    # 0.87x the time in one process (experiments/results/bench_improve.md, session 21).
     ladder += batched("face")
     return ladder
 
