@@ -230,7 +230,9 @@ class ImproveResult:
 
     ``status`` is "converged" (no progress for ``patience`` passes), "max passes",
     "time limit", "interrupted" or "invariant violation: <message>" (``check=True`` only;
-    ``mesh`` is then the last mesh that passed the checks).
+    ``mesh`` is then the last mesh that passed the checks). ``notes`` are sentences for
+    the user that ``summary()`` prints after the table, e.g. that the worst tet has all
+    its vertices on the fixed boundary and ``boundary="slide"`` may free it.
     """
 
     mesh: TetMesh
@@ -240,11 +242,14 @@ class ImproveResult:
     status: str = "converged"
     seconds: float = 0.0
     options: Options | None = None
+    # sentences for the user: why the worst tet stayed, which option may free it
+    notes: list = field(default_factory=list)
 
     def summary(self) -> str:
         from ._stats import format_table
 
-        return format_table(self.stats_before, self.stats_after, time_s=self.seconds)
+        table = format_table(self.stats_before, self.stats_after, time_s=self.seconds)
+        return "\n".join([table, *(f"note: {n}" for n in self.notes)])
 
     def as_dict(self) -> dict:
         return {
@@ -254,6 +259,7 @@ class ImproveResult:
             "stats_before": self.stats_before.as_dict(),
             "stats_after": self.stats_after.as_dict(),
             "history": self.history,
+            "notes": self.notes,
         }
 
 
@@ -333,6 +339,8 @@ def improve(
         status = "invariant violation: " + " ".join(str(e).split())
     finally:
         ctrl_c.__exit__(None, None, None)
+    from ._advice import notes
+
     current, history = run.current, run.history
     return ImproveResult(
         mesh=current,
@@ -342,6 +350,7 @@ def improve(
         status=status,
         seconds=time.perf_counter() - t0,
         options=opts,
+        notes=notes(current, opts, run.q, run.lo_t, run.hi_t),
     )
 
 

@@ -1,0 +1,48 @@
+"""Notes printed with a run's summary: why the worst tet stayed where it is, and which
+option would free it."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._topology import CORNER, FREE
+
+# Tets within this much of the worst quality (normalized, regular tet = 1) count as the
+# worst: symmetric meshes end with several tets tied at the minimum to the last bits.
+TIE = 1e-9
+
+
+def pinned_worst_tets(mesh, quality: np.ndarray) -> np.ndarray:
+    """Ids of the worst tets (within ``TIE`` of ``quality``'s (m,) minimum) whose four
+    vertices all lie on the boundary or on interfaces (no FREE vertex), with at least
+    one of them on a flat facet or a straight subsegment (not a CORNER): the tets that
+    ``boundary="fixed"`` keeps from being smoothed and ``"slide"`` may move."""
+    quality = np.asarray(quality)
+    if not len(quality):
+        return np.zeros(0, np.int64)
+    worst = np.flatnonzero(quality <= quality.min() + TIE)
+    kinds = mesh.topology.vertex_kind[mesh.tets[worst]]  # (w, 4)
+    pinned = (kinds != FREE).all(axis=1) & (kinds != CORNER).any(axis=1)
+    return worst[pinned]
+
+
+def notes(mesh, options, quality: np.ndarray, min_dihedral, max_dihedral) -> list[str]:
+    """Sentences for the user about the result ``mesh`` of a run with ``options``:
+    ``quality`` (m,) is its ``options.quality`` per tet, ``min_dihedral`` and
+    ``max_dihedral`` (m,) its dihedral angle range per tet in degrees."""
+    out = []
+    good = options.good_quality
+    if good is not None and len(quality) and quality.min() >= good:
+        return out  # every tet is good enough: the run left them alone on purpose
+    if options.boundary == "fixed":
+        stuck = pinned_worst_tets(mesh, quality)
+        if len(stuck):
+            t = stuck[0]
+            out.append(
+                f"the worst tet by {options.quality} (quality {quality[t]:.4f}, dihedral "
+                f"angles {min_dihedral[t]:.2f}-{max_dihedral[t]:.2f} deg) has all four "
+                "vertices on the boundary or on interfaces, which boundary 'fixed' keeps in "
+                "place; boundary 'slide' (--boundary slide) lets them slide within flat "
+                "facets and along straight edges, and may raise it"
+            )
+    return out

@@ -1,0 +1,91 @@
+"""The notes ``improve`` adds to its summary (``jtet._advice``)."""
+
+import contextlib
+import io
+
+import numpy as np
+from helpers import grid_mesh
+
+import jtet
+from jtet._advice import notes, pinned_worst_tets
+from jtet._quality import tet_all_measures
+from jtet.cli import main
+
+
+def _kinds_from_coordinates(points: np.ndarray) -> np.ndarray:
+    """Vertex kinds of a unit-cube mesh from coordinates alone: how many coordinates are
+    0 or 1 (0 free, 1 on a face, 2 on an edge, 3 a corner), an independent reference for
+    the topology's classification."""
+    return np.isclose(points, 0.0).sum(axis=1) + np.isclose(points, 1.0).sum(axis=1)
+
+
+def test_pinned_worst_tets_against_coordinates():
+    m = grid_mesh(2)
+    kinds = _kinds_from_coordinates(np.asarray(m.points))[m.tets]  # (m, 4)
+    expect = (kinds > 0).all(axis=1) & (kinds < 3).any(axis=1)
+    assert expect.any() and not expect.all()  # both cases occur in this mesh
+    for t in range(m.n_tets):
+        q = np.ones(m.n_tets)
+        q[t] = 0.5
+        assert pinned_worst_tets(m, q).tolist() == ([t] if expect[t] else [])
+
+
+def test_pinned_worst_tets_reads_every_tied_tet():
+    m = grid_mesh(2)
+    kinds = _kinds_from_coordinates(np.asarray(m.points))[m.tets]
+    stuck = np.flatnonzero((kinds > 0).all(axis=1) & (kinds < 3).any(axis=1))
+    free = np.flatnonzero((kinds == 0).any(axis=1))
+    q = np.ones(m.n_tets)
+    q[[free[0], stuck[1]]] = 0.25  # tied worst: one free, one pinned
+    q[stuck[0]] = 0.25 + 1e-6  # not tied (beyond _advice.TIE)
+    assert pinned_worst_tets(m, q).tolist() == [stuck[1]]
+
+
+def _mesh_with_a_pinned_worst_tet() -> jtet.TetMesh:
+    """The 2x2x2 grid with the centre of its face x = 1 moved within that face: its
+    worst tets have all four vertices on the boundary."""
+    m = grid_mesh(2)
+    pts = np.array(m.points)
+    centre = np.flatnonzero(np.all(np.isclose(pts, [1.0, 0.5, 0.5]), axis=1))
+    pts[centre] = [1.0, 0.3, 0.35]
+    out = jtet.TetMesh(pts, m.tets)
+    assert out.volumes.min() > 0
+    return out
+
+
+def test_notes_only_for_fixed_boundaries_below_good_quality():
+    m = _mesh_with_a_pinned_worst_tet()
+    q = m.quality("biased_min_sine")
+    _, lo, hi, _ = tet_all_measures(m.points, m.tets)
+    assert pinned_worst_tets(m, q).size
+    (note,) = notes(m, jtet.Options(), q, lo, hi)
+    t = pinned_worst_tets(m, q)[0]
+    assert f"{lo[t]:.2f}-{hi[t]:.2f} deg" in note and "--boundary slide" in note
+    assert notes(m, jtet.Options(boundary="slide"), q, lo, hi) == []
+    # every tet at least as good as good_quality: the run left them alone on purpose
+    assert notes(m, jtet.Options(good_quality=float(q.min())), q, lo, hi) == []
+
+
+def test_improve_notes_a_pinned_worst_tet_that_sliding_frees():
+    m = _mesh_with_a_pinned_worst_tet()
+    fixed = jtet.improve(m, ops=("smooth",), check=True)
+    assert len(fixed.notes) == 1
+    assert f"note: {fixed.notes[0]}" in fixed.summary()
+    assert fixed.as_dict()["notes"] == fixed.notes
+    # what the note suggests does raise the worst tet
+    slide = jtet.improve(m, ops=("smooth",), boundary="slide", check=True)
+    assert slide.notes == []
+    assert slide.stats_after.min_dihedral > fixed.stats_after.min_dihedral + 1.0
+
+
+def test_improve_command_prints_the_note(tmp_path):
+    src, out = tmp_path / "in.vtu", tmp_path / "out.vtu"
+    jtet.save(_mesh_with_a_pinned_worst_tet(), src)
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(io.StringIO()):
+        assert main(["improve", str(src), str(out), "--ops", "smooth"]) == 0
+    assert "note: the worst tet by biased_min_sine" in stdout.getvalue()
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(io.StringIO()):
+        assert main(["improve", str(src), str(out), "--ops", "smooth", "--boundary", "slide"]) == 0
+    assert "note:" not in stdout.getvalue()
