@@ -34,7 +34,7 @@ def notes(mesh, options, quality: np.ndarray, min_dihedral, max_dihedral) -> lis
     good = options.good_quality
     if good is not None and len(quality) and quality.min() >= good:
         return out  # every tet is good enough: the run left them alone on purpose
-    if options.boundary == "fixed":
+    if options.boundary == "fixed" and "smooth" in options.ops:  # only smoothing slides
         stuck = pinned_worst_tets(mesh, quality)
         if len(stuck):
             t = stuck[0]

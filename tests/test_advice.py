@@ -62,6 +62,8 @@ def test_notes_only_for_fixed_boundaries_below_good_quality():
     t = pinned_worst_tets(m, q)[0]
     assert f"{lo[t]:.2f}-{hi[t]:.2f} deg" in note and "--boundary slide" in note
     assert notes(m, jtet.Options(boundary="slide"), q, lo, hi) == []
+    # sliding is a smoothing option: without smoothing it frees nothing
+    assert notes(m, jtet.Options(ops=("edge", "face")), q, lo, hi) == []
     # every tet at least as good as good_quality: the run left them alone on purpose
     assert notes(m, jtet.Options(good_quality=float(q.min())), q, lo, hi) == []
 
