@@ -17,12 +17,15 @@ times and the kernel builds (experiments/results/compile.md).
     python experiments/bench_improve.py --cli --repeat 5      # the jtet command, end to end
     python experiments/bench_improve.py --big 165000          # + a ~1M-tet Delaunay mesh
     python experiments/bench_improve.py --meshes gmsh:cube:0.03   # Gmsh cube, h = 0.03 (~200k)
+    python experiments/bench_improve.py --meshes tetwild:holeplate:0.06   # fTetWild output
     python experiments/bench_improve.py --smooth-effort 15x6,8x3,4x4   # smoothing effort table
     python experiments/bench_improve.py --settings min_sine:0.7,biased_min_sine:0.6
 
 Mesh names: a file of ../shared/meshes, ``demo``, ``delaunay:N`` (random points in a cube,
-worst quality limited by its fixed flat-hull boundary) or ``gmsh:SHAPE:H`` (an unoptimized
-Gmsh Delaunay mesh like the reference ones, any size; cached under $TMPDIR).
+worst quality limited by its fixed flat-hull boundary), ``gmsh:SHAPE:H`` (an unoptimized
+Gmsh Delaunay mesh like the reference ones, any size) or ``tetwild:SHAPE:H`` (fTetWild's
+optimized output on the Gmsh surface of SHAPE, target edge length H); both are cached
+under $TMPDIR.
 
 Reference points (../shared/meshes/README.md, same kind of machine, one core): Stellar
 (flips + smoothing) 29-34 / 138-145 degrees at ~0.3 ms CPU per tet; Gmsh ~13 / 157;
@@ -64,14 +67,18 @@ def load_mesh(name: str) -> jtet.TetMesh:
         vol = mesh.volumes
         tets = np.where((vol < 0)[:, None], tets[:, [1, 0, 2, 3]], tets)[np.abs(vol) > 1e-15]
         return jtet.TetMesh(pts, tets)
-    if name.startswith("gmsh:"):
-        _, shape, h = name.split(":")
-        cache = Path(tempfile.gettempdir()) / f"jtet_bench_gmsh_{shape}_{h}.vtu"
+    if name.startswith(("gmsh:", "tetwild:")):
+        kind, shape, h = name.split(":")
+        cache = Path(tempfile.gettempdir()) / f"jtet_bench_{kind}_{shape}_{h}.vtu"
         if not cache.exists():
             sys.path.insert(0, str(Path(__file__).parent))
-            from meshgen import gmsh_shape
+            import meshgen
 
-            jtet.save(gmsh_shape(shape, float(h)), cache)
+            if kind == "gmsh":
+                made = meshgen.gmsh_shape(shape, float(h))
+            else:  # fTetWild's normal (optimized) output
+                made = meshgen.tetwild(shape, float(h), optimize=True)
+            jtet.save(made, cache)
         return jtet.load(cache)
     return jtet.load(SHARED / f"{name}.vtu")
 
