@@ -254,6 +254,24 @@ def test_tetwild_generator():
     np.testing.assert_allclose(mesh.volumes.sum(), 4 / 3 * np.pi, rtol=0.1)
 
 
+def test_bench_mesh_names_generate_once_then_load(tmp_path, monkeypatch):
+    pytest.importorskip("pytetwild")
+    import tempfile
+
+    import bench_improve
+
+    monkeypatch.setattr(tempfile, "gettempdir", lambda: str(tmp_path))
+    for name, generator in (("gmsh:sphere:0.4", "gmsh"), ("tetwild:sphere:0.4", "tetwild")):
+        first = bench_improve.load_mesh(name)
+        cached = tmp_path / f"jtet_bench_{generator}_sphere_0.4.vtu"
+        assert cached.exists() and first.is_valid().ok
+        np.testing.assert_allclose(first.volumes.sum(), 4 / 3 * np.pi, rtol=0.1)
+        # the second call reads the file (fTetWild is not deterministic from run to run)
+        again = bench_improve.load_mesh(name)
+        np.testing.assert_array_equal(again.tets, first.tets)
+        np.testing.assert_array_equal(again.points, first.points)
+
+
 def test_file_generator(tmp_path):
     path = tmp_path / "m.vtu"
     jtet.save(jtet.demo_mesh("two_regions"), path)
