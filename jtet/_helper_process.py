@@ -4,10 +4,7 @@ A perturbation round (``_perturb``) tries kicks one after the other, each from t
 submesh, until one is kept. Until then its attempts are independent, so two can run at
 once: the optimizer's process runs one, this helper the next, and the optimizer judges
 the outcomes in the round's order, exactly as if it had run them all itself (the same
-output, bit for bit). An attempt whose outcome can no longer matter stops between two
-operations of its climb: the optimizer's, once the helper has filed an earlier one that
-the round keeps (it is handed out again should that one's splice fail); the helper's,
-once the next round arrives. An attempt is many small NumPy calls on a ~1000-5000-tet submesh
+output, bit for bit). An attempt is many small NumPy calls on a ~1000-5000-tet submesh
 that hold the GIL: two improve() calls on threads ran 1.1x as fast as one after the
 other, so the second core needs a second process.
 
