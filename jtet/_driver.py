@@ -130,9 +130,6 @@ class _Run:
         self.history: list[dict] = []
         self.checker = None
         self.passes = 0  # passes started so far (the ``pass`` of history entries)
-        # polled between operations; True ends the climb with ``_Cancelled`` (a
-        # perturbation attempt whose outcome is no longer needed)
-        self.cancelled = None
 
     def snapshot(self) -> tuple:
         """What ``restore`` needs to undo later steps (arrays are replaced, never edited)."""
@@ -151,8 +148,6 @@ class _Run:
         limit = self.opts.time_limit
         if limit is not None and time.perf_counter() - t0 > limit:
             raise _Stop("time limit")
-        if self.cancelled is not None and self.cancelled():
-            raise _Cancelled
 
     def step(self, op: str, run_op, workable, record: bool = True) -> StepResult:
         """Run ``run_op(mesh, opts, quality, workable)`` and make its mesh current."""
@@ -382,10 +377,6 @@ class _Stop(Exception):
     def __init__(self, status: str):
         super().__init__(status)
         self.status = status
-
-
-class _Cancelled(Exception):
-    """Ends a climb between operations because its ``_Run.cancelled`` said so."""
 
 
 # Quality measures multiply up to six lengths: beyond these extents they overflow to

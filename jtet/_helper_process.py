@@ -24,7 +24,6 @@ import atexit
 import os
 import pickle
 import queue
-import select
 import socket
 import struct
 import subprocess
@@ -126,27 +125,15 @@ class Ladder:
     def __init__(self, round_id, n: int):
         self.round_id, self.n, self.next, self.closed = round_id, n, 0, False
         self.outcomes: dict = {}  # index -> outcome (None: the helper failed it)
-        self.released: list[int] = []  # attempts started and given up, to claim again
         self.cond = threading.Condition()
 
     def claim(self) -> int | None:
-        """The first attempt given back (``release``), else the next attempt nobody has
-        started, or None."""
+        """The next attempt nobody has started, or None."""
         with self.cond:
-            if self.closed:
-                return None
-            if self.released:
-                return self.released.pop(0)
-            if self.next >= self.n:
+            if self.closed or self.next >= self.n:
                 return None
             self.next += 1
             return self.next - 1
-
-    def release(self, index: int) -> None:
-        """Attempt ``index`` was started and given up before its outcome: claim it again."""
-        with self.cond:
-            self.released.append(index)
-            self.released.sort()
 
     def put(self, index: int, outcome) -> None:
         with self.cond:
@@ -297,24 +284,11 @@ def _serve(inp, out) -> None:
                 continue  # nothing left: idle until the next round
             index = msg[2]
             try:
-                # during an attempt the optimizer sends only the next round (or closes
-                # the pipe): this round is judged, so the attempt stops
-                outcome = state.attempt(attempts[index], cancelled=lambda: _pending(inp))
-                if outcome is None:
-                    continue  # the next message is the next round
-                _send(out, ("result", round_id, index, outcome.for_pipe()))
+                outcome = state.attempt(attempts[index]).for_pipe()
+                _send(out, ("result", round_id, index, outcome))
             except Exception as e:  # noqa: BLE001  (the optimizer runs it itself)
                 _send(out, ("error", round_id, index, repr(e)))
         _send(out, ("claim", round_id))
-
-
-def _pending(stream) -> bool:
-    """Whether a message (or the end of the stream) waits on ``stream`` unread. Bytes
-    already in its buffer are not seen: then the attempt just runs to its end."""
-    try:
-        return bool(select.select([stream], [], [], 0)[0])
-    except (OSError, ValueError):
-        return False
 
 
 def _warm(opts) -> None:

@@ -26,7 +26,6 @@ rounds, 33.64 / 127.67 with 16 (experiments/results/bench_improve.md, session 10
 
 from __future__ import annotations
 
-import functools
 import itertools
 import time
 
@@ -405,13 +404,10 @@ class RoundState:
         sub = TetMesh(*mesh)._with_feature_angle(angle)
         return cls(sub, q, lo, hi, opts, worst, good, time.perf_counter() - elapsed)
 
-    def attempt(self, attempt: tuple, tried=frozenset(), cancelled=None) -> Outcome | None:
+    def attempt(self, attempt: tuple, tried=frozenset()) -> Outcome:
         """Attempt ``(slack, window, kick, site)``: the kick, then (unless its change is
-        in ``tried``) the climb. The state is back at the round's start afterwards.
-
-        ``cancelled`` (optional): polled between the climb's operations; once it returns
-        True the attempt stops and returns None (its outcome is not needed)."""
-        from ._driver import _Cancelled, _Stop
+        in ``tried``) the climb. The state is back at the round's start afterwards."""
+        from ._driver import _Stop
 
         slack, window, op, site = attempt
         ts = time.perf_counter()
@@ -430,15 +426,11 @@ class RoundState:
             key = _change_key(step)
             if key in tried:
                 return Outcome(key)
-            sub.cancelled = cancelled
             sub.climb(self.t0, record=False, patience=CLIMB_PATIENCE)
             return Outcome(key, sub.current, sub.q, step.stats, time.perf_counter() - ts)
         except _Stop as stop:
             return Outcome(stop=stop.status)
-        except _Cancelled:
-            return None
         finally:
-            sub.cancelled = None
             sub.restore(self.start_state)
 
 
@@ -494,7 +486,6 @@ def _judge_round(run, t0, part, state, attempts, ladder, tried, baseline, began)
     from ._driver import StepResult, _Stop
 
     opts = run.opts
-    tol = max(opts.min_improvement, MIN_RAISE)
     helper = _helper_process.running()
     for index, (slack, _, op, site) in enumerate(attempts):
         while index not in ladder.outcomes:
@@ -505,14 +496,7 @@ def _judge_round(run, t0, part, state, attempts, ladder, tried, baseline, began)
                     helper.serve(state, attempts, ladder)
             mine = ladder.claim()
             if mine is not None:  # this one, or a later one while the helper runs this
-                # a later one stops once the helper's outcomes up to it hold one to keep:
-                # the round ends there (unless its splice fails: then it runs again)
-                settled = functools.partial(_settled, ladder, index, mine, tried, baseline, tol)
-                outcome = state.attempt(attempts[mine], tried, settled if mine > index else None)
-                if outcome is None:
-                    ladder.release(mine)
-                else:
-                    ladder.put(mine, outcome)
+                ladder.put(mine, state.attempt(attempts[mine], tried))
             elif not ladder.wait(index, helper):  # the helper ended: run it here
                 ladder.put(index, state.attempt(attempts[index], tried))
         outcome = ladder.outcomes.pop(index)
@@ -523,7 +507,7 @@ def _judge_round(run, t0, part, state, attempts, ladder, tried, baseline, began)
         if outcome.key is None or outcome.key in tried:
             continue
         tried.add(outcome.key)
-        kept = baseline.beaten_by(outcome.q, tol)
+        kept = baseline.beaten_by(outcome.q, max(opts.min_improvement, MIN_RAISE))
         spliced = part.splice(run.current, outcome.submesh()) if kept else None
         if spliced is not None:
             out, keep = spliced
@@ -547,23 +531,3 @@ def _judge_round(run, t0, part, state, attempts, ladder, tried, baseline, began)
         if spliced is not None:
             return index
     return None
-
-
-def _settled(ladder, index: int, stop: int, tried: set, baseline: _Baseline, tol: float) -> bool:
-    """Whether the outcomes filed for attempts ``index`` .. ``stop`` - 1 (judged in that
-    order, as ``_judge_round`` will) hold one it keeps, or a stop: the attempts after it
-    are then not needed. False while one of them has no outcome yet."""
-    with ladder.cond:
-        filed = [ladder.outcomes.get(i, False) for i in range(index, stop)]
-    seen = set(tried)
-    for outcome in filed:
-        if outcome is False or outcome is None:  # not there yet, or to be run here
-            return False
-        if outcome.stop is not None:
-            return True
-        if outcome.key is None or outcome.key in seen:
-            continue
-        seen.add(outcome.key)
-        if baseline.beaten_by(outcome.q, tol):
-            return True
-    return False

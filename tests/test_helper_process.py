@@ -87,17 +87,6 @@ def test_ladder_claims_in_order_until_closed():
     assert ladder.claim() is None  # a kept attempt ended the round
 
 
-def test_ladder_hands_out_released_attempts_first():
-    ladder = _helper_process.Ladder(0, 5)
-    assert [ladder.claim() for _ in range(4)] == [0, 1, 2, 3]
-    ladder.release(3)
-    ladder.release(1)  # given up: the lowest goes out first, then new ones
-    assert [ladder.claim(), ladder.claim(), ladder.claim(), ladder.claim()] == [1, 3, 4, None]
-    ladder.release(2)
-    ladder.close()
-    assert ladder.claim() is None
-
-
 def test_ladder_wait_returns_the_outcome_or_gives_up_on_a_dead_helper():
     class Dead:
         alive = False

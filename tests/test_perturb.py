@@ -90,60 +90,6 @@ def test_rounds_judge_with_the_raise_floor(demo, monkeypatch):
     assert 0 < kept <= sum(want for _, _, want in calls)
 
 
-def test_settled_reads_the_filed_outcomes_in_the_judges_order():
-    from jtet._helper_process import Ladder
-    from jtet._perturb import Outcome, _settled
-
-    old = np.array([0.30, 0.31, 0.50, 0.60])
-    baseline = _Baseline(old, np.zeros(0), WINDOWS[0])
-    worse, better_q = np.array([0.2, 0.5]), np.array([0.35, 0.5])
-    ladder = Ladder(0, 6)
-
-    def settled(index, stop, tried=()):
-        return _settled(ladder, index, stop, set(tried), baseline, MIN_RAISE)
-
-    ladder.put(1, Outcome(b"a", q=worse))
-    assert not settled(0, 3)  # attempt 0 has no outcome yet: it may be the kept one
-    ladder.put(0, Outcome())  # nothing to kick
-    assert not settled(0, 2)  # no attempt before 2 is kept
-    ladder.put(2, Outcome(b"b", q=better_q))
-    assert settled(0, 3) and settled(2, 5)
-    assert not settled(0, 3, tried=[b"b"])  # a change tried before is not judged again
-    ladder.put(3, Outcome(b"b", q=better_q))
-    assert settled(3, 4) and not settled(3, 4, tried=[b"b"])
-    ladder.put(4, None)  # the helper failed it: the judge runs it itself
-    assert not settled(4, 5)
-    ladder.put(5, Outcome(stop="time limit"))
-    assert settled(5, 6)  # a stop ends the round too
-
-
-def test_a_cancelled_attempt_returns_none_and_leaves_the_round_start():
-    from jtet._perturb import RoundState
-
-    r = jtet.improve(delaunay_mesh(300, seed=2), perturb=0)
-    mesh, q = r.mesh, r.mesh.quality("biased_min_sine")
-    opts = jtet.Options()
-    sel = _neighbourhood(mesh, q < q.min() + 0.03, 3)
-    part = _Submesh(mesh, sel)
-    lo, hi = (np.zeros(int(sel.sum())) for _ in range(2))
-    state = RoundState(part.mesh, q[sel], lo, hi, opts, float(q.min()), 0.6, 0.0)
-    polls = []
-
-    def cancelled():
-        polls.append(1)
-        return len(polls) >= 2  # let the climb run one operation, then stop it
-
-    attempt = (None, WINDOWS[-1], "insert", None)
-    assert state.attempt(attempt, cancelled=cancelled) is None
-    assert len(polls) == 2
-    start = state.start_state
-    assert state.sub.current is start[0] and state.sub.q is start[1]
-    assert state.sub.cancelled is None
-    # the same attempt, not cancelled, runs to its end from the same start
-    outcome = state.attempt(attempt)
-    assert outcome is not None and outcome.key is not None and outcome.mesh is not None
-
-
 def test_round_baseline_judges_as_better_on_the_whole_mesh():
     """``_Baseline`` reduces the tets outside the submesh once per round; its verdicts
     are the rule's on the concatenated qualities (seeded random cases with ties, tets
