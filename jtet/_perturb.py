@@ -39,6 +39,16 @@ from ._topology import corner_counts
 # 0.3 / 0.4 added nothing.
 SLACKS = (0.05, 0.1, 0.2)
 WINDOWS = (0.005, 0.03)
+# The wide window takes only tets within this many vertex rings of the narrow window's:
+# the worst tets' neighbours, not every tet of the mesh within 0.03 of the worst (as the
+# worst rises, more and more of them: up to 39 on the holeplate, 171 on a 9k-tet fTetWild
+# sphere, scattered). A far tet kicked along only makes the attempt (and its submesh)
+# larger and its acceptance less likely. Seeds 0-9 of the four reference meshes and the
+# demo, one process, no helper: 76.9 -> 60.8 s (holeplate 24.7 -> 16.0 s), worst angle
+# better in 9 runs, worse in 13, the same in 28; holeplate 33.26 -> 33.22 degrees on
+# average (min 32.48 -> 32.05), demo 32.48 -> 32.11 (experiments/results/bench_improve.md,
+# session 23).
+LOCAL_RINGS = 1
 # The climb after a kick stops at its first pass without progress: the kick's repair is
 # done in a pass or two, and an idle pass per attempt is a set of fixed kernel costs.
 # Holeplate, 8 / 16 kept rounds: patience 1 33.28 / 33.64 degrees, patience 2 33.15 /
@@ -374,7 +384,10 @@ class RoundState:
     the climb after it from there, and goes back to the start. Attempts depend only on
     this state, so any process may run any of them (``_helper_process``)."""
 
-    def __init__(self, mesh, q, lo, hi, opts, worst: float, good: float, t0: float):
+    def __init__(self, mesh, q, lo, hi, opts, worst: float, good: float, t0: float, kickable):
+        """``kickable`` (m,) bool: the tets of ``mesh`` a kick may work around (the
+        round's seeds); ``worst``: the mesh's worst quality; ``good``: the good-enough
+        quality (tets at or above it are never kicked)."""
         from ._driver import _Run
 
         self.sub = _Run(opts, mesh, q, lo, hi, None)
@@ -384,6 +397,7 @@ class RoundState:
         self.sub.dirty = {op: np.zeros(len(q), bool) for op in opts.ops}
         self.start_state = self.sub.snapshot()
         self.worst, self.good, self.t0 = worst, good, t0
+        self.kickable = kickable
 
     def for_pipe(self) -> tuple:
         """The round's start, for ``start`` in another process (from the snapshot: an
@@ -392,7 +406,7 @@ class RoundState:
         mesh = (m.points, m.tets, m.region, m.protected_faces, m.protected_edges)
         elapsed = time.perf_counter() - self.t0
         return (mesh, m._feature_angle, q, lo, hi, self.sub.opts, self.worst, self.good,
-                elapsed)  # fmt: skip
+                elapsed, self.kickable)  # fmt: skip
 
     @classmethod
     def start(cls, piped: tuple) -> RoundState:
@@ -400,9 +414,9 @@ class RoundState:
         optimizer's was)."""
         from ._mesh import TetMesh
 
-        mesh, angle, q, lo, hi, opts, worst, good, elapsed = piped
+        mesh, angle, q, lo, hi, opts, worst, good, elapsed, kickable = piped
         sub = TetMesh(*mesh)._with_feature_angle(angle)
-        return cls(sub, q, lo, hi, opts, worst, good, time.perf_counter() - elapsed)
+        return cls(sub, q, lo, hi, opts, worst, good, time.perf_counter() - elapsed, kickable)
 
     def attempt(self, attempt: tuple, tried=frozenset()) -> Outcome:
         """Attempt ``(slack, window, kick, site)``: the kick, then (unless its change is
@@ -413,7 +427,7 @@ class RoundState:
         ts = time.perf_counter()
         sub = self.sub
         # the worst tets, and only those below the good-enough quality
-        workable = sub.q < min(self.worst + window, self.good)
+        workable = (sub.q < min(self.worst + window, self.good)) & self.kickable
         if not workable.any():
             return Outcome()
         try:
@@ -451,14 +465,18 @@ def perturb(run, t0: float) -> str:
     began = time.perf_counter()
     while kept_rounds < opts.perturb and attempts:
         worst = float(run.q.min())
-        seeds = run.q < min(worst + max(WINDOWS), good)
-        if not seeds.any():
+        narrow = run.q < min(worst + min(WINDOWS), good)
+        if not narrow.any():
             return "converged"
+        # the wide window's tets around the narrow window's (LOCAL_RINGS)
+        seeds = run.q < min(worst + max(WINDOWS), good)
+        seeds &= narrow | _neighbourhood(run.current, narrow, LOCAL_RINGS)
         part = _Submesh(run.current, _neighbourhood(run.current, seeds, RINGS))
         sel = part.sel
         state = RoundState(
-            part.mesh, run.q[sel], run.lo_t[sel], run.hi_t[sel], sub_opts, worst, good, t0
-        )
+            part.mesh, run.q[sel], run.lo_t[sel], run.hi_t[sel], sub_opts, worst, good, t0,
+            seeds[sel],
+        )  # fmt: skip
         baseline = _Baseline(run.q, run.q[~sel], WINDOWS[0])
         tried = set()  # the kicks of this round so far (they all start from one mesh)
         # attempts run in the ladder's order, here or in the helper, and are judged in
