@@ -54,8 +54,8 @@ class Options:
             the worst quality rose (or stayed and one of several tets tied near it was
             fixed); otherwise the mesh goes back. Stops at the first round that keeps
             nothing. It frees worst tets whose vertices are all pinned (boundary fixed)
-            and local optima of the climb: holeplate 29.1-29.5 -> 32.7-34.4 degrees over
-            seeds 0-4, for +1-6 s. Inserted vertices are appended to the points.
+            and local optima of the climb: holeplate 29.1-29.5 -> 32.7-34.3 degrees over
+            seeds 0-4, for +0.6-1.3 s. Inserted vertices are appended to the points.
         time_limit: seconds of wall time, or None.
         min_improvement: an operation must raise its worst tet by more than this.
         min_progress: a pass counts as progress when the worst quality or a thresholded

@@ -8,7 +8,8 @@ keeps the result only if it is better (``better``); otherwise the mesh goes back
 where it was. The mesh a run returns is never worse than the one the climb converged to.
 
 The kicks, in the order they are tried (``kicks``): edge removals around the tets
-within ``window`` of the worst quality, allowed to lower the worst tet they touch by up to
+within ``window`` of the worst quality (the wide window: those next to the narrow
+window's, ``LOCAL_RINGS``), allowed to lower the worst tet they touch by up to
 ``slack``, gentlest first; then a new vertex at the centroid of each of those tets (1-4
 split), which the climb then moves and connects; then random moves of the free vertices
 around them ("jiggle"), a random restart of the climb there; then each flip around the
@@ -20,8 +21,8 @@ attempts all start from that submesh: a helper process (``_helper_process``) run
 them beside this one, and they are judged in the round's order all the same.
 
 Measured on the Gmsh holeplate with the boundary fixed, where the climb alone converges
-at 29.10 degrees (Stellar's flips + smoothing reach 31.4): 33.28 / 128.38 with 8 kept
-rounds, 33.64 / 127.67 with 16 (experiments/results/bench_improve.md, session 10).
+at 29.10 degrees (Stellar's flips + smoothing reach 31.4): 32.68 / 129.19 with 8 kept
+rounds, seeds 0-9 32.05-34.34 (experiments/results/bench_improve.md, session 23).
 """
 
 from __future__ import annotations
