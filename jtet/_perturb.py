@@ -449,6 +449,16 @@ class RoundState:
             sub.restore(self.start_state)
 
 
+def round_seeds(mesh, q: np.ndarray, good: float) -> np.ndarray:
+    """(m,) bool: the tets a round kicks around, for qualities ``q`` (m,) of ``mesh``:
+    those below ``good`` within the narrow window of the worst, and those within the wide
+    window that lie within ``LOCAL_RINGS`` vertex rings of a narrow one."""
+    worst = float(q.min())
+    narrow = q < min(worst + min(WINDOWS), good)
+    wide = q < min(worst + max(WINDOWS), good)
+    return narrow | (wide & _neighbourhood(mesh, narrow, LOCAL_RINGS))
+
+
 def perturb(run, t0: float) -> str:
     """Perturbation rounds on a converged ``run`` (a ``_driver._Run``), at most
     ``opts.perturb`` kept ones; returns the run's status, "converged". Each attempt is
@@ -466,12 +476,9 @@ def perturb(run, t0: float) -> str:
     began = time.perf_counter()
     while kept_rounds < opts.perturb and attempts:
         worst = float(run.q.min())
-        narrow = run.q < min(worst + min(WINDOWS), good)
-        if not narrow.any():
+        seeds = round_seeds(run.current, run.q, good)
+        if not seeds.any():
             return "converged"
-        # the wide window's tets around the narrow window's (LOCAL_RINGS)
-        seeds = run.q < min(worst + max(WINDOWS), good)
-        seeds &= narrow | _neighbourhood(run.current, narrow, LOCAL_RINGS)
         part = _Submesh(run.current, _neighbourhood(run.current, seeds, RINGS))
         sel = part.sel
         state = RoundState(

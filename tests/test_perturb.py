@@ -90,6 +90,34 @@ def test_rounds_judge_with_the_raise_floor(demo, monkeypatch):
     assert 0 < kept <= sum(want for _, _, want in calls)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_round_seeds_are_the_narrow_window_and_its_wide_neighbours(seed):
+    from jtet._perturb import LOCAL_RINGS, round_seeds
+
+    assert LOCAL_RINGS == 1  # the reference below is one ring
+    mesh = delaunay_mesh(300, seed=seed)
+    rng = np.random.default_rng(seed)
+    # three worst tets (the narrow window), and tets within the wide window everywhere
+    q = 0.31 + 0.04 * rng.random(mesh.n_tets)
+    q[rng.choice(mesh.n_tets, 3, replace=False)] = 0.3
+    good = 0.34
+    seeds = round_seeds(mesh, q, good)
+    # reference: one Python loop over the tets
+    worst = q.min()
+    narrow = [t for t in range(mesh.n_tets) if q[t] < min(worst + WINDOWS[0], good)]
+    near_vertices = {int(v) for t in narrow for v in mesh.tets[t]}
+    expect = np.zeros(mesh.n_tets, bool)
+    for t in range(mesh.n_tets):
+        in_wide = q[t] < min(worst + WINDOWS[1], good)
+        touches = any(int(v) in near_vertices for v in mesh.tets[t])
+        expect[t] = t in narrow or (in_wide and touches)
+    np.testing.assert_array_equal(seeds, expect)
+    wide = q < min(worst + WINDOWS[1], good)
+    assert (wide & ~seeds).any()  # far tets of the wide window are left out
+    # nothing below the good-enough quality: no seeds
+    assert not round_seeds(mesh, q, float(q.min())).any()
+
+
 def test_round_baseline_judges_as_better_on_the_whole_mesh():
     """``_Baseline`` reduces the tets outside the submesh once per round; its verdicts
     are the rule's on the concatenated qualities (seeded random cases with ties, tets
