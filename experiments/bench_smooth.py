@@ -2,6 +2,7 @@
 
 Usage:  python experiments/bench_smooth.py [--mesh PATH.vtu] [--passes 5] [--solvers a,b]
         [--loop 64] [--quick]
+        python experiments/bench_smooth.py --calls 40 [--mesh PATH.vtu]   # table 4 only
 
 Tables (all timings in the same process, warm: each kernel is compiled before timing):
 
@@ -14,12 +15,19 @@ Tables (all timings in the same process, warm: each kernel is compiled before ti
    and worst min-sine after each pass, seconds per pass, and the best worst-quality
    reached per second of smoothing.
 3. The default solver (``active_set``) with ``boundary="slide"``.
+4. (``--calls N``) What one call of the optimizer's smoothing kernel costs, by the number
+   of stars it holds: ``smooth_pass``'s own shapes (K = 56 in 32-lane calls run as lane
+   groups of 8; 128 stars at K = 32), against one-lane calls (one per star, on the worker
+   threads), medians over N calls of random interior stars, host work included; and how
+   many new positions the one-lane calls reproduce to the bit. The late passes and the
+   perturbation rounds' climbs make mostly calls of 1-3 stars.
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
+import inspect
 import os
 import sys
 import time
@@ -169,6 +177,85 @@ def pass_table(mesh, solvers, passes: int, boundary: str = "fixed"):
     return summary
 
 
+def call_table(mesh, reps: int, measure: str = "biased_min_sine", seed: int = 0) -> list[dict]:
+    """Table 4: median wall time of a smoothing kernel call by stars per call (see the
+    module docstring). Returns one row per star count."""
+    from jtet._config import parallel_map
+    from jtet._smooth import LARGE_CAPACITY, _pass_kernel, _solve_batch
+
+    params = inspect.signature(smooth_pass).parameters
+    kernel = _pass_kernel(
+        measure,
+        *(params[k].default for k in ("solver", "max_iters", "min_gain", "sharpness", "n_trials")),
+    )
+    small, large = params["batch_sizes"].default
+    K = min(params["capacities"].default)
+    ptr, opp_ids = star_faces(mesh)
+    basis, movable, _ = motion_bases(mesh, "fixed")
+    size = np.diff(ptr)
+    pts = np.array(mesh.points)
+    rng = np.random.default_rng(seed)
+    stars = rng.permutation(np.flatnonzero(movable & (size > 0) & (size <= K)))
+    fits = stars[size[stars] <= LARGE_CAPACITY]
+
+    def batch_call(chunk, cap, lanes):
+        return _solve_batch(kernel, cap, lanes, chunk, pts, basis, ptr, opp_ids)
+
+    def one_lane_calls(chunk):
+        outs = parallel_map(lambda v: batch_call(np.array([v]), K, 1), list(chunk))
+        return np.concatenate([o[0] for o in outs]), np.concatenate([o[1] for o in outs])
+
+    # build (or load) every shape before timing
+    batch_call(stars[:1], K, small), one_lane_calls(stars[:1])
+    rows = []
+    for b in (1, 2, 3, 8, 16, 32, large):
+        pool = fits if b == large else stars
+        if len(pool) < b:
+            continue
+        cap, lanes = (LARGE_CAPACITY, large) if b == large else (K, small)
+        if b == large:
+            batch_call(pool[:b], cap, lanes)
+        t_batch, t_one, same, moved = [], [], 0, 0
+        for r in range(reps):
+            start = (r * 37) % max(1, len(pool) - b + 1)
+            chunk = pool[start : start + b]
+            t = time.perf_counter()
+            ids, pos = batch_call(chunk, cap, lanes)
+            t_batch.append(time.perf_counter() - t)
+            if b <= 8:
+                t = time.perf_counter()
+                ids1, pos1 = one_lane_calls(chunk)
+                t_one.append(time.perf_counter() - t)
+                mine = dict(zip(ids.tolist(), pos))
+                theirs = dict(zip(ids1.tolist(), pos1))
+                moved += len(set(mine) | set(theirs))
+                same += sum(
+                    1 for v in set(mine) & set(theirs) if np.array_equal(mine[v], theirs[v])
+                )
+        rows.append(
+            dict(
+                stars=b,
+                shape=f"K={cap}, {lanes} lanes",
+                batch_ms=1e3 * float(np.median(t_batch)),
+                one_lane_ms=1e3 * float(np.median(t_one)) if t_one else None,
+                same=same / moved if moved else None,
+            )
+        )
+    print()
+    print(f"Table 4. Smoothing kernel calls ({measure}), medians of {reps} calls, host included")
+    print(
+        f"{'stars':>5} {'shape':<18} {'ms/call':>8} {'us/star':>8} {'one-lane ms':>11} {'same':>5}"
+    )
+    for r in rows:
+        one = "-" if r["one_lane_ms"] is None else f"{r['one_lane_ms']:.2f}"
+        same = "-" if r["same"] is None else f"{r['same']:.2f}"
+        print(
+            f"{r['stars']:>5} {r['shape']:<18} {r['batch_ms']:>8.2f} "
+            f"{1e3 * r['batch_ms'] / r['stars']:>8.0f} {one:>11} {same:>5}"
+        )
+    return rows
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--mesh", default=DEFAULT_MESH)
@@ -176,6 +263,7 @@ def main(argv=None):
     ap.add_argument("--solvers", default=",".join(SOLVERS))
     ap.add_argument("--loop", type=int, default=64, help="vertices in the Python-loop baseline")
     ap.add_argument("--no-slide", action="store_true")
+    ap.add_argument("--calls", type=int, default=0, help="table 4 only, with this many calls")
     args = ap.parse_args(argv)
     solvers = [s for s in args.solvers.split(",") if s]
     mesh, name = load_mesh(args.mesh)
@@ -185,6 +273,9 @@ def main(argv=None):
         f"free/surface/segment/corner = {kinds.tolist()}; jax {jax.__version__}, "
         f"{os.cpu_count()} cpus, load {os.getloadavg()[0]:.1f}"
     )
+    if args.calls:
+        call_table(mesh, args.calls)
+        return
     kernel_table(mesh, solvers, args.loop)
     pass_table(mesh, solvers, args.passes)
     if not args.no_slide:

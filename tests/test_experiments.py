@@ -530,3 +530,20 @@ def test_worst_tets_ring_angles_close_around_edges():
     smallest = tet_dihedrals(mesh.points, mesh.tets)[1].min()
     assert worst == sorted(worst)
     assert worst[0] == pytest.approx(smallest, abs=0.006)  # printed with two decimals
+
+
+@pytest.mark.slow
+def test_smoothing_call_table_times_the_pass_shapes():
+    """bench_smooth's table 4 times every stars-per-call row, and its one-lane calls solve
+    the same stars as the batched kernel: most new positions agree to the bit (they may
+    round differently, measured 88-93 % identical on the holeplate)."""
+    import bench_smooth
+
+    rows = bench_smooth.call_table(jtet.demo_mesh(), reps=3)
+    assert [r["stars"] for r in rows] == [1, 2, 3, 8, 16, 32, 128]
+    assert all(r["batch_ms"] > 0 for r in rows)
+    for r in rows:
+        if r["stars"] <= 8:
+            assert r["one_lane_ms"] > 0 and r["same"] > 0.5
+        else:
+            assert r["one_lane_ms"] is None
