@@ -73,6 +73,18 @@ def worse_orientation_owners(mesh, new_tets, new_owner, claims, claim_owner, n_c
     return bad_new > bad_old
 
 
+def recreating_owners(new_tets, new_owner, forbidden, n_cand) -> np.ndarray:
+    """(n_cand,) bool: candidates whose new tets (k, 4) (owners ``new_owner`` (k,))
+    include one of the ``forbidden`` (f, 4) tets, as vertex sets (f is small: the tets a
+    perturbation kick removed)."""
+    out = np.zeros(n_cand, bool)
+    if forbidden is None or not len(forbidden) or not len(new_tets):
+        return out
+    same = np.sort(new_tets, axis=1)[:, None, :] == np.sort(forbidden, axis=1)[None, :, :]
+    out[new_owner[same.all(axis=2).any(axis=1)]] = True
+    return out
+
+
 def nonconforming_owners(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarray:
     """(n_cand,) bool: candidates one of whose new faces would lie in more than two tets
     of the new mesh, or in two tets on the same side (same orientation).

@@ -9,6 +9,7 @@ where most of the speed is won: most attempts fail, and failing again is pure wa
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
 from dataclasses import dataclass, field
@@ -34,7 +35,7 @@ class StepResult:
 
 
 def _edge_step(
-    mesh: TetMesh, opts: Options, quality, dirty, prune: bool = True, sites=None
+    mesh: TetMesh, opts: Options, quality, dirty, prune: bool = True, sites=None, forbidden=None
 ) -> StepResult:
     from ._edge_removal import edge_removal_pass
 
@@ -47,11 +48,14 @@ def _edge_step(
         min_improvement=opts.min_improvement,
         prune=prune,
         sites=sites,
+        forbidden=forbidden,
     )
     return _replaced(mesh, out, stats, keep)
 
 
-def _face_step(mesh: TetMesh, opts: Options, quality, dirty, sites=None) -> StepResult:
+def _face_step(
+    mesh: TetMesh, opts: Options, quality, dirty, sites=None, forbidden=None
+) -> StepResult:
     from ._multiface import multiface_removal_pass
 
     out, stats, keep = multiface_removal_pass(
@@ -62,6 +66,7 @@ def _face_step(mesh: TetMesh, opts: Options, quality, dirty, sites=None) -> Step
         dirty=dirty,
         min_improvement=opts.min_improvement,
         sites=sites,
+        forbidden=forbidden,
     )
     return _replaced(mesh, out, stats, keep)
 
@@ -130,6 +135,9 @@ class _Run:
         self.history: list[dict] = []
         self.checker = None
         self.passes = 0  # passes started so far (the ``pass`` of history entries)
+        # (f, 4) tets the flips of ``climb`` must not create again (None: any): those a
+        # perturbation kick removed, for the climb after it
+        self.forbidden = None
 
     def snapshot(self) -> tuple:
         """What ``restore`` needs to undo later steps (arrays are replaced, never edited)."""
@@ -217,7 +225,10 @@ class _Run:
             for op in opts.ops:
                 self.check_stop(t0)
                 workable = _workable(self.dirty[op], self.q, opts.good_quality)
-                self.step(op, STEPS[op], workable, record)
+                run_op = STEPS[op]
+                if self.forbidden is not None and op in ("edge", "face"):
+                    run_op = functools.partial(run_op, forbidden=self.forbidden)
+                self.step(op, run_op, workable, record)
             stall = 0 if self.progressed(before) else stall + 1
             if stall >= patience:
                 return "converged"

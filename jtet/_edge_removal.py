@@ -18,7 +18,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ._apply import nonconforming_owners, replace_tets, worse_orientation_owners
+from ._apply import (
+    nonconforming_owners,
+    recreating_owners,
+    replace_tets,
+    worse_orientation_owners,
+)
 from ._kernels.klincsek import prefetch as prefetch_rings
 from ._kernels.klincsek import solve_rings
 from ._mesh import TetMesh
@@ -157,6 +162,7 @@ def edge_removal_pass(
     min_improvement: float = 1e-9,
     prune: bool = True,
     sites: np.ndarray | None = None,
+    forbidden: np.ndarray | None = None,
 ) -> tuple[TetMesh, PassStats, np.ndarray | None]:
     """One pass: try every candidate edge at once, apply a conflict-free set of winners.
 
@@ -170,6 +176,8 @@ def edge_removal_pass(
             against flipping back and forth between configurations equal to round-off).
         prune: let the kernels skip triangulations that cannot beat the old worst tet.
         sites: (k,) edge ids from ``edge_candidates`` to try instead (``dirty`` unused).
+        forbidden: (f, 4) tets no winner may create again (as vertex sets): the tets a
+            perturbation kick removed, so that the climb after it does not undo it.
 
     Returns:
         (new mesh, stats, keep): ``keep`` (m,) marks the old tets that survive, in order,
@@ -282,6 +290,7 @@ def edge_removal_pass(
     # an "improving" flip can still raise the number of non-positive tets or create a
     # face that already exists elsewhere (a non-conforming mesh). Reject such winners.
     reject = worse_orientation_owners(mesh, new_tets, new_owner, claims, cand[own], len(edges))
+    reject |= recreating_owners(new_tets, new_owner, forbidden, len(edges))
     if hinge:
         reject |= _changes_surface(mesh, np.concatenate(hinge), len(edges))
     while True:

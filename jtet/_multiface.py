@@ -29,7 +29,7 @@ import numpy as np
 
 from . import _config
 from ._aot import cached_call, prefetch
-from ._apply import nonconforming_owners, replace_tets
+from ._apply import nonconforming_owners, recreating_owners, replace_tets
 from ._edge_removal import PassStats, _segments
 from ._kernels.multiface import solve_trees
 from ._mesh import TetMesh
@@ -500,6 +500,7 @@ def multiface_removal_pass(
     dirty: np.ndarray | None = None,
     min_improvement: float = 1e-9,
     sites: np.ndarray | None = None,
+    forbidden: np.ndarray | None = None,
 ) -> tuple[TetMesh, PassStats, np.ndarray | None]:
     """One pass: try every candidate face at once, apply a conflict-free set of winners.
 
@@ -514,6 +515,7 @@ def multiface_removal_pass(
         dirty: (m,) bool; only faces touching a dirty tet are tried (None: all faces).
         min_improvement: a winner must raise its worst tet by more than this.
         sites: (k,) face ids from ``candidate_faces`` to try instead (``dirty`` unused).
+        forbidden: (f, 4) tets no winner may create again (see ``edge_removal_pass``).
 
     Returns:
         (new mesh, stats, keep): ``keep`` (m,) marks the old tets that survive, in order,
@@ -541,6 +543,7 @@ def multiface_removal_pass(
     flat = orient3d_tets(mesh.points, new) <= 0
     dead = np.zeros(len(forest.a), bool)
     dead[owner[flat]] = True
+    dead |= recreating_owners(new, owner, forbidden, len(forest.a))
     cand = cand[~dead[cand]]
     # claims: the two tets of every chosen face
     ci, ni = np.nonzero(chosen[cand])

@@ -86,3 +86,31 @@ def test_nonconforming_owners_of_no_new_tets():
     empty = np.zeros((0, 4), np.int64)
     got = _apply.nonconforming_owners(mesh, remove, empty, np.zeros(0, np.int64), 3)
     assert got.shape == (3,) and not got.any()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_recreating_owners_against_vertex_sets(seed):
+    """Candidates whose new tets include a forbidden tet in any vertex order, against a
+    loop over Python sets; no forbidden tets (None or empty) reject nothing."""
+    rng = np.random.default_rng(seed)
+    forbidden = rng.choice(40, (5, 4), replace=True)
+    forbidden = forbidden[[len(set(r)) == 4 for r in forbidden.tolist()]]
+    n_cand = 10
+    new, owner = [], []
+    for c in range(n_cand):
+        for _ in range(rng.integers(1, 4)):
+            if rng.random() < 0.3:  # a forbidden tet, its vertices shuffled
+                new.append(rng.permutation(forbidden[rng.integers(len(forbidden))]))
+            else:
+                new.append(rng.choice(40, 4, replace=False))
+            owner.append(c)
+    new, owner = np.array(new), np.array(owner)
+    sets = {frozenset(r) for r in forbidden.tolist()}
+    expected = np.zeros(n_cand, bool)
+    for t, c in zip(new.tolist(), owner.tolist()):
+        expected[c] |= frozenset(t) in sets
+    got = _apply.recreating_owners(new, owner, forbidden, n_cand)
+    np.testing.assert_array_equal(got, expected)
+    assert expected.any() and not expected.all()
+    for none in (None, np.zeros((0, 4), np.int64)):
+        assert not _apply.recreating_owners(new, owner, none, n_cand).any()

@@ -483,3 +483,64 @@ def test_single_site_kick_changes_only_around_its_candidate(op):
     assert changed > 0
     past = kick_step(op, 1.0, len(candidates))(mesh, opts, q, workable)
     assert past.keep is None and not past.changed.any()
+
+
+@pytest.fixture(scope="module")
+def converged_by_flips():
+    """A small mesh the flips alone have converged on: kicks there are often undone by
+    the next improving flip."""
+    mesh = delaunay_mesh(300, seed=1, surface_points=40)
+    return jtet.improve(mesh, ops=("edge", "face"), perturb=0).mesh
+
+
+def _as_sets(tets) -> set:
+    return {tuple(sorted(t)) for t in np.asarray(tets).tolist()}
+
+
+# (kick, its site, the operation of the step after it): cases of this mesh where that
+# step, left alone, creates again tets the kick removed
+UNDONE = [("edge", 3, "edge"), ("edge", 10, "face"), ("face", 9, "face")]
+
+
+@pytest.mark.parametrize("kick, site, op", UNDONE)
+def test_the_step_after_a_kick_does_not_create_the_removed_tets_again(
+    converged_by_flips, kick, site, op
+):
+    """With ``forbidden`` (what ``RoundState.attempt`` passes to the climb after a kick),
+    a flip step creates none of the kicked-out tets again, and its mesh is valid;
+    without it, the same step undoes (part of) the kick."""
+    from jtet._perturb import kick_step
+
+    mesh = converged_by_flips
+    opts = jtet.Options()
+    q = mesh.quality(opts.quality)
+    workable = q < np.quantile(q, 0.1)
+    kicked = kick_step(kick, 1.0, site)(mesh, opts, q, workable)
+    assert kicked.keep is not None
+    removed = mesh.tets[~kicked.keep]
+    after = kicked.mesh
+    q_after = after.quality(opts.quality)
+    step = _driver.STEPS[op]
+    free = step(after, opts, q_after, kicked.changed)
+    assert _as_sets(removed) & _as_sets(free.mesh.tets)  # the premise: undone
+    tabu = step(after, opts, q_after, kicked.changed, forbidden=removed)
+    assert not _as_sets(removed) & _as_sets(tabu.mesh.tets)
+    assert tabu.mesh.is_valid().ok
+    InvariantChecker(after).check(tabu.mesh, 0, op)
+
+
+def test_attempts_forget_their_forbidden_tets(demo_runs):
+    """The forbidden tets last for one attempt's climb only: the round's state has none
+    before or after an attempt."""
+    from jtet._perturb import RoundState, kicks, round_seeds
+
+    plain, _ = demo_runs
+    mesh, opts = plain.mesh, jtet.Options(perturb=0)
+    q = mesh.quality(opts.quality)
+    lo, hi = np.zeros_like(q), np.full_like(q, 180.0)
+    seeds = round_seeds(mesh, q, opts.good_quality)
+    state = RoundState(mesh, q, lo, hi, opts, float(q.min()), opts.good_quality, 0.0, seeds)
+    assert state.sub.forbidden is None
+    outcomes = [state.attempt(a) for a in kicks(opts.ops)[:6]]
+    assert any(o.key is not None for o in outcomes)
+    assert state.sub.forbidden is None
