@@ -25,8 +25,8 @@ attempts all start from that submesh: a helper process (``_helper_process``) run
 them beside this one, and they are judged in the round's order all the same.
 
 Measured on the Gmsh holeplate with the boundary fixed, where the climb alone converges
-at 29.10 degrees (Stellar's flips + smoothing reach 31.4): 32.68 / 129.19 with 8 kept
-rounds, seeds 0-9 32.05-34.34 (experiments/results/bench_improve.md, session 23).
+at 29.10 degrees (Stellar's flips + smoothing reach 31.4): 33.14 / 128.64 with 8 kept
+rounds, seeds 0-9 33.04-34.41 (experiments/results/bench_improve.md, session 25).
 """
 
 from __future__ import annotations
