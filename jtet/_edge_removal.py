@@ -290,6 +290,8 @@ def edge_removal_pass(
     # an "improving" flip can still raise the number of non-positive tets or create a
     # face that already exists elsewhere (a non-conforming mesh). Reject such winners.
     reject = worse_orientation_owners(mesh, new_tets, new_owner, claims, cand[own], len(edges))
+    # (new tets are built for the winners only: a winner that would undo a perturbation
+    # kick is dropped here, and its tets wait for the next pass)
     reject |= recreating_owners(new_tets, new_owner, forbidden, len(edges))
     if hinge:
         reject |= _changes_surface(mesh, np.concatenate(hinge), len(edges))

@@ -543,6 +543,8 @@ def multiface_removal_pass(
     flat = orient3d_tets(mesh.points, new) <= 0
     dead = np.zeros(len(forest.a), bool)
     dead[owner[flat]] = True
+    # before the conflict-free selection: a candidate that would undo a kick leaves its
+    # tets to the others
     dead |= recreating_owners(new, owner, forbidden, len(forest.a))
     cand = cand[~dead[cand]]
     # claims: the two tets of every chosen face
