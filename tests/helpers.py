@@ -1,6 +1,9 @@
 """Tiny canonical meshes and seeded random meshes shared by the tests."""
 
+from pathlib import Path
+
 import numpy as np
+import pytest
 from scipy.spatial import Delaunay
 
 import jtet
@@ -102,3 +105,12 @@ def shifted(mesh: "jtet.TetMesh", offset: int = 70_000) -> "jtet.TetMesh":
         protected_faces=mesh.protected_faces + offset,
         protected_edges=mesh.protected_edges + offset,
     )
+
+
+def shared_mesh_path(name: str) -> Path:
+    """Path of the reference mesh ``name`` in ``shared/meshes`` next to the checkout; the
+    calling test is skipped when that directory is not there."""
+    path = Path(__file__).resolve().parents[2] / "shared" / "meshes" / name
+    if not path.exists():
+        pytest.skip("shared/meshes not next to the checkout")
+    return path

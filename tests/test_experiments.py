@@ -21,6 +21,7 @@ hydra = pytest.importorskip("hydra")
 pytest.importorskip("pandas")
 pytest.importorskip("gmsh")
 
+from helpers import shared_mesh_path  # noqa: E402
 from hydra import compose, initialize_config_dir  # noqa: E402
 from hydra.errors import ConfigCompositionException, MissingConfigException  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
@@ -213,9 +214,7 @@ def test_gmsh_shapes_are_valid_and_reproducible(shape):
 
 
 def test_gmsh_cube_matches_reference_mesh():
-    ref = Path(__file__).resolve().parents[2] / "shared" / "meshes" / "gmsh_cube.vtu"
-    if not ref.exists():
-        pytest.skip("shared/meshes not next to the checkout")
+    ref = shared_mesh_path("gmsh_cube.vtu")
     mesh = meshgen.gmsh_shape("cube", h=0.08)
     expected = jtet.load(ref)
     assert np.array_equal(mesh.tets, expected.tets)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import delaunay_mesh
+from helpers import delaunay_mesh, shared_mesh_path
 
 import jtet
 from jtet import _driver
@@ -551,12 +551,7 @@ def test_holeplate_seed_14_leaves_the_seam_trap():
     four vertices are all on the fixed boundary, and every kick of the first round used
     to be undone by the climb after it (0 of 8 attempts kept, 29.51 degrees). With the
     kicked-out tets forbidden the rounds go on (33.93 degrees measured)."""
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[2] / "shared" / "meshes" / "gmsh_holeplate.vtu"
-    if not path.exists():
-        pytest.skip("shared/meshes not next to the checkout")
-    result = jtet.improve(jtet.load(path), seed=14)
+    result = jtet.improve(jtet.load(shared_mesh_path("gmsh_holeplate.vtu")), seed=14)
     kept = sum(e["successes"] for e in result.history if e["op"] == "perturb")
     assert kept >= 2
     assert result.stats_after.min_dihedral > 32.0
