@@ -21,7 +21,9 @@ def pinned_worst_tets(mesh, quality: np.ndarray) -> np.ndarray:
     if not len(quality):
         return np.zeros(0, np.int64)
     worst = np.flatnonzero(quality <= quality.min() + TIE)
-    kinds = mesh.topology.vertex_kind[mesh.tets[worst]]  # (w, 4)
+    # the kinds of these vertices only: after perturbation rounds the mesh has no
+    # topology, and a whole build here was ~3 % of a holeplate run
+    kinds = mesh.vertex_kinds(mesh.tets[worst].reshape(-1)).reshape(-1, 4)  # (w, 4)
     pinned = (kinds != FREE).all(axis=1) & (kinds != CORNER).any(axis=1)
     return worst[pinned]
 

@@ -283,28 +283,12 @@ class _Submesh:
     faces, whose vertices are therefore fixed: nothing outside the tets changes."""
 
     def __init__(self, mesh, sel: np.ndarray):
-        from ._mesh import TetMesh
-        from ._topology import TET_EDGES, TET_FACES, match_rows
+        from ._topology import TET_FACES, match_rows
 
         self.sel = sel
-        tets = mesh.tets[sel]
-        self.verts = np.unique(tets)
-        local = np.full(mesh.n_points, -1, np.int64)
-        local[self.verts] = np.arange(len(self.verts))
         n = mesh.n_points
-        faces = np.sort(tets[:, TET_FACES].reshape(-1, 3), axis=1)
-        edges = np.sort(tets[:, TET_EDGES].reshape(-1, 2), axis=1)
-        # the protected faces / edges of these tets, and the rest (kept as they are)
-        self.pf_in = match_rows(faces, mesh.protected_faces, n) >= 0
-        pe_in = match_rows(edges, mesh.protected_edges, n) >= 0
-        sub = TetMesh(
-            mesh.points[self.verts],
-            local[tets],
-            mesh.region[sel],
-            protected_faces=local[mesh.protected_faces[self.pf_in]],
-            protected_edges=local[mesh.protected_edges[pe_in]],
-        )
-        self.mesh = sub._with_feature_angle(mesh._feature_angle)
+        # ``pf_in``: the protected faces of these tets (the rest are kept as they are)
+        self.mesh, self.verts, self.pf_in = mesh._part(sel)
         # the cut faces: the submesh's boundary faces that a tet outside it shares (from
         # the tets, not the mesh's topology: after a kept round the mesh has none, and a
         # build per round cost ~2 s at 983k tets)

@@ -367,3 +367,33 @@ def test_ids_are_int32_and_exact_for_vertex_ids_above_2_to_16():
     np.testing.assert_array_equal(B.vertex_kind[off:], T.vertex_kind)
     np.testing.assert_array_equal(B.face_ids(T.faces[::-1] + off), np.arange(len(T.faces))[::-1])
     np.testing.assert_array_equal(B.edge_ids(T.edges[::-1] + off), np.arange(len(T.edges))[::-1])
+
+
+def _meshes_for_vertex_kinds():
+    """Meshes whose vertices take every kind: flat facets with points on them, region
+    interfaces, user protection, a curved boundary at two feature angles."""
+    yield delaunay_mesh(150, seed=3, surface_points=40)
+    yield grid_mesh(4, perturb=0.3, seed=1, two_regions=True)
+    m = delaunay_mesh(120, seed=5, surface_points=20)
+    T = m.topology
+    interior = np.flatnonzero(~T.subsegment)[:5]
+    yield jtet.TetMesh(
+        m.points, m.tets, protected_faces=T.faces[[2, 9, 40]], protected_edges=T.edges[interior]
+    )
+    curved = _pytetwild_mesh()
+    yield curved
+    yield curved._with_feature_angle(60.0)
+
+
+@pytest.mark.parametrize("case", range(5))
+def test_vertex_kinds_from_stars_match_the_whole_build(case):
+    """``TetMesh.vertex_kinds`` without a cached topology (the stars' own topology)
+    against the whole mesh's build, for random vertex sets and every vertex."""
+    mesh = list(_meshes_for_vertex_kinds())[case]
+    full = Topology.build(mesh, mesh._feature_angle).vertex_kind
+    assert len(set(full.tolist())) >= 2  # free and boundary vertices at least
+    rng = np.random.default_rng(case)
+    for vids in [rng.choice(mesh.n_points, 7, replace=False), np.arange(mesh.n_points)]:
+        fresh = mesh._derive()  # same arrays and feature angle, no cached topology
+        np.testing.assert_array_equal(fresh.vertex_kinds(vids), full[vids])
+        assert "topology" not in fresh.__dict__  # the whole mesh was not built
