@@ -418,12 +418,18 @@ class TetMesh:
         and edges at it, and every tet holding one of those is in its star (a whole-mesh
         build costs ~35 ms at 33k tets, ~2 s at 1M)."""
         vids = np.asarray(vids, np.int64)
-        if "topology" in self.__dict__ or not len(vids):
+        if "topology" in self.__dict__:
             return self.topology.vertex_kind[vids]
         want = np.zeros(self.n_points, bool)
         want[vids] = True
-        sub, verts, _ = self._part(want[self.tets].any(axis=1))
-        return sub.topology.vertex_kind[np.searchsorted(verts, vids)]
+        stars = want[self.tets].any(axis=1)
+        kinds = np.zeros(len(vids), np.int8)  # FREE: a vertex in no tet is in no face
+        if stars.any():
+            sub, verts, _ = self._part(stars)
+            pos = np.minimum(np.searchsorted(verts, vids), len(verts) - 1)
+            found = verts[pos] == vids
+            kinds[found] = sub.topology.vertex_kind[pos[found]]
+        return kinds
 
     def quality(self, measure: str = "min_sine") -> np.ndarray:
         """(m,) quality of every tet under ``measure`` (see ``jtet.MEASURES``)."""

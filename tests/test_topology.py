@@ -383,9 +383,10 @@ def _meshes_for_vertex_kinds():
     curved = _pytetwild_mesh()
     yield curved
     yield curved._with_feature_angle(60.0)
+    yield shifted(grid_mesh(3, perturb=0.2), offset=40)  # 40 points in no tet (FREE)
 
 
-@pytest.mark.parametrize("case", range(5))
+@pytest.mark.parametrize("case", range(6))
 def test_vertex_kinds_from_stars_match_the_whole_build(case):
     """``TetMesh.vertex_kinds`` without a cached topology (the stars' own topology)
     against the whole mesh's build, for random vertex sets and every vertex."""
@@ -393,7 +394,8 @@ def test_vertex_kinds_from_stars_match_the_whole_build(case):
     full = Topology.build(mesh, mesh._feature_angle).vertex_kind
     assert len(set(full.tolist())) >= 2  # free and boundary vertices at least
     rng = np.random.default_rng(case)
-    for vids in [rng.choice(mesh.n_points, 7, replace=False), np.arange(mesh.n_points)]:
+    some = rng.choice(mesh.n_points, 7, replace=False)
+    for vids in [some, np.arange(mesh.n_points), np.zeros(0, np.int64), some[[0, 0, 1]]]:
         fresh = mesh._derive()  # same arrays and feature angle, no cached topology
         np.testing.assert_array_equal(fresh.vertex_kinds(vids), full[vids])
         assert "topology" not in fresh.__dict__  # the whole mesh was not built
