@@ -424,12 +424,14 @@ class TetMesh:
         from the topology of their stars alone: a vertex's kind depends only on the faces
         and edges at it, and every tet holding one of those is in its star (a whole-mesh
         build costs ~35 ms at 33k tets, ~2 s at 1M)."""
+        from ._topology import corner_counts
+
         vids = np.asarray(vids, np.int64)
         if "topology" in self.__dict__:
             return self.topology.vertex_kind[vids]
         want = np.zeros(self.n_points, bool)
         want[vids] = True
-        stars = want[self.tets].any(axis=1)
+        stars = corner_counts(want, self.tets) > 0
         kinds = np.zeros(len(vids), np.int8)  # FREE: a vertex in no tet is in no face
         if stars.any():
             sub, verts, _ = self._part(stars)

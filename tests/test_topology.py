@@ -369,28 +369,32 @@ def test_ids_are_int32_and_exact_for_vertex_ids_above_2_to_16():
     np.testing.assert_array_equal(B.edge_ids(T.edges[::-1] + off), np.arange(len(T.edges))[::-1])
 
 
-def _meshes_for_vertex_kinds():
-    """Meshes whose vertices take every kind: flat facets with points on them, region
-    interfaces, user protection, a curved boundary at two feature angles."""
-    yield delaunay_mesh(150, seed=3, surface_points=40)
-    yield grid_mesh(4, perturb=0.3, seed=1, two_regions=True)
+def _protected_delaunay():
     m = delaunay_mesh(120, seed=5, surface_points=20)
     T = m.topology
     interior = np.flatnonzero(~T.subsegment)[:5]
-    yield jtet.TetMesh(
+    return jtet.TetMesh(
         m.points, m.tets, protected_faces=T.faces[[2, 9, 40]], protected_edges=T.edges[interior]
     )
-    curved = _pytetwild_mesh()
-    yield curved
-    yield curved._with_feature_angle(60.0)
-    yield shifted(grid_mesh(3, perturb=0.2), offset=40)  # 40 points in no tet (FREE)
 
 
-@pytest.mark.parametrize("case", range(6))
+# Meshes whose vertices take every kind: flat facets with points on them, region
+# interfaces, user protection, a curved boundary at two feature angles, points in no tet
+VERTEX_KIND_MESHES = [
+    lambda: delaunay_mesh(150, seed=3, surface_points=40),
+    lambda: grid_mesh(4, perturb=0.3, seed=1, two_regions=True),
+    _protected_delaunay,
+    _pytetwild_mesh,
+    lambda: _pytetwild_mesh()._with_feature_angle(60.0),
+    lambda: shifted(grid_mesh(3, perturb=0.2), offset=40),  # 40 points in no tet (FREE)
+]
+
+
+@pytest.mark.parametrize("case", range(len(VERTEX_KIND_MESHES)))
 def test_vertex_kinds_from_stars_match_the_whole_build(case):
     """``TetMesh.vertex_kinds`` without a cached topology (the stars' own topology)
     against the whole mesh's build, for random vertex sets and every vertex."""
-    mesh = list(_meshes_for_vertex_kinds())[case]
+    mesh = VERTEX_KIND_MESHES[case]()
     full = Topology.build(mesh, mesh._feature_angle).vertex_kind
     assert len(set(full.tolist())) >= 2  # free and boundary vertices at least
     rng = np.random.default_rng(case)
