@@ -399,6 +399,14 @@ def main() -> None:
         help="improve's perturb option: up to N kept perturbation rounds after the climb "
         "(default: jtet's)",
     )
+    for end in ("min", "max"):
+        p.add_argument(
+            f"--goal-{end}-dihedral",
+            type=float,
+            default=None,
+            metavar="DEG",
+            help=f"improve's goal_{end}_dihedral option: stop once the mesh meets it",
+        )
     p.add_argument(
         "--big", type=int, default=0, help="also run a Delaunay mesh of this many random points"
     )
@@ -452,6 +460,15 @@ def main() -> None:
         quality_settings(names, ops, args.settings.split(","))
         return
     options = {"boundary": args.boundary, "perturb": args.perturb}
+    goals = {
+        k: v
+        for k, v in (
+            ("goal_min_dihedral", args.goal_min_dihedral),
+            ("goal_max_dihedral", args.goal_max_dihedral),
+        )
+        if v is not None
+    }
+    options.update(goals)
     if args.seeds:
         seed_spread(names, ops, args.seeds, **options)
         return
@@ -471,7 +488,9 @@ def main() -> None:
         return
     print_table(
         rows,
-        f"jtet.improve(ops={ops}), boundary {args.boundary}, perturb {args.perturb}: wall time of a second run on each mesh "
+        f"jtet.improve(ops={ops}), boundary {args.boundary}, perturb {args.perturb}"
+        + "".join(f", {k} {v:g}" for k, v in goals.items())
+        + ": wall time of a second run on each mesh "
         "(steady state) and of the first (with compilation)",
     )
 

@@ -156,6 +156,22 @@ class _Run:
         limit = self.opts.time_limit
         if limit is not None and time.perf_counter() - t0 > limit:
             raise _Stop("time limit")
+        self.check_goal()
+
+    def goal_reached(self) -> bool:
+        """Whether the current mesh meets the options' dihedral-angle goals (False
+        when neither is set)."""
+        lo, hi = self.opts.goal_min_dihedral, self.opts.goal_max_dihedral
+        if lo is None and hi is None:
+            return False
+        return (lo is None or float(self.lo_t.min()) >= lo) and (
+            hi is None or float(self.hi_t.max()) <= hi
+        )
+
+    def check_goal(self) -> None:
+        """Raise ``_Stop("goal reached")`` when the current mesh meets the goals."""
+        if self.goal_reached():
+            raise _Stop("goal reached")
 
     def step(self, op: str, run_op, workable, record: bool = True) -> StepResult:
         """Run ``run_op(mesh, opts, quality, workable)`` and make its mesh current."""
@@ -215,7 +231,8 @@ class _Run:
     def climb(self, t0: float, record: bool = True, patience: int | None = None) -> str:
         """Passes of every operation until ``patience`` (default: the option's) passes in a
         row make no progress ("converged") or ``max_passes`` ("max passes"); raises
-        ``_Stop``."""
+        ``_Stop`` (Ctrl-C, time limit, or the goals met before an operation or at the
+        end)."""
         opts = self.opts
         stall = 0
         patience = opts.patience if patience is None else patience
@@ -231,7 +248,9 @@ class _Run:
                 self.step(op, run_op, workable, record)
             stall = 0 if self.progressed(before) else stall + 1
             if stall >= patience:
+                self.check_goal()  # its last operation may have reached it
                 return "converged"
+        self.check_goal()
         return "max passes"
 
 
@@ -240,7 +259,8 @@ class ImproveResult:
     """Outcome of ``jtet.improve``.
 
     ``status`` is "converged" (no progress for ``patience`` passes), "max passes",
-    "time limit", "interrupted" or "invariant violation: <message>" (``check=True`` only;
+    "goal reached" (``goal_min_dihedral`` / ``goal_max_dihedral``), "time limit",
+    "interrupted" or "invariant violation: <message>" (``check=True`` only;
     ``mesh`` is then the last mesh that passed the checks). ``notes`` are sentences for
     the user that ``summary()`` prints after the table, e.g. that the worst tet has all
     its vertices on the fixed boundary and ``boundary="slide"`` may free it.
@@ -383,7 +403,8 @@ def _stats_dict(op: str, stats) -> dict:
 
 
 class _Stop(Exception):
-    """Ends a run between operations with ``status`` ("interrupted", "time limit")."""
+    """Ends a run between operations with ``status`` ("interrupted", "time limit",
+    "goal reached")."""
 
     def __init__(self, status: str):
         super().__init__(status)

@@ -19,8 +19,16 @@ _FLOATS = (
     "min_progress",
     "good_quality",
     "smooth_threshold",
+    "goal_min_dihedral",
+    "goal_max_dihedral",
 )
-_OPTIONAL = ("time_limit", "good_quality", "smooth_threshold")
+_OPTIONAL = (
+    "time_limit",
+    "good_quality",
+    "smooth_threshold",
+    "goal_min_dihedral",
+    "goal_max_dihedral",
+)
 BOUNDARY_MODES = ("fixed", "slide")
 
 
@@ -57,6 +65,16 @@ class Options:
             and local optima of the climb: holeplate 29.1-29.5 -> 32.7-34.3 degrees over
             seeds 0-4, for +0.6-1.3 s. Inserted vertices are appended to the points.
         time_limit: seconds of wall time, or None.
+        goal_min_dihedral, goal_max_dihedral: degrees, or None (default: no goal). The
+            run stops ("goal reached") as soon as the smallest dihedral angle of the mesh
+            is at least ``goal_min_dihedral`` and its largest at most
+            ``goal_max_dihedral`` (a goal left None always holds; with both None the run
+            never stops for a goal), as Stellar's ``goalanglemin`` / ``goalanglemax`` do.
+            Checked before the first pass, after every operation and after every kept
+            perturbation round: a mesh that is good enough for the user's purpose is
+            not polished further. Gmsh reference meshes with goals 32 / 138: cube,
+            sphere and torus stop in the climb, at 18-19 us per tet instead of 22-40
+            (medians of 5; ``experiments/results/bench_improve.md``, session 27).
         min_improvement: an operation must raise its worst tet by more than this.
         min_progress: a pass counts as progress when the worst quality or a thresholded
             mean of the worst tets rose by more than this fraction; ``patience`` passes in
@@ -86,6 +104,8 @@ class Options:
     patience: int = 2
     perturb: int = 8
     time_limit: float | None = None
+    goal_min_dihedral: float | None = None
+    goal_max_dihedral: float | None = None
     min_improvement: float = 1e-9
     min_progress: float = 1e-3
     good_quality: float | None = 0.6
@@ -143,6 +163,10 @@ class Options:
             raise JtetError(f"good_quality must be in (0, 1] or None, got {self.good_quality}")
         if self.time_limit is not None and float(self.time_limit) <= 0:
             raise JtetError(f"time_limit must be positive seconds, got {self.time_limit}")
+        for name in ("goal_min_dihedral", "goal_max_dihedral"):
+            value = getattr(self, name)
+            if value is not None and not 0.0 < value < 180.0:
+                raise JtetError(f"{name} must be in (0, 180) degrees or None, got {value}")
 
     def replace(self, **changes) -> Options:
         unknown = set(changes) - {f.name for f in dataclasses.fields(self)}

@@ -452,7 +452,8 @@ def round_seeds(mesh, q: np.ndarray, good: float) -> np.ndarray:
 
 def perturb(run, t0: float) -> str:
     """Perturbation rounds on a converged ``run`` (a ``_driver._Run``), at most
-    ``opts.perturb`` kept ones; returns the run's status, "converged". Each attempt is
+    ``opts.perturb`` kept ones; returns the run's status, "converged", or raises
+    ``_driver._Stop`` (Ctrl-C, time limit, goals met after a kept round). Each attempt is
     one history entry, op "perturb"; its climb may run up to ``max_passes`` passes of
     its own. Attempts are judged in the round's order; a helper process
     (``_helper_process``) runs some of them side by side, with the same result."""
@@ -461,11 +462,19 @@ def perturb(run, t0: float) -> str:
     opts = run.opts
     attempts = kicks(opts.ops)
     good = np.inf if opts.good_quality is None else opts.good_quality
-    # the cut faces pin the submesh's boundary vertices; "slide" would let them move
-    sub_opts = opts.replace(boundary="fixed", check=False, progress=False)
+    # the cut faces pin the submesh's boundary vertices; "slide" would let them move.
+    # The goals are the whole mesh's: the submesh's climbs never stop for them
+    sub_opts = opts.replace(
+        boundary="fixed",
+        check=False,
+        progress=False,
+        goal_min_dihedral=None,
+        goal_max_dihedral=None,
+    )
     kept_rounds = 0
     began = time.perf_counter()
     while kept_rounds < opts.perturb and attempts:
+        run.check_goal()  # the last kept round may have reached it
         worst = float(run.q.min())
         seeds = round_seeds(run.current, run.q, good)
         if not seeds.any():
@@ -492,6 +501,7 @@ def perturb(run, t0: float) -> str:
         if kept is None:
             return "converged"  # every attempt of the round failed
         kept_rounds += 1
+    run.check_goal()
     return "converged"
 
 

@@ -1,7 +1,7 @@
 """The ``jtet`` command: ``jtet improve``, ``jtet stats``, ``jtet demo``.
 
-Exit codes: 0 success (also when ``--time-limit`` stopped the run: OUT holds the best
-mesh so far); 2 bad input or options (one line on stderr says why); 3 ``--check`` found
+Exit codes: 0 success (also when ``--time-limit`` or the goals stopped the run: OUT holds
+the best mesh so far); 2 bad input or options (one line on stderr says why); 3 ``--check`` found
 an invariant violation (one line on stderr; OUT is not written); 130 interrupted (Ctrl-C):
 when the optimizer was running, OUT holds the best valid mesh so far (written
 atomically), otherwise nothing was written. OUT is never left partially written.
@@ -90,6 +90,22 @@ def _add_options(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="S",
         help="stop after S seconds, keeping the best mesh so far",
+    )
+    p.add_argument(
+        "--goal-min-dihedral",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="stop once the smallest dihedral angle is at least DEG (and the largest meets "
+        "--goal-max-dihedral, if given)",
+    )
+    p.add_argument(
+        "--goal-max-dihedral",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="stop once the largest dihedral angle is at most DEG (and the smallest meets "
+        "--goal-min-dihedral, if given)",
     )
     p.add_argument(
         "--min-progress",

@@ -187,6 +187,29 @@ def test_improve_options_reach_options(small, tmp_path, capsys):
     )
 
 
+def test_improve_goals_stop_the_run(small, tmp_path, capsys):
+    """--goal-min/max-dihedral reach the options; a goal the input already meets stops
+    the run before its first pass (OUT is the input, exit 0); a bad goal exits 2."""
+    out, report = tmp_path / "goal.vtu", tmp_path / "goal.json"
+    args = ("--goal-min-dihedral", "0.001", "--goal-max-dihedral", "179.999")
+    code = _improve(small, out, *args, "--report", report)
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    assert "(goal reached," in cap.out
+    rep = json.loads(report.read_text())
+    assert rep["status"] == "goal reached" and rep["history"] == []
+    assert rep["options"]["goal_min_dihedral"] == 0.001
+    assert rep["options"]["goal_max_dihedral"] == 179.999
+    before, after = jtet.load(small), jtet.load(out)
+    assert np.array_equal(before.tets, after.tets)
+    assert np.array_equal(before.points, after.points)
+    bad = tmp_path / "bad.vtu"
+    assert _improve(small, bad, "--goal-max-dihedral", "200", "-q") == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jtet: error:") and "goal_max_dihedral" in err
+    assert not bad.exists()
+
+
 def test_improve_feature_angle_reaches_the_flips(tmp_path, capsys):
     # two tets under a roof folded by 11.4 degrees along the boundary edge 0-1
     points = [[-1, 0, 0], [1, 0, 0], [0, -0.3, 0.03], [0, 0.3, 0.03], [0, 0, -0.6]]

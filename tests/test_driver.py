@@ -257,6 +257,10 @@ def test_unknown_option_name_raises(demo):
         (dict(min_improvement=float("inf")), "min_improvement"),
         (dict(smooth_threshold="x"), "smooth_threshold"),
         (dict(check=1), "check"),
+        (dict(goal_min_dihedral=0.0), "goal_min_dihedral"),
+        (dict(goal_max_dihedral=180.0), "goal_max_dihedral"),
+        (dict(goal_min_dihedral=float("nan")), "goal_min_dihedral"),
+        (dict(goal_max_dihedral="138"), "goal_max_dihedral"),
     ],
 )
 def test_bad_option_values_raise(demo, kw, match):
@@ -295,6 +299,53 @@ def test_max_passes_zero_returns_input(demo):
     assert r.status == "max passes"
     assert _same_mesh(r.mesh, demo)
     assert r.stats_after.as_dict() == r.stats_before.as_dict()
+
+
+def _without_seconds(history) -> list[dict]:
+    return [{k: v for k, v in e.items() if k != "seconds"} for e in history]
+
+
+def _meets(entry, goal_min, goal_max) -> bool:
+    return (goal_min is None or entry["min_dihedral"] >= goal_min) and (
+        goal_max is None or entry["max_dihedral"] <= goal_max
+    )
+
+
+@pytest.mark.parametrize("phase", ["climb", "perturb"])
+def test_goal_stops_the_default_run_where_it_is_first_met(demo, demo_run, phase):
+    """With goals the run is the default run cut at its first history entry whose mesh
+    meets them (the same seed makes the same choices): a goal taken from the default
+    run's own history, in its climb or after its first kept perturbation round."""
+    _, _, full = demo_run
+    kept = [i for i, e in enumerate(full.history) if e["op"] == "perturb" and e["successes"]]
+    assert kept, "the default demo run keeps perturbation rounds"
+    at = full.history[kept[0] if phase == "perturb" else 4]
+    goal_min, goal_max = at["min_dihedral"], at["max_dihedral"] + 1e-9
+    first = next(i for i, e in enumerate(full.history) if _meets(e, goal_min, goal_max))
+    assert 0 < first < len(full.history) - 1  # a real cut, not the end of the run
+    r = jtet.improve(demo, goal_min_dihedral=goal_min, goal_max_dihedral=goal_max)
+    assert r.status == "goal reached"
+    assert _without_seconds(r.history) == _without_seconds(full.history[: first + 1])
+    assert r.stats_after.min_dihedral == pytest.approx(full.history[first]["min_dihedral"])
+    assert r.stats_after.min_dihedral >= goal_min - 1e-9
+    assert r.stats_after.max_dihedral <= goal_max
+    assert InvariantChecker(demo).check(r.mesh, 0, "goal") is None
+
+
+def test_goal_met_by_the_input_returns_it(demo):
+    r = jtet.improve(demo, goal_min_dihedral=0.5, goal_max_dihedral=179.0)
+    assert r.status == "goal reached"
+    assert r.history == []
+    assert _same_mesh(r.mesh, demo)
+    # one goal alone: the other one is not a condition
+    assert jtet.improve(demo, goal_max_dihedral=179.0).status == "goal reached"
+
+
+def test_unmet_goal_changes_nothing(demo, demo_run):
+    _, _, full = demo_run
+    r = jtet.improve(demo, max_passes=1, goal_min_dihedral=89.0)
+    assert r.status == "max passes"
+    assert _without_seconds(r.history) == _without_seconds(full.history[:3])
 
 
 def test_patience(demo):
