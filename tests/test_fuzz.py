@@ -156,7 +156,15 @@ def _improve(spec, opts):
     tets, points = mesh.tets.copy(), mesh.points.copy()
     result = jtet.improve(mesh, opts)
     assert not result.status.startswith("invariant violation"), (spec, opts, result.status)
-    assert result.status in ("converged", "max passes")
+    assert result.status in ("converged", "max passes", "goal reached")
+    # the run stops for its goals exactly when its mesh meets them
+    after = result.stats_after
+    goal_min, goal_max = opts.goal_min_dihedral, opts.goal_max_dihedral
+    meets = (goal_min is not None or goal_max is not None) and (
+        (goal_min is None or after.min_dihedral >= goal_min)
+        and (goal_max is None or after.max_dihedral <= goal_max)
+    )
+    assert (result.status == "goal reached") == meets, (opts, result.status, after.as_dict())
     # the input is untouched; the result passes the checks against it once more
     np.testing.assert_array_equal(mesh.tets, tets)
     np.testing.assert_array_equal(mesh.points, points)
@@ -169,7 +177,10 @@ def _improve(spec, opts):
     assert after.n_inverted + after.n_degenerate <= before.n_inverted + before.n_degenerate
     assert _bad(result.mesh) <= _bad(mesh)
     climb = [h for h in result.history if h["op"] != "perturb"]
-    assert len(climb) == len(opts.ops) * len({h["pass"] for h in climb})
+    # whole passes of the ops in their order (a goal may stop a pass after any op)
+    assert [h["op"] for h in climb] == [opts.ops[i % len(opts.ops)] for i in range(len(climb))]
+    if result.status != "goal reached":
+        assert len(climb) == len(opts.ops) * len({h["pass"] for h in climb})
     # perturbation rounds only after a converged climb; each reports a kept or restored mesh
     rounds = [h for h in result.history if h["op"] == "perturb"]
     assert not rounds or opts.perturb > 0
