@@ -33,6 +33,12 @@ def notes(mesh, options, quality: np.ndarray, min_dihedral, max_dihedral) -> lis
     ``quality`` (m,) is its ``options.quality`` per tet, ``min_dihedral`` and
     ``max_dihedral`` (m,) its dihedral angle range per tet in degrees."""
     out = []
+    missed = _missed_goals(options, min_dihedral, max_dihedral)
+    if missed:
+        out.append(
+            f"the goals were not reached: {missed}; more perturbation rounds (--perturb), "
+            "--boundary slide or a feature angle may get closer"
+        )
     good = options.good_quality
     if good is not None and len(quality) and quality.min() >= good:
         return out  # every tet is good enough: the run left them alone on purpose
@@ -48,3 +54,15 @@ def notes(mesh, options, quality: np.ndarray, min_dihedral, max_dihedral) -> lis
                 "facets and along straight edges, and may raise it"
             )
     return out
+
+
+def _missed_goals(options, min_dihedral, max_dihedral) -> str:
+    """The dihedral-angle goals of ``options`` that the (m,) per-tet angles miss, as
+    words ("" when every goal set is met, or none is set)."""
+    parts = []
+    lo, hi = options.goal_min_dihedral, options.goal_max_dihedral
+    if lo is not None and len(min_dihedral) and min_dihedral.min() < lo:
+        parts.append(f"smallest dihedral angle {min_dihedral.min():.2f} deg (goal >= {lo:g})")
+    if hi is not None and len(max_dihedral) and max_dihedral.max() > hi:
+        parts.append(f"largest dihedral angle {max_dihedral.max():.2f} deg (goal <= {hi:g})")
+    return ", ".join(parts)

@@ -91,3 +91,23 @@ def test_improve_command_prints_the_note(tmp_path):
     with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(io.StringIO()):
         assert main(["improve", str(src), str(out), "--ops", "smooth", "--boundary", "slide"]) == 0
     assert "note:" not in stdout.getvalue()
+
+
+def test_missed_goals_are_noted_whatever_else_holds():
+    """A goal note names each missed goal with the mesh's value, none for met or unset
+    goals, and comes even when every tet is good enough (the goal asks for more)."""
+    m = _mesh_with_a_pinned_worst_tet()
+    q = m.quality("biased_min_sine")
+    _, lo, hi, _ = tet_all_measures(m.points, m.tets)
+    good = jtet.Options(good_quality=float(q.min()))
+
+    def goal_notes(**goals):
+        return [n for n in notes(m, good.replace(**goals), q, lo, hi) if "goals" in n]
+
+    assert goal_notes() == []
+    assert goal_notes(goal_min_dihedral=float(lo.min()), goal_max_dihedral=float(hi.max())) == []
+    (note,) = goal_notes(goal_min_dihedral=float(lo.min()) + 1.0)
+    assert f"smallest dihedral angle {lo.min():.2f} deg (goal >= {lo.min() + 1:g})" in note
+    assert "largest" not in note
+    (note,) = goal_notes(goal_min_dihedral=1.0, goal_max_dihedral=float(hi.max()) - 1.0)
+    assert "smallest" not in note and f"largest dihedral angle {hi.max():.2f} deg" in note

@@ -336,6 +336,7 @@ def test_goal_met_by_the_input_returns_it(demo):
     r = jtet.improve(demo, goal_min_dihedral=0.5, goal_max_dihedral=179.0)
     assert r.status == "goal reached"
     assert r.history == []
+    assert not any("goal" in n for n in r.notes)
     assert _same_mesh(r.mesh, demo)
     # one goal alone: the other one is not a condition
     assert jtet.improve(demo, goal_max_dihedral=179.0).status == "goal reached"
@@ -343,9 +344,14 @@ def test_goal_met_by_the_input_returns_it(demo):
 
 def test_unmet_goal_changes_nothing(demo, demo_run):
     _, _, full = demo_run
-    r = jtet.improve(demo, max_passes=1, goal_min_dihedral=89.0)
+    r = jtet.improve(demo, max_passes=1, goal_min_dihedral=89.0, goal_max_dihedral=179.0)
     assert r.status == "max passes"
     assert _without_seconds(r.history) == _without_seconds(full.history[:3])
+    # the summary says which goal was missed, by how much (the met one is not named)
+    (note,) = [n for n in r.notes if "goals were not reached" in n]
+    assert f"smallest dihedral angle {r.stats_after.min_dihedral:.2f} deg (goal >= 89)" in note
+    assert "largest" not in note
+    assert f"note: {note}" in r.summary()
 
 
 def test_patience(demo):
