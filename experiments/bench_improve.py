@@ -461,13 +461,9 @@ def main() -> None:
         return
     options = {"boundary": args.boundary, "perturb": args.perturb}
     goals = {
-        k: v
-        for k, v in (
-            ("goal_min_dihedral", args.goal_min_dihedral),
-            ("goal_max_dihedral", args.goal_max_dihedral),
-        )
-        if v is not None
+        f"goal_{end}_dihedral": getattr(args, f"goal_{end}_dihedral") for end in ("min", "max")
     }
+    goals = {k: v for k, v in goals.items() if v is not None}
     options.update(goals)
     if args.seeds:
         seed_spread(names, ops, args.seeds, **options)

@@ -33,7 +33,7 @@ def notes(mesh, options, quality: np.ndarray, min_dihedral, max_dihedral) -> lis
     ``quality`` (m,) is its ``options.quality`` per tet, ``min_dihedral`` and
     ``max_dihedral`` (m,) its dihedral angle range per tet in degrees."""
     out = []
-    missed = _missed_goals(options, min_dihedral, max_dihedral)
+    missed = _missed_goals(options, min_dihedral, max_dihedral) if len(quality) else ""
     if missed:
         out.append(
             f"the goals were not reached: {missed}; more perturbation rounds (--perturb), "
@@ -57,12 +57,15 @@ def notes(mesh, options, quality: np.ndarray, min_dihedral, max_dihedral) -> lis
 
 
 def _missed_goals(options, min_dihedral, max_dihedral) -> str:
-    """The dihedral-angle goals of ``options`` that the (m,) per-tet angles miss, as
-    words ("" when every goal set is met, or none is set)."""
+    """The dihedral-angle goals of ``options`` (``Options.missed_goals``) that the (m,)
+    per-tet angles miss, as words ("" when every goal set is met, or none is set)."""
+    lo, hi = float(min_dihedral.min()), float(max_dihedral.max())
+    missed = options.missed_goals(lo, hi)
     parts = []
-    lo, hi = options.goal_min_dihedral, options.goal_max_dihedral
-    if lo is not None and len(min_dihedral) and min_dihedral.min() < lo:
-        parts.append(f"smallest dihedral angle {min_dihedral.min():.2f} deg (goal >= {lo:g})")
-    if hi is not None and len(max_dihedral) and max_dihedral.max() > hi:
-        parts.append(f"largest dihedral angle {max_dihedral.max():.2f} deg (goal <= {hi:g})")
+    if "goal_min_dihedral" in missed:
+        parts.append(
+            f"smallest dihedral angle {lo:.2f} deg (goal >= {options.goal_min_dihedral:g})"
+        )
+    if "goal_max_dihedral" in missed:
+        parts.append(f"largest dihedral angle {hi:.2f} deg (goal <= {options.goal_max_dihedral:g})")
     return ", ".join(parts)

@@ -148,7 +148,8 @@ class _Run:
         self.dirty = dict(dirty)
 
     def check_stop(self, t0: float) -> None:
-        """Raise ``_Stop`` on Ctrl-C or when the time limit is up (between operations)."""
+        """Raise ``_Stop`` on Ctrl-C, when the time limit is up or when the goals are met
+        (between operations)."""
         from ._interrupt import pressed
 
         if pressed():  # its KeyboardInterrupt was swallowed (see _interrupt)
@@ -161,12 +162,10 @@ class _Run:
     def goal_reached(self) -> bool:
         """Whether the current mesh meets the options' dihedral-angle goals (False
         when neither is set)."""
-        lo, hi = self.opts.goal_min_dihedral, self.opts.goal_max_dihedral
-        if lo is None and hi is None:
+        opts = self.opts
+        if opts.goal_min_dihedral is None and opts.goal_max_dihedral is None:
             return False
-        return (lo is None or float(self.lo_t.min()) >= lo) and (
-            hi is None or float(self.hi_t.max()) <= hi
-        )
+        return not opts.missed_goals(float(self.lo_t.min()), float(self.hi_t.max()))
 
     def check_goal(self) -> None:
         """Raise ``_Stop("goal reached")`` when the current mesh meets the goals."""

@@ -168,6 +168,19 @@ class Options:
             if value is not None and not 0.0 < value < 180.0:
                 raise JtetError(f"{name} must be in (0, 180) degrees or None, got {value}")
 
+    def missed_goals(self, min_dihedral: float, max_dihedral: float) -> tuple[str, ...]:
+        """The goals set ("goal_min_dihedral", "goal_max_dihedral") that a mesh whose
+        dihedral angles span [``min_dihedral``, ``max_dihedral``] degrees misses."""
+        lo, hi = self.goal_min_dihedral, self.goal_max_dihedral
+        return tuple(
+            name
+            for name, missed in (
+                ("goal_min_dihedral", lo is not None and min_dihedral < lo),
+                ("goal_max_dihedral", hi is not None and max_dihedral > hi),
+            )
+            if missed
+        )
+
     def replace(self, **changes) -> Options:
         unknown = set(changes) - {f.name for f in dataclasses.fields(self)}
         if unknown:

@@ -474,7 +474,6 @@ def perturb(run, t0: float) -> str:
     kept_rounds = 0
     began = time.perf_counter()
     while kept_rounds < opts.perturb and attempts:
-        run.check_goal()  # the last kept round may have reached it
         worst = float(run.q.min())
         seeds = round_seeds(run.current, run.q, good)
         if not seeds.any():
@@ -501,7 +500,7 @@ def perturb(run, t0: float) -> str:
         if kept is None:
             return "converged"  # every attempt of the round failed
         kept_rounds += 1
-    run.check_goal()
+        run.check_goal()  # the round kept may have reached them
     return "converged"
 
 
