@@ -17,7 +17,7 @@ import functools
 import io
 import os
 import re
-import tempfile
+import secrets
 import warnings
 from pathlib import Path
 
@@ -527,10 +527,33 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict) -> None:
             _meshio_module(fmt).write(str(tmp), m)
 
 
-def _new_file_mode() -> int:
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
+def new_temp_file(parent: Path, prefix: str, suffix: str) -> Path:
+    """Create an empty file with a fresh random name in ``parent`` and return its path.
+
+    Its mode is 0o666 under the process's umask, as for any new file: ``tempfile.mkstemp``
+    makes 0o600 files, which the rename into place would pass on to reports and meshes
+    that other users could not read. (Reading the umask means setting it, which races
+    with threads creating files meanwhile: the kernel applies it here instead.)
+
+    Raises:
+        OSError: the directory is missing or not writable.
+    """
+    for _ in range(100):
+        path = parent / f"{prefix}{secrets.token_hex(6)}{suffix}"
+        try:
+            os.close(os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666))
+        except FileExistsError:
+            continue
+        return path
+    raise FileExistsError(f"no free temporary file name in {parent}")
+
+
+def move_into_place(tmp: Path, target: Path) -> None:
+    """Rename the finished file ``tmp`` onto ``target`` (atomic on one file system); an
+    existing ``target`` keeps its mode."""
+    if target.exists():
+        os.chmod(tmp, target.stat().st_mode & 0o7777)
+    os.replace(tmp, target)
 
 
 def save(
@@ -607,13 +630,9 @@ def save(
     temps: list[Path] = []
     try:
         try:
-            fd, name = tempfile.mkstemp(
-                prefix=f".{p.stem}.tmp-", suffix=targets[0].suffix, dir=parent
-            )
+            temps = [new_temp_file(parent, f".{p.stem}.tmp-", targets[0].suffix)]
         except OSError as e:
             raise MeshFileError(f"{p}: cannot create a file in {parent} ({_reason(e)})") from None
-        os.close(fd)
-        temps = [Path(name)]
         if fmt == "tetgen":
             # meshio writes the .ele next to the .node, with the same stem.
             temps.append(temps[0].with_suffix(".ele"))
@@ -622,10 +641,8 @@ def save(
             for tmp, target in zip(temps, targets, strict=True):
                 if not tmp.is_file():
                     raise MeshFileError(f"{target}: the writer produced no file")
-                mode = target.stat().st_mode & 0o7777 if target.exists() else _new_file_mode()
-                os.chmod(tmp, mode)
             for tmp, target in zip(temps, targets, strict=True):
-                os.replace(tmp, target)
+                move_into_place(tmp, target)
         except MeshFileError:
             raise
         except Exception as e:

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ._errors import MeshFileError
+from ._io import move_into_place, new_temp_file
 from ._mesh import TetMesh
 from ._quality import tet_all_measures
 
@@ -33,16 +33,15 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     path = Path(path)
     tmp = None
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
+        tmp = new_temp_file(path.parent, f".{path.name}.", ".tmp")
+        tmp.write_text(text)
+        move_into_place(tmp, path)
         tmp = None
     except OSError as e:
         raise MeshFileError(f"{path}: cannot write ({e.strerror or e})") from None
     finally:  # also on Ctrl-C: no temporary file is left behind
-        if tmp is not None and os.path.exists(tmp):
-            os.unlink(tmp)
+        if tmp is not None and tmp.exists():
+            tmp.unlink()
 
 
 def write_report(result, path: str | os.PathLike) -> None:
@@ -88,13 +87,16 @@ def plot_histograms(result, path: str | os.PathLike, measure: str | None = None)
     )
     ax2.legend()
     path = Path(path)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    tmp = None
     try:
+        # a name of its own: two runs plotting to one path never write the same file
+        tmp = new_temp_file(path.parent, f".{path.stem}.tmp-", path.suffix)
         fig.savefig(tmp, dpi=110)
-        os.replace(tmp, path)
+        move_into_place(tmp, path)
+        tmp = None
     except (OSError, ValueError) as e:
         raise MeshFileError(f"{path}: cannot write plot ({e})") from None
     finally:  # also on Ctrl-C: no temporary file is left behind
         plt.close(fig)
-        if tmp.exists():
+        if tmp is not None and tmp.exists():
             tmp.unlink()

@@ -7,6 +7,7 @@ tets) is made once (module fixture); other runs use one operation and one pass.
 import contextlib
 import io
 import json
+import os
 
 import numpy as np
 import pytest
@@ -116,6 +117,20 @@ def test_improve_plot(improved):
     data = improved["plot"].read_bytes()
     assert data.startswith(PNG_MAGIC)
     assert len(data) > 10_000  # two histograms with axes and titles, not an empty image
+
+
+def test_improve_outputs_have_a_new_files_mode(improved):
+    # every output is written to a temporary file and renamed; the mesh, the report and
+    # the plot must all get the mode any new file gets (umask), not mkstemp's 0600
+    umask = os.umask(0)
+    os.umask(umask)
+    for name in ("out", "report", "plot"):
+        assert improved[name].stat().st_mode & 0o777 == 0o666 & ~umask, name
+    assert sorted(p.name for p in improved["out"].parent.iterdir()) == [
+        "hist.png",
+        "out.vtu",
+        "report.json",
+    ]
 
 
 def test_improve_prints_summary(improved, small):

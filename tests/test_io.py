@@ -550,6 +550,29 @@ def test_overwrite_false_and_file_mode(tmp_path, labelled):
     assert _listing(tmp_path) == ["m.vtu"]
 
 
+def test_replaced_outputs_keep_their_mode(tmp_path, labelled):
+    from jtet import _report
+
+    mesh, report = tmp_path / "m.vtu", tmp_path / "r.json"
+    _io.save(labelled, mesh)
+    _report.write_text_atomic(report, "{}")
+    for path, mode in ((mesh, 0o640), (report, 0o604)):
+        os.chmod(path, mode)
+    _io.save(labelled.replace(region=labelled.region * 2), mesh)
+    _report.write_text_atomic(report, '{"a": 1}')
+    assert mesh.stat().st_mode & 0o777 == 0o640
+    assert report.stat().st_mode & 0o777 == 0o604
+    assert report.read_text() == '{"a": 1}'
+    assert _listing(tmp_path) == ["m.vtu", "r.json"]
+
+
+def test_write_text_to_missing_directory(tmp_path):
+    from jtet import _report
+
+    with pytest.raises(MeshFileError, match="cannot write"):
+        _report.write_text_atomic(tmp_path / "no" / "r.json", "{}")
+
+
 # ---------------------------------------------------------------------------------------
 # demo meshes
 
