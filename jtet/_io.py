@@ -5,7 +5,9 @@ Readers: ``.vtu`` / ``.vtk`` through VTK's own readers; ``.msh`` (Gmsh 2.2 and 4
 is a ``MeshFileError`` (the file) or a ``MeshInputError`` (its contents) with the path and a
 one-line reason; VTK's and meshio's console chatter is captured, never printed.
 
-Region labels come from the first cell array found among ``REGION_ARRAYS``. Cells of lower
+Region labels come from the first cell array found among ``REGION_ARRAYS``; Gmsh files
+use their physical volume tags, or the elementary (volume entity) tags when no tet is in a
+physical group, so the surfaces between volumes stay (``_gmsh_regions``). Cells of lower
 dimension (the boundary triangles, lines and vertices Gmsh writes along the tets) are
 ignored; any other 3-D cell type is an error.
 """
@@ -18,6 +20,7 @@ import io
 import os
 import re
 import secrets
+import threading
 import warnings
 from pathlib import Path
 
@@ -378,7 +381,86 @@ def _meshio_module(fmt: str):
     return {"gmsh": meshio.gmsh, "medit": meshio.medit, "tetgen": meshio.tetgen}[fmt]
 
 
-def _meshio_to_arrays(m, source: str):
+# meshio's Gmsh 4.1 element reader is swapped for the duration of one read (see
+# ``_gmsh41_every_block``); reads in other threads wait
+_GMSH41_READ = threading.Lock()
+
+
+@contextlib.contextmanager
+def _gmsh41_every_block():
+    """Within it, meshio reads Gmsh 4.1 files whose element blocks are not all in physical
+    groups.
+
+    meshio 5.3 gives only the blocks of physical groups a ``gmsh:physical`` array, then
+    refuses its own mesh ("Incompatible cell data"). Gmsh writes such files with
+    ``Mesh.SaveAll = 1`` (``-save_all``) once any physical group is defined: users set it
+    when their physical groups are boundary surfaces and the tets are in none. Here each
+    block gets its entity's first physical tag, 0 for none.
+    """
+    try:
+        from meshio.gmsh import _gmsh41
+
+        original = _gmsh41._read_elements
+    except (ImportError, AttributeError):  # another meshio: its own reader as it is
+        yield
+        return
+
+    def read_elements(f, point_tags, physical_tags, *args):
+        cells, cell_data, cell_sets = original(f, point_tags, physical_tags, *args)
+        if physical_tags and len(cell_data.get("gmsh:physical", cells)) != len(cells):
+            entities = cell_data["gmsh:geometrical"]
+            cell_data["gmsh:physical"] = [
+                np.full(len(e), (physical_tags[b.dim].get(int(e[0])) or [0])[0] if len(e) else 0)
+                for b, e in zip(cells, entities, strict=True)
+            ]
+        return cells, cell_data, cell_sets
+
+    with _GMSH41_READ:
+        _gmsh41._read_elements = read_elements
+        try:
+            yield
+        finally:
+            _gmsh41._read_elements = original
+
+
+def _block_regions(m, blocks: list[int], source: str) -> np.ndarray | None:
+    """Region labels of the cells in ``blocks`` of the meshio mesh ``m``, from the first
+    of ``REGION_ARRAYS`` it has (None: no labels)."""
+    for name in REGION_ARRAYS:
+        if name in m.cell_data:
+            return np.concatenate([_labels(m.cell_data[name][i], name, source) for i in blocks])
+    return None
+
+
+def _gmsh_regions(m, blocks: list[int], source: str) -> np.ndarray | None:
+    """Region labels of the tets in ``blocks`` of a Gmsh file read by meshio ``m``.
+
+    Physical volume tags when every tet has one. When none has (no physical volume, or
+    a Gmsh 2.2 file written with ``Mesh.SaveAll``, which tags every element 0), the
+    elementary tags: the volume entities, whose shared surfaces must stay. When only
+    some have, the others are region 0, with a warning.
+    """
+
+    def tags(name):
+        if name not in m.cell_data:
+            return None
+        return np.concatenate([_labels(m.cell_data[name][i], name, source) for i in blocks])
+
+    physical = tags("gmsh:physical")
+    entity = tags("gmsh:geometrical")
+    if physical is not None and physical.all():
+        return physical
+    if physical is None or not physical.any():
+        return entity
+    warnings.warn(
+        f"{source}: {int((physical == 0).sum())} of {len(physical)} tets are in no physical "
+        "group; they get region 0",
+        stacklevel=4,
+    )
+    return physical
+
+
+def _meshio_to_arrays(m, source: str, fmt: str = ""):
     """Like ``grid_to_arrays`` for a ``meshio.Mesh``: tets of every tetra block, region."""
     keep_blocks, bad = [], {}
     for i, block in enumerate(m.cells):
@@ -398,19 +480,19 @@ def _meshio_to_arrays(m, source: str):
         )
     if not keep_blocks:
         only = ", ".join(f"{b.type} x {len(b.data)}" for b in m.cells) or "no cells"
-        raise MeshInputError(f"{source}: the mesh has no tetrahedra (only {only})")
+        hint = ""
+        if fmt == "gmsh":
+            hint = (
+                "; once physical groups are defined, Gmsh writes only their elements: add "
+                "a physical volume, or set Mesh.SaveAll = 1"
+            )
+        raise MeshInputError(f"{source}: the mesh has no tetrahedra (only {only}){hint}")
     tets = np.concatenate(
         [np.asarray(m.cells[i].data, np.int64).reshape(-1, 4) for i in keep_blocks]
     )
-    region = None
-    for name in REGION_ARRAYS:
-        if name in m.cell_data:
-            region = np.concatenate(
-                [_labels(m.cell_data[name][i], name, source) for i in keep_blocks]
-            )
-            if len(region) != len(tets):
-                raise MeshInputError(f"{source}: cell array {name!r} does not match the tets")
-            break
+    region = (_gmsh_regions if fmt == "gmsh" else _block_regions)(m, keep_blocks, source)
+    if region is not None and len(region) != len(tets):
+        raise MeshInputError(f"{source}: the region labels do not match the tets")
     points = np.asarray(m.points, dtype=np.float64)
     if points.ndim == 2 and points.shape[1] == 2:
         raise MeshInputError(f"{source}: the points are 2-D; jtet needs a 3-D tet mesh")
@@ -498,14 +580,14 @@ def load(path: str | os.PathLike) -> TetMesh:
     else:
         captured = ""
         try:
-            with _quiet_meshio() as buf:
+            with _quiet_meshio() as buf, _gmsh41_every_block():
                 m = _meshio_module(fmt).read(str(p))
         except Exception as e:
             captured = buf.getvalue()
             raise MeshFileError(
                 f"{p}: not a readable {_FORMAT_NAMES[fmt]} file ({_reason(e, captured)})"
             ) from None
-        arrays = _meshio_to_arrays(m, source)
+        arrays = _meshio_to_arrays(m, source, fmt)
     try:
         return TetMesh.from_arrays(*arrays, source=source)
     except MeshInputError as e:

@@ -258,6 +258,45 @@ def test_gmsh_physical_volumes_become_regions(tmp_path, name, text):
     assert jtet.TetMesh.from_pyvista(g).region.tolist() == [7, 9]
 
 
+def _msh41(volume_tags: tuple[str, str], surface_tag: str = "1 3") -> str:
+    """``MSH41`` with the physical tags of volume entities 1, 2 and surface 1 replaced
+    ("n t1 ..." lists; "0" for none), as Gmsh writes them with ``Mesh.SaveAll = 1``."""
+    lines = MSH41.splitlines()
+    i = lines.index("$Entities") + 2
+    lines[i] = f"1 0 0 0 1 1 0 {surface_tag} 0"
+    lines[i + 1] = f"1 0 0 0 1 1 1 {volume_tags[0]} 0"
+    lines[i + 2] = f"2 0 0 0 1 1 1 {volume_tags[1]} 0"
+    return "\n".join(lines) + "\n"
+
+
+def test_gmsh41_tets_in_no_physical_group(tmp_path):
+    # meshio 5.3 alone refuses these files ("Incompatible cell data 'gmsh:physical'")
+    path = tmp_path / "m.msh"
+    path.write_text(_msh41(("0", "0")))  # a physical surface only: the volume entities
+    assert _io.load(path).region.tolist() == [1, 2]
+    path.write_text(_msh41(("0", "0"), surface_tag="0"))  # no physical group at all
+    assert _io.load(path).region.tolist() == [1, 2]
+    path.write_text(_msh41(("1 7", "0")))  # one volume in a group, one in none
+    with pytest.warns(UserWarning, match="1 of 2 tets are in no physical group"):
+        assert _io.load(path).region.tolist() == [7, 0]
+    # the patched reader is meshio's own again after each read
+    from meshio.gmsh import _gmsh41
+
+    assert _gmsh41._read_elements.__module__ == _gmsh41.__name__
+
+
+def test_gmsh_file_without_tets_says_why(tmp_path):
+    path = tmp_path / "skin.msh"
+    lines = MSH41.splitlines()
+    start, end = lines.index("$Elements"), lines.index("$EndElements")
+    # only the triangle block: what Gmsh writes when only a surface is in a group
+    lines[start + 1 : end] = ["1 1 1 1", "2 1 2 1", "1 1 2 3"]
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(MeshInputError, match="no tetrahedra .* add a physical volume") as e:
+        _io.load(path)
+    _one_line(e)
+
+
 def test_medit_refs_become_regions(tmp_path):
     path = tmp_path / "m.mesh"
     path.write_text(MEDIT)
