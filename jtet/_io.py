@@ -536,6 +536,24 @@ def _reason(e: BaseException, captured: str = "") -> str:
     return f"{type(e).__name__}: {text}" if text else type(e).__name__
 
 
+def _check_tetgen_elements(ele: Path) -> None:
+    """Raise ``MeshInputError`` when the header of the TetGen ``.ele`` file gives other
+    elements than 4-node tets (``tetgen -o2`` writes 10-node ones), which meshio
+    refuses without a reason."""
+    try:
+        with open(ele, errors="replace") as f:
+            header = next((line for line in f if line.strip() and line.lstrip()[0] != "#"), "")
+    except OSError as e:
+        raise MeshFileError(f"{ele}: cannot read ({_reason(e)})") from None
+    fields = header.split("#")[0].split()  # elements, nodes per element, attributes
+    if len(fields) < 2 or not fields[1].isdigit() or int(fields[1]) == 4:
+        return  # meshio reads it, or fails with its own reason
+    if int(fields[1]) == 10:
+        count = int(fields[0]) if fields[0].isdigit() else 0
+        raise MeshInputError(_non_tet_message(str(ele), ["10-node tetrahedron"], [count], True))
+    raise MeshInputError(f"{ele}: {fields[1]} nodes per element; jtet reads 4-node tetrahedra")
+
+
 def load(path: str | os.PathLike) -> TetMesh:
     """Read a tetrahedral mesh file.
 
@@ -566,6 +584,7 @@ def load(path: str | os.PathLike) -> TetMesh:
         other = p.with_suffix(".ele" if ext == ".node" else ".node")
         if not other.is_file():
             raise MeshFileError(f"{p}: the TetGen companion file {other.name} is missing")
+        _check_tetgen_elements(p.with_suffix(".ele"))
     source = str(p)
     if fmt in ("vtu", "vtk"):
         try:

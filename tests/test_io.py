@@ -321,6 +321,28 @@ def test_tetgen_without_attributes_has_region_zero(tmp_path):
     assert _io.load(tmp_path / "m.ele").region.tolist() == [0, 0]
 
 
+def test_tetgen_zero_based_numbering(tmp_path):
+    # ``tetgen -z`` numbers nodes and elements from 0
+    node = "\n".join(
+        ["5 3 0 0", *(f"{i} {x} {y} {z}" for i, (x, y, z) in enumerate(PTS5.tolist()))]
+    )
+    (tmp_path / "z.node").write_text(node + "\n")
+    (tmp_path / "z.ele").write_text("2 4 0\n0 0 1 2 3\n1 1 2 3 4\n")
+    np.testing.assert_array_equal(_io.load(tmp_path / "z.node").tets, TETS2)
+
+
+@pytest.mark.parametrize(("nodes", "reason"), [(10, "quadratic"), (8, "8 nodes per element")])
+def test_tetgen_other_elements_say_so(tmp_path, nodes, reason):
+    # ``tetgen -o2`` writes 10-node tets; meshio refused them without a reason
+    (tmp_path / "m.node").write_text(TETGEN_NODE)
+    ids = " ".join(["1", "2", "3", "4", "5"] * 2)[: 2 * nodes - 1]
+    (tmp_path / "m.ele").write_text(f"# header comment\n1 {nodes} 0\n1 {ids}\n")
+    for name in ("m.node", "m.ele"):
+        with pytest.raises(MeshInputError, match=reason) as e:
+            _io.load(tmp_path / name)
+        _one_line(e)
+
+
 # ---------------------------------------------------------------------------------------
 # bad inputs: the specific jtet exception, with the path and a useful reason
 
