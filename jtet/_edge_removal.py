@@ -366,11 +366,12 @@ def _changes_surface(mesh, hinge: np.ndarray, n_cand) -> np.ndarray:
 
 
 def _protected_updates(mesh: TetMesh, edges: np.ndarray):
-    """Old/new user-protected faces of winning interior-surface edges (4-4 flips)."""
+    """Old/new user-protected faces of winning surface edges: interior-surface edges
+    (4-4 flips) and boundary edges (2-2 flips of two coplanar boundary faces)."""
     T = mesh.topology
     if len(mesh.protected_faces) == 0:
         return None, None
-    surf = edges[(T.edge_n_subfacets[edges] == 2) & ~T.edge_boundary[edges]]
+    surf = edges[T.edge_n_subfacets[edges] == 2]
     if len(surf) == 0:
         return None, None
     # the two subfacets at ab: faces (a, b, x) and (a, b, y); after the flip the surface

@@ -528,8 +528,10 @@ def _face_kinds(face_tets, region, protected):
 def _surface_ids(face_tets, region, boundary_face, interface_face, protected):
     """(F,) id of the bounding surface of every subfacet (-1 elsewhere): the rank of its
     surface kind among the kinds present, so it depends on the subfacets only."""
-    # Surface identity: the (region, region) pair it separates; user-protected faces
-    # inside one region form surfaces of their own kind.
+    # Surface identity: the (region, region) pair it separates, and whether the user
+    # protected it: protected faces inside one region form surfaces of their own, and a
+    # protected patch of the boundary or of an interface is a surface apart from the rest
+    # of it, so the edges around the patch are subsegments and no flip moves its border.
     sub = np.flatnonzero(boundary_face | interface_face | protected)
     ft = face_tets[sub]
     two = ft[:, 1] >= 0
@@ -537,7 +539,7 @@ def _surface_ids(face_tets, region, boundary_face, interface_face, protected):
     r1 = np.where(two, region[np.maximum(ft[:, 1], 0)], r0)
     rmin, rmax = np.minimum(r0, r1), np.maximum(r0, r1)
     c0 = np.where(boundary_face[sub], -1, rmin)
-    c2 = protected[sub] & ~interface_face[sub] & ~boundary_face[sub]
+    c2 = protected[sub]
     # rank of the row (c0, rmax, c2) among the distinct rows, as np.unique(axis=0) would
     # give, from one 1-D key: values replaced by their rank keep the lexicographic order
     vals, vrank = np.unique(np.concatenate([c0, rmax]), return_inverse=True)

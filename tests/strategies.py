@@ -52,6 +52,7 @@ class MeshSpec:
     n_regions: int = 2
     protect_edges: float = 0.0  # fraction of edges protected
     protect_faces: float = 0.0  # fraction of interior faces protected
+    protect_boundary: float = 0.0  # fraction of boundary faces protected
 
 
 def _points(spec: MeshSpec, rng: np.random.Generator) -> np.ndarray:
@@ -123,14 +124,19 @@ def build_mesh(spec: MeshSpec) -> jtet.TetMesh | None:
         e = np.unique(np.sort(mesh.tets[:, [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]], 2)
                       .reshape(-1, 2), axis=0)  # fmt: skip
         pe = e[rng.random(len(e)) < spec.protect_edges]
-    if spec.protect_faces:
+    if spec.protect_faces or spec.protect_boundary:
         f, cnt = np.unique(
             np.sort(mesh.tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], 2).reshape(-1, 3),
             axis=0,
             return_counts=True,
         )
-        f = f[cnt == 2]
-        pf = f[rng.random(len(f)) < spec.protect_faces]
+        pf = np.zeros((0, 3), np.int64)
+        if spec.protect_faces:
+            inner = f[cnt == 2]
+            pf = inner[rng.random(len(inner)) < spec.protect_faces]
+        if spec.protect_boundary:  # their 2-2 flips must keep them protected
+            outer = f[cnt == 1]
+            pf = np.concatenate([pf, outer[rng.random(len(outer)) < spec.protect_boundary]])
     return jtet.TetMesh(pts, mesh.tets, region, pf, pe)
 
 
@@ -152,13 +158,14 @@ def mesh_specs(draw, damage: bool | None = None, labels: bool | None = None) -> 
     n_moved = draw(st.integers(1, 6)) if moved else 0
     move = draw(st.sampled_from([0.02, 0.05, 0.1, 0.3])) if moved else 0.0
     lab = draw(st.booleans()) if labels is None else labels
-    regions, n_regions, pe, pf = "none", 2, 0.0, 0.0
+    regions, n_regions, pe, pf, pb = "none", 2, 0.0, 0.0, 0.0
     if lab:
         regions = draw(st.sampled_from(REGIONS))
         n_regions = draw(st.integers(2, 4))
         pe = draw(st.sampled_from([0.0, 0.0, 0.05, 0.3]))
         pf = draw(st.sampled_from([0.0, 0.0, 0.05, 0.2]))
-    return MeshSpec(kind, n, seed, scale, n_moved, move, regions, n_regions, pe, pf)
+        pb = draw(st.sampled_from([0.0, 0.0, 0.3, 1.0]))
+    return MeshSpec(kind, n, seed, scale, n_moved, move, regions, n_regions, pe, pf, pb)
 
 
 @st.composite

@@ -559,3 +559,45 @@ def test_vertex_ids_above_2_to_16_change_nothing():
     np.testing.assert_array_equal(b.mesh.tets, a.mesh.tets + 70_000)
     np.testing.assert_array_equal(b.mesh.points[70_000:], a.mesh.points)
     assert [h["successes"] for h in b.history] == [h["successes"] for h in a.history]
+
+
+def _border_edges(faces: np.ndarray) -> set:
+    """Edges in exactly one of the triangles ``faces`` (k, 3): the border of the patch."""
+    e = np.sort(faces[:, [[0, 1], [0, 2], [1, 2]]].reshape(-1, 2), axis=1)
+    rows, count = np.unique(e, axis=0, return_counts=True)
+    return set(map(tuple, rows[count == 1].tolist()))
+
+
+def _area(mesh, faces: np.ndarray) -> float:
+    p = mesh.points[faces]
+    return 0.5 * float(np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum())
+
+
+@pytest.mark.parametrize("part", ["all", "half"])
+def test_protected_boundary_faces_stay_protected_through_flips(part):
+    """A 2-2 flip of two coplanar protected boundary faces removed them from the mesh but
+    not from ``protected_faces``: the run stopped at pass 11 with "protected face ... is
+    not a face of the mesh". Now a protected patch of the boundary is a surface of its
+    own: flips may re-triangulate it (the new faces are protected), never move its
+    border, and the run ends where the unprotected one does."""
+    mesh = jtet.demo_mesh("two_regions")
+    T = mesh.topology
+    boundary = np.sort(T.faces[T.boundary_face], axis=1)
+    if part == "half":  # a patch whose border crosses flat faces of the box
+        boundary = boundary[mesh.points[boundary].mean(axis=1)[:, 0] < 0.5]
+    result = jtet.improve(mesh.replace(protected_faces=boundary), check=True)
+    assert result.status == "converged"
+    out = result.mesh
+    To = out.topology
+    out_boundary = set(map(tuple, np.sort(To.faces[To.boundary_face], axis=1).tolist()))
+    protected = out.protected_faces
+    assert set(map(tuple, protected.tolist())) <= out_boundary
+    assert _area(out, protected) == pytest.approx(_area(mesh, boundary), rel=1e-12)
+    assert _border_edges(protected) == _border_edges(boundary)
+    if part == "all":
+        # measured: 4 protected faces flipped, so the swap path is tested
+        assert set(map(tuple, protected.tolist())) != set(map(tuple, boundary.tolist()))
+        # protecting the whole boundary splits no surface: the run is the unprotected one
+        plain = jtet.improve(mesh)
+        assert [h["successes"] for h in result.history] == [h["successes"] for h in plain.history]
+        assert result.stats_after.min_dihedral == plain.stats_after.min_dihedral
