@@ -285,6 +285,58 @@ def test_gmsh41_tets_in_no_physical_group(tmp_path):
     assert _gmsh41._read_elements.__module__ == _gmsh41.__name__
 
 
+def test_gmsh_interior_triangles_become_protected_faces(tmp_path):
+    # the two tets share face (2, 3, 4) (1-based); a triangle element there is an embedded
+    # or internal surface: protected, so flips and smoothing keep it. The boundary
+    # triangle (1, 2, 3) is the boundary anyway; (1, 2, 5) is no face of a tet.
+    lines = MSH22.splitlines()
+    start, end = lines.index("$Elements"), lines.index("$EndElements")
+    elements = lines[start + 2 : end] + ["6 2 2 4 1 2 3 4", "7 2 2 4 1 1 2 5"]
+    lines[start + 1 : end] = [str(len(elements)), *elements]
+    path = tmp_path / "inner.msh"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.warns(UserWarning, match="1 triangle.* not faces of its tets"):
+        m = _io.load(path)
+    assert m.protected_faces.tolist() == [[1, 2, 3]]
+    assert m.region.tolist() == [7, 9]
+
+
+def test_gmsh_embedded_surface_survives_improve(tmp_path):
+    """A Gmsh surface embedded in a volume (``gmsh.model.mesh.embed``) stays where it is.
+    Before its triangles were protected, smoothing moved its vertices up to 0.033 off the
+    plane (h = 0.08)."""
+    gmsh = pytest.importorskip("gmsh")
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        box = gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
+        square = gmsh.model.occ.addRectangle(0.2, 0.2, 0.5, 0.6, 0.6)
+        gmsh.model.occ.synchronize()
+        gmsh.model.mesh.embed(2, [square], 3, box)
+        gmsh.model.addPhysicalGroup(3, [box], 1)
+        gmsh.model.addPhysicalGroup(2, [square], 20)
+        for name, value in (("MeshSizeMax", 0.15), ("Algorithm3D", 1), ("Optimize", 0)):
+            gmsh.option.setNumber(f"Mesh.{name}", value)
+        gmsh.model.mesh.generate(3)
+        gmsh.write(str(tmp_path / "embedded.msh"))
+    finally:
+        gmsh.finalize()
+    mesh = _io.load(tmp_path / "embedded.msh")
+    inner = mesh.protected_faces
+    assert len(inner) > 10 and np.allclose(mesh.points[inner][..., 2], 0.5)
+    result = jtet.improve(mesh, check=True)
+    out = result.mesh
+    assert result.stats_after.min_dihedral > result.stats_before.min_dihedral
+    on_plane = out.points[out.protected_faces]
+    assert np.array_equal(on_plane[..., 2], np.full(on_plane.shape[:2], 0.5))
+
+    def area(points, faces):
+        p = points[faces]
+        return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
+
+    assert area(out.points, out.protected_faces) == pytest.approx(0.36, rel=1e-12)
+
+
 def test_gmsh_file_without_tets_says_why(tmp_path):
     path = tmp_path / "skin.msh"
     lines = MSH41.splitlines()
