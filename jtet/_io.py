@@ -9,8 +9,8 @@ Region labels come from the first cell array found among ``REGION_ARRAYS``; Gmsh
 use their physical volume tags, or the elementary (volume entity) tags when no tet is in a
 physical group, so the surfaces between volumes stay (``_gmsh_regions``). Cells of lower
 dimension (the boundary triangles, lines and vertices Gmsh writes along the tets) are
-ignored, except the triangles of Gmsh and Medit files that lie between two tets: those
-become protected faces (``_interior_triangles``). Any other 3-D cell type is an error.
+ignored, except the triangles that lie between two tets: those become protected faces
+(``_interior_triangles``). Any other 3-D cell type is an error.
 """
 
 from __future__ import annotations
@@ -40,6 +40,7 @@ PROTECTED_FACES_ARRAY = "jtet:protected_faces"
 PROTECTED_EDGES_ARRAY = "jtet:protected_edges"
 
 _VTK_TETRA = 10
+_VTK_TRIANGLE = 5
 # Quadratic and higher-order tetrahedra: VTK_QUADRATIC_TETRA, VTK_HIGHER_ORDER_TETRAHEDRON,
 # VTK_LAGRANGE_TETRAHEDRON, VTK_BEZIER_TETRAHEDRON.
 _VTK_HIGH_ORDER_TETS = (24, 64, 71, 78)
@@ -142,8 +143,10 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     """Arrays of a tet mesh from a ``pyvista.UnstructuredGrid``.
 
     Accepts anything ``pyvista.wrap`` turns into a dataset (a VTK object, a ``meshio.Mesh``,
-    ...). Cells of dimension 0-2 are ignored; every 3-D cell must be a linear tetrahedron
-    (``VTK_TETRA``), otherwise ``MeshInputError`` names the offending types and counts.
+    ...). Cells of dimension 0-2 are ignored, but triangles between two tets (embedded or
+    internal surfaces) become protected faces; every 3-D cell must be a linear
+    tetrahedron (``VTK_TETRA``), otherwise ``MeshInputError`` names the offending types
+    and counts.
 
     Returns:
         ``(points (n, 3) float64, tets (m, 4) int64, region (m,) int64 or None,
@@ -207,6 +210,15 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     region = _pick_region(dict(grid.cell_data), n_cells, is_tet, source)
     pf = _field_entities(grid, PROTECTED_FACES_ARRAY, 3)
     pe = _field_entities(grid, PROTECTED_EDGES_ARRAY, 2)
+    is_tri = celltypes == _VTK_TRIANGLE
+    inner = None
+    if is_tri.any():  # e.g. Gmsh's VTK export: embedded surfaces stay, as from .msh
+        tri = conn[offsets[:-1][is_tri][:, None] + np.arange(3)]
+        inner = _interior_triangles(tets, tri, len(points), source)
+    if inner is not None:
+        pf = (
+            inner if pf is None else np.unique(np.concatenate([np.sort(pf, axis=1), inner]), axis=0)
+        )
     return points, tets, region, pf, pe
 
 
@@ -603,8 +615,7 @@ def load(path: str | os.PathLike) -> TetMesh:
     tags -> region), ``.mesh`` / ``.meshb`` (Medit; references -> region), ``.node`` /
     ``.ele`` (TetGen, both files next to each other; first element attribute -> region).
     Lower-dimensional cells (boundary triangles, lines, vertices) are ignored; triangles
-    of ``.msh`` / ``.mesh`` files between two tets (embedded or internal surfaces) become
-    protected faces. A globally reversed orientation is fixed with a warning (see
+    between two tets (embedded or internal surfaces) become protected faces. A globally reversed orientation is fixed with a warning (see
     ``TetMesh.from_arrays``).
 
     Raises:

@@ -301,6 +301,16 @@ def test_gmsh_interior_triangles_become_protected_faces(tmp_path):
     assert m.region.tolist() == [7, 9]
 
 
+def test_vtk_interior_triangles_become_protected_faces(tmp_path):
+    # the same in a VTK grid (Gmsh's VTK export writes its triangles as cells too)
+    cells = {pv.CellType.TETRA: TETS2, pv.CellType.TRIANGLE: np.array([[1, 2, 3], [0, 1, 2]])}
+    grid = pv.UnstructuredGrid(cells, PTS5)
+    m = jtet.TetMesh.from_pyvista(grid)
+    assert m.protected_faces.tolist() == [[1, 2, 3]]  # (0, 1, 2) is a boundary face
+    grid.save(tmp_path / "m.vtu")
+    assert _io.load(tmp_path / "m.vtu").protected_faces.tolist() == [[1, 2, 3]]
+
+
 def test_gmsh_embedded_surface_survives_improve(tmp_path):
     """A Gmsh surface embedded in a volume (``gmsh.model.mesh.embed``) stays where it is.
     Before its triangles were protected, smoothing moved its vertices up to 0.033 off the
