@@ -251,3 +251,25 @@ def test_slide_next_to_inverted_boundary_tets_keeps_the_surface():
     out, stats = smooth_pass(mesh, measure="biased_min_sine", boundary="slide")
     assert len(stats.moved) > 0
     InvariantChecker(mesh).check(out, 0, "smooth")
+
+
+# --- a boundary edge removal under a feature angle folded the boundary onto itself (fuzz:
+# perturbed grid, 5 vertices moved, feature angle 60). Removing boundary edge 55-63
+# recreated face (39, 51, 55), a boundary face of a kept tet, from the other side: the
+# face became interior and vertex 55 left the boundary, whose faces around it became
+# (39, 51, 63). Count and orientations there are those of an interior face, so the
+# conformity check let it pass; a new face on a kept tet's boundary face is now refused.
+def test_boundary_flip_does_not_fold_the_boundary_onto_itself():
+    from strategies import MeshSpec, build_mesh
+
+    from jtet._invariants import _surface_signature
+
+    spec = MeshSpec(kind="grid", n_points=20, seed=4294967294, scale=0.4, n_moved=5, move=0.02)
+    mesh = build_mesh(spec)._with_feature_angle(60.0)
+    assert _bad(mesh) > 0
+    out, stats, _ = edge_removal_pass(mesh, measure="biased_min_sine", max_ring=3)
+    assert stats.successes > 0
+    np.testing.assert_array_equal(
+        _surface_signature(out, "boundary")[2], _surface_signature(mesh, "boundary")[2]
+    )
+    InvariantChecker(mesh).check(out, 0, "edge")
