@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import io
+import itertools
 import os
 import re
 import secrets
@@ -510,8 +511,10 @@ def _interior_triangles(tets: np.ndarray, tri: np.ndarray, n: int, source: str):
     return inner if len(inner) else None
 
 
-def _meshio_to_arrays(m, source: str, fmt: str = ""):
-    """Like ``grid_to_arrays`` for a ``meshio.Mesh``: tets of every tetra block, region."""
+def _meshio_to_arrays(m, source: str, fmt: str = "", triangles: np.ndarray | None = None):
+    """Like ``grid_to_arrays`` for a ``meshio.Mesh``: tets of every tetra block, region,
+    and as protected faces the triangles between two tets, of its triangle blocks and of
+    ``triangles`` (k, 3) (a TetGen ``.face`` file)."""
     keep_blocks, bad = [], {}
     for i, block in enumerate(m.cells):
         dim = getattr(block, "dim", 3)
@@ -546,11 +549,42 @@ def _meshio_to_arrays(m, source: str, fmt: str = ""):
     points = np.asarray(m.points, dtype=np.float64)
     if points.ndim == 2 and points.shape[1] == 2:
         raise MeshInputError(f"{source}: the points are 2-D; jtet needs a 3-D tet mesh")
-    triangles = [
-        np.asarray(b.data, np.int64).reshape(-1, 3) for b in m.cells if b.type == "triangle"
-    ]
-    tri = np.concatenate(triangles) if triangles else np.zeros((0, 3), np.int64)
+    blocks = [np.asarray(b.data, np.int64).reshape(-1, 3) for b in m.cells if b.type == "triangle"]
+    tri = np.concatenate([np.zeros((0, 3), np.int64), *blocks])
+    if triangles is not None:
+        tri = np.concatenate([tri, triangles])
     return points, tets, region, _interior_triangles(tets, tri, len(points), source), None
+
+
+def _tetgen_faces(node: Path) -> np.ndarray | None:
+    """(k, 3) 0-based vertex ids of the triangles in the TetGen ``.face`` file next to
+    ``node``: TetGen lists the boundary and the constrained internal facets of its mesh
+    there. None when there is no such file; an unreadable one is ignored with a warning
+    (the mesh itself is in ``.node`` / ``.ele``)."""
+    face = node.with_suffix(".face")
+    if not face.is_file():
+        return None
+
+    def rows(path):  # data lines, without comments
+        with open(path, errors="replace") as f:
+            for line in f:
+                data = line.split("#")[0].split()
+                if data:
+                    yield data
+
+    try:
+        base = int(float(next(itertools.islice(rows(node), 1, None))[0]))  # first node id
+        lines = rows(face)
+        count = int(next(lines)[0])
+        ids = np.array([r[1:4] for r in itertools.islice(lines, count)], dtype=np.int64)
+        if ids.shape != (count, 3):
+            raise ValueError(f"{count} faces announced, {len(ids)} read")
+    except (OSError, ValueError, IndexError, StopIteration) as e:
+        warnings.warn(
+            f"{face}: not a readable TetGen face file ({_reason(e)}); ignored", stacklevel=3
+        )
+        return None
+    return ids - base
 
 
 def _meshio_mesh(mesh: TetMesh, fmt: str, cell_data: dict):
@@ -613,7 +647,8 @@ def load(path: str | os.PathLike) -> TetMesh:
 
     Formats by extension: ``.vtu``, ``.vtk`` (VTK), ``.msh`` (Gmsh 2.2 / 4.1; physical
     tags -> region), ``.mesh`` / ``.meshb`` (Medit; references -> region), ``.node`` /
-    ``.ele`` (TetGen, both files next to each other; first element attribute -> region).
+    ``.ele`` (TetGen, both files next to each other; first element attribute -> region;
+    the ``.face`` file, if there is one, for internal facets).
     Lower-dimensional cells (boundary triangles, lines, vertices) are ignored; triangles
     between two tets (embedded or internal surfaces) become protected faces. A globally reversed orientation is fixed with a warning (see
     ``TetMesh.from_arrays``).
@@ -661,7 +696,8 @@ def load(path: str | os.PathLike) -> TetMesh:
             raise MeshFileError(
                 f"{p}: not a readable {_FORMAT_NAMES[fmt]} file ({_reason(e, captured)})"
             ) from None
-        arrays = _meshio_to_arrays(m, source, fmt)
+        faces = _tetgen_faces(p.with_suffix(".node")) if fmt == "tetgen" else None
+        arrays = _meshio_to_arrays(m, source, fmt, faces)
     try:
         return TetMesh.from_arrays(*arrays, source=source)
     except MeshInputError as e:
