@@ -14,6 +14,7 @@ import dataclasses
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 from ._errors import JtetError
@@ -289,6 +290,14 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """``warnings.showwarning`` for the command line: "jtet: warning: <message>"."""
+    text = " ".join(str(message).split())
+    if category is not UserWarning:  # e.g. a library's RuntimeWarning: say which kind
+        text = f"{text} ({category.__name__})"
+    print(f"jtet: warning: {text}", file=sys.stderr if file is None else file)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -297,7 +306,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         # a Ctrl-C is remembered even if JAX's gc callback swallows it, from jtet's import
         # on (reading the input included): the optimizer then stops and 130 is returned
-        with catch_ctrl_c(earlier=True):
+        with catch_ctrl_c(earlier=True), warnings.catch_warnings():
+            # jtet's warnings about the user's data as one line each, like its errors,
+            # without Python's file and source line (once per distinct message)
+            warnings.simplefilter("default")
+            warnings.showwarning = _show_warning
             if pressed():  # while jtet was imported: do nothing at all
                 raise KeyboardInterrupt
             return args.func(args)

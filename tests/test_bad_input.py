@@ -306,6 +306,20 @@ def test_all_negative_is_reoriented():
     assert mesh.is_valid().ok
 
 
+def test_cli_prints_warnings_as_one_line(tmp_path, capsys):
+    # the command line says "jtet: warning: <what>", as it says "jtet: error: <what>",
+    # not Python's "<file>:<line>: UserWarning:" with a line of jtet's source after it
+    m = delaunay_mesh(40, seed=3)
+    path = tmp_path / "negative.vtu"
+    jtet.save(jtet.TetMesh(m.points, m.tets[:, [1, 0, 2, 3]]), path)
+    capsys.readouterr()
+    assert cli.main(["stats", str(path)]) == 0
+    err = capsys.readouterr().err
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("jtet: warning: "), err
+    assert "negatively oriented; reoriented" in lines[0]
+
+
 def _inverted_mesh():
     m = delaunay_mesh(100, seed=3)
     pts = m.points.copy()
