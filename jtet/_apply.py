@@ -28,15 +28,19 @@ def replace_tets(
     kept = mesh.tets[~remove]
     tets = np.concatenate([kept, new_tets.astype(np.int64)])
     region = np.concatenate([mesh.region[~remove], new_region.astype(np.int64)])
-    protected = mesh.protected_faces
+    protected, labels = mesh.protected_faces, mesh.protected_face_labels
     if old_protected is not None and len(old_protected) and len(protected):
         idx = match_rows(protected, old_protected, mesh.n_points)
         hit = idx >= 0
         keep = np.ones(len(protected), bool)
         keep[idx[hit]] = False
         protected = np.concatenate([protected[keep], np.sort(new_protected[hit], axis=1)])
+        # a new face carries the surface, hence the label, of the old face it replaces
+        labels = np.concatenate([labels[keep], labels[idx[hit]]])
     # only the new tets are checked: the kept ones come from a checked mesh
-    changes = {} if protected is mesh.protected_faces else {"protected_faces": protected}
+    changes = {}
+    if protected is not mesh.protected_faces:
+        changes = {"protected_faces": protected, "protected_face_labels": labels}
     out = mesh._derive(tets=tets, region=region, tets_checked=len(kept), **changes)
     if "topology" in mesh.__dict__:  # cached_property already computed on the old mesh
         from ._topology_update import update_topology

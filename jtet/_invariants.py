@@ -67,6 +67,7 @@ class InvariantChecker:
         self.boundary = _surface_signature(mesh, "boundary")
         self.interface = _surface_signature(mesh, "interface")
         self.n_inverted = self._count_bad(mesh)
+        self.labelled = self._label_areas(mesh)
         self.scale = float(np.abs(mesh.volumes).sum())
         # with a feature angle, flips may replace bent subfacets: the surfaces keep their
         # vertices and labels, but their shape and the volumes they enclose change
@@ -76,6 +77,15 @@ class InvariantChecker:
     def _region_volumes(mesh: TetMesh) -> dict:
         labels, inv = np.unique(mesh.region, return_inverse=True)
         return dict(zip(labels.tolist(), np.bincount(inv, mesh.volumes).tolist(), strict=True))
+
+    @staticmethod
+    def _label_areas(mesh: TetMesh) -> dict:
+        """Area of the protected faces of each label: flips re-triangulate a labelled
+        patch but never move its border, so each label keeps its area."""
+        f = mesh.points[mesh.protected_faces]
+        area = np.linalg.norm(np.cross(f[:, 1] - f[:, 0], f[:, 2] - f[:, 0]), axis=1) / 2.0
+        labels, inv = np.unique(mesh.protected_face_labels, return_inverse=True)
+        return dict(zip(labels.tolist(), np.bincount(inv, area).tolist(), strict=True))
 
     @staticmethod
     def _count_bad(mesh: TetMesh) -> int:
@@ -104,6 +114,18 @@ class InvariantChecker:
         bad = self._count_bad(mesh)
         if bad > self.n_inverted:
             fail(f"{bad - self.n_inverted} new inverted or degenerate tet(s)")
+        labelled = self._label_areas(mesh)
+        if labelled.keys() != self.labelled.keys():
+            fail(
+                f"protected face labels changed from {sorted(self.labelled)} to {sorted(labelled)}"
+            )
+        total = max(sum(self.labelled.values()), 1e-300)
+        if self.exact_surfaces and any(
+            abs(labelled[k] - a) > 1e-12 * total for k, a in self.labelled.items()
+        ):
+            fail(
+                f"the area of protected faces per label changed from {self.labelled} to {labelled}"
+            )
         for which, ref in (("boundary", self.boundary), ("interface", self.interface)):
             labels, sig, verts = _surface_signature(mesh, which)
             same = np.array_equal(labels, ref[0]) and np.array_equal(verts, ref[2])

@@ -8,9 +8,10 @@ one-line reason; VTK's and meshio's console chatter is captured, never printed.
 Region labels come from the first cell array found among ``REGION_ARRAYS``; Gmsh files
 use their physical volume tags, or the elementary (volume entity) tags when no tet is in a
 physical group, so the surfaces between volumes stay (``_gmsh_regions``). Cells of lower
-dimension (the boundary triangles, lines and vertices Gmsh writes along the tets) are
-ignored, except the triangles that lie between two tets: those become protected faces
-(``_interior_triangles``). Any other 3-D cell type is an error.
+dimension are ignored (lines, vertices), except the triangles that are faces of the tets:
+they become protected faces with their labels (physical surface tags, references, facet
+markers), which the Gmsh and Medit savers write back (``_mesh_triangles``). Any other 3-D
+cell type is an error.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ REGION_ARRAYS = ("region", "gmsh:physical", "medit:ref", "CellEntityIds", "tetge
 #: Field-data arrays in which ``mesh_to_grid`` stores the protected faces / edges.
 PROTECTED_FACES_ARRAY = "jtet:protected_faces"
 PROTECTED_EDGES_ARRAY = "jtet:protected_edges"
+PROTECTED_FACE_LABELS_ARRAY = "jtet:protected_face_labels"
 
 _VTK_TETRA = 10
 _VTK_TRIANGLE = 5
@@ -144,16 +146,17 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     """Arrays of a tet mesh from a ``pyvista.UnstructuredGrid``.
 
     Accepts anything ``pyvista.wrap`` turns into a dataset (a VTK object, a ``meshio.Mesh``,
-    ...). Cells of dimension 0-2 are ignored, but triangles between two tets (embedded or
-    internal surfaces) become protected faces; every 3-D cell must be a linear
+    ...). Cells of dimension 0-2 are ignored, but triangles that are faces of the tets
+    become protected faces, labelled by the region array; every 3-D cell must be a linear
     tetrahedron (``VTK_TETRA``), otherwise ``MeshInputError`` names the offending types
     and counts.
 
     Returns:
         ``(points (n, 3) float64, tets (m, 4) int64, region (m,) int64 or None,
-        protected_faces (k, 3) or None, protected_edges (k, 2) or None)``: the arguments of
-        ``TetMesh.from_arrays``. Region labels come from the first of ``REGION_ARRAYS``;
-        protected entities from the field data written by ``mesh_to_grid``.
+        protected_faces (k, 3) or None, protected_edges (k, 2) or None, protected face
+        labels (k,) or None)``: the arguments of ``TetMesh.from_arrays``. Region labels
+        come from the first of ``REGION_ARRAYS``; protected entities from the field data
+        written by ``mesh_to_grid`` and the triangle cells that are faces of the tets.
     """
     import pyvista as pv
 
@@ -211,16 +214,21 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     region = _pick_region(dict(grid.cell_data), n_cells, is_tet, source)
     pf = _field_entities(grid, PROTECTED_FACES_ARRAY, 3)
     pe = _field_entities(grid, PROTECTED_EDGES_ARRAY, 2)
+    labels = None
+    if pf is not None:
+        labels = np.zeros(len(pf), np.int64)
+        if PROTECTED_FACE_LABELS_ARRAY in grid.field_data:
+            labels = _labels(grid.field_data[PROTECTED_FACE_LABELS_ARRAY], "labels", source)
     is_tri = celltypes == _VTK_TRIANGLE
-    inner = None
-    if is_tri.any():  # e.g. Gmsh's VTK export: embedded surfaces stay, as from .msh
+    if is_tri.any():  # e.g. Gmsh's VTK export: as from .msh, labelled by the region array
         tri = conn[offsets[:-1][is_tri][:, None] + np.arange(3)]
-        inner = _interior_triangles(tets, tri, len(points), source)
-    if inner is not None:
-        pf = (
-            inner if pf is None else np.unique(np.concatenate([np.sort(pf, axis=1), inner]), axis=0)
-        )
-    return points, tets, region, pf, pe
+        tri_labels = _pick_region(dict(grid.cell_data), n_cells, is_tri, source)
+        tri_labels = np.zeros(len(tri), np.int64) if tri_labels is None else tri_labels
+        faces, tri_labels = _mesh_triangles(tets, tri, tri_labels, len(points), source)
+        if faces is not None:  # the field data's own faces first: their labels win
+            pf = faces if pf is None else np.concatenate([pf, faces])
+            labels = tri_labels if labels is None else np.concatenate([labels, tri_labels])
+    return points, tets, region, pf, pe, labels
 
 
 def _check_cell_data(mesh: TetMesh, cell_data: dict | None) -> dict:
@@ -245,8 +253,9 @@ def _check_cell_data(mesh: TetMesh, cell_data: dict | None) -> dict:
 
 def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
     """A ``pyvista.UnstructuredGrid`` of ``mesh``: tetra cells, a ``region`` cell array,
-    the arrays of ``cell_data`` (name -> (m, ...) array), and the protected faces / edges
-    (when any) as field data ``jtet:protected_faces`` / ``jtet:protected_edges``."""
+    the arrays of ``cell_data`` (name -> (m, ...) array), and the protected faces, their
+    labels and the protected edges (when any) as field data ``jtet:protected_faces``,
+    ``jtet:protected_face_labels``, ``jtet:protected_edges``."""
     import pyvista as pv
 
     extra = _check_cell_data(mesh, cell_data)
@@ -259,6 +268,7 @@ def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
         grid.cell_data[name] = np.array(a)
     if len(mesh.protected_faces):
         grid.field_data[PROTECTED_FACES_ARRAY] = np.array(mesh.protected_faces)
+        grid.field_data[PROTECTED_FACE_LABELS_ARRAY] = np.array(mesh.protected_face_labels)
     if len(mesh.protected_edges):
         grid.field_data[PROTECTED_EDGES_ARRAY] = np.array(mesh.protected_edges)
     return grid
@@ -446,6 +456,18 @@ def _block_regions(m, blocks: list[int], source: str) -> np.ndarray | None:
     return None
 
 
+def _gmsh_tags(m, blocks: list[int], source: str):
+    """(physical, elementary) tags (each (k,) or None) of the cells in ``blocks`` of a
+    Gmsh file read by meshio ``m``; physical 0: in no physical group."""
+
+    def tags(name):
+        if name not in m.cell_data:
+            return None
+        return np.concatenate([_labels(m.cell_data[name][i], name, source) for i in blocks])
+
+    return tags("gmsh:physical"), tags("gmsh:geometrical")
+
+
 def _gmsh_regions(m, blocks: list[int], source: str) -> np.ndarray | None:
     """Region labels of the tets in ``blocks`` of a Gmsh file read by meshio ``m``.
 
@@ -454,14 +476,7 @@ def _gmsh_regions(m, blocks: list[int], source: str) -> np.ndarray | None:
     elementary tags: the volume entities, whose shared surfaces must stay. When only
     some have, the others are region 0, with a warning.
     """
-
-    def tags(name):
-        if name not in m.cell_data:
-            return None
-        return np.concatenate([_labels(m.cell_data[name][i], name, source) for i in blocks])
-
-    physical = tags("gmsh:physical")
-    entity = tags("gmsh:geometrical")
+    physical, entity = _gmsh_tags(m, blocks, source)
     if physical is not None and physical.all():
         return physical
     if physical is None or not physical.any():
@@ -474,22 +489,32 @@ def _gmsh_regions(m, blocks: list[int], source: str) -> np.ndarray | None:
     return physical
 
 
-def _interior_triangles(tets: np.ndarray, tri: np.ndarray, n: int, source: str):
-    """The triangles ``tri`` (k, 3) of a file that lie between two of its tets ``tets``
-    (m, 4), as sorted rows, or None when there are none.
+def _gmsh_surface_labels(m, blocks: list[int], source: str) -> np.ndarray | None:
+    """Labels of the triangles in ``blocks`` of a Gmsh file: their physical surface tags
+    (0 for a triangle in none) when any has one, else their surface entities."""
+    physical, entity = _gmsh_tags(m, blocks, source)
+    return physical if physical is not None and physical.any() else entity
 
-    These are embedded or internal surfaces (a Gmsh surface embedded in a volume, the
-    surface between two volumes of one physical group): as protected faces they stay in
-    place. Left as ordinary faces, flips would cut through them and smoothing would move
-    their vertices off them. Boundary triangles are the mesh's boundary anyway.
-    Triangles that are no face of a tet are ignored with a warning.
+
+def _mesh_triangles(tets: np.ndarray, tri: np.ndarray, labels, n: int, source: str):
+    """The triangles ``tri`` (k, 3) of a file that are faces of its tets ``tets`` (m, 4),
+    as sorted rows, with their ``labels`` (k,): ``(faces, labels)``, or ``(None, None)``
+    when there are none. A triangle listed twice keeps its first label.
+
+    They become protected faces. A labelled patch of the boundary (a Gmsh physical
+    surface, a Medit reference, a TetGen facet marker) keeps its border and is written
+    back with its label; a surface between two tets (embedded in a volume, or between
+    two volumes of one region) stays in place, where as ordinary faces flips would cut
+    through it and smoothing would move its vertices off it. Triangles that are no face
+    of a tet are ignored with a warning.
     """
     from ._topology import TET_FACES, row_keys
 
     if not len(tri) or not len(tets) or tets.min() < 0 or tets.max() >= n:
-        return None  # from_arrays reports bad tets
-    tri = np.unique(np.sort(tri, axis=1), axis=0)
-    tri = tri[(tri.min(axis=1) >= 0) & (tri.max(axis=1) < n)]
+        return None, None  # from_arrays reports bad tets
+    inside = (tri.min(axis=1) >= 0) & (tri.max(axis=1) < n)
+    tri, first = np.unique(np.sort(tri[inside], axis=1), axis=0, return_index=True)
+    labels = np.asarray(labels, np.int64)[inside][first]
     # only tets with three triangle vertices can have such a face (a few percent of the
     # tets for boundary triangles: 0.7 -> 0.07 s for a 983k-tet cube)
     marked = np.zeros(n, bool)
@@ -498,23 +523,23 @@ def _interior_triangles(tets: np.ndarray, tri: np.ndarray, n: int, source: str):
     faces = np.sort(near[:, TET_FACES].reshape(-1, 3), axis=1)
     faces = faces[marked[faces].all(axis=1)]
     keys = row_keys(np.concatenate([faces, tri]), n)  # one call: keys that compare
-    face_keys, tri_keys = keys[: len(faces)], keys[len(faces) :]
-    hits = np.sort(face_keys[np.isin(face_keys, tri_keys)])
-    n_tets = np.searchsorted(hits, tri_keys, "right") - np.searchsorted(hits, tri_keys, "left")
-    strays = int((n_tets == 0).sum()) + (len(tri_keys) - len(tri))
+    is_face = np.isin(keys[len(faces) :], keys[: len(faces)])
+    strays = int((~is_face).sum()) + int((~inside).sum())
     if strays:
         warnings.warn(
             f"{source}: {strays} triangle(s) of the file are not faces of its tets; ignored",
             stacklevel=4,
         )
-    inner = tri[n_tets == 2]
-    return inner if len(inner) else None
+    if not is_face.any():
+        return None, None
+    return tri[is_face], labels[is_face]
 
 
-def _meshio_to_arrays(m, source: str, fmt: str = "", triangles: np.ndarray | None = None):
+def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None):
     """Like ``grid_to_arrays`` for a ``meshio.Mesh``: tets of every tetra block, region,
-    and as protected faces the triangles between two tets, of its triangle blocks and of
-    ``triangles`` (k, 3) (a TetGen ``.face`` file)."""
+    and as labelled protected faces the triangles of its triangle blocks and of
+    ``triangles`` ((k, 3) ids, (k,) labels: a TetGen ``.face`` file) that are faces of
+    the tets (``_mesh_triangles``)."""
     keep_blocks, bad = [], {}
     for i, block in enumerate(m.cells):
         dim = getattr(block, "dim", 3)
@@ -549,18 +574,25 @@ def _meshio_to_arrays(m, source: str, fmt: str = "", triangles: np.ndarray | Non
     points = np.asarray(m.points, dtype=np.float64)
     if points.ndim == 2 and points.shape[1] == 2:
         raise MeshInputError(f"{source}: the points are 2-D; jtet needs a 3-D tet mesh")
-    blocks = [np.asarray(b.data, np.int64).reshape(-1, 3) for b in m.cells if b.type == "triangle"]
-    tri = np.concatenate([np.zeros((0, 3), np.int64), *blocks])
+    blocks = [i for i, b in enumerate(m.cells) if b.type == "triangle"]
+    tri = np.zeros((0, 3), np.int64)
+    labels = np.zeros(0, np.int64)
+    if blocks:
+        tri = np.concatenate([np.asarray(m.cells[i].data, np.int64).reshape(-1, 3) for i in blocks])
+        found = (_gmsh_surface_labels if fmt == "gmsh" else _block_regions)(m, blocks, source)
+        labels = np.zeros(len(tri), np.int64) if found is None else found
     if triangles is not None:
-        tri = np.concatenate([tri, triangles])
-    return points, tets, region, _interior_triangles(tets, tri, len(points), source), None
+        tri = np.concatenate([tri, triangles[0]])
+        labels = np.concatenate([labels, triangles[1]])
+    faces, labels = _mesh_triangles(tets, tri, labels, len(points), source)
+    return points, tets, region, faces, None, labels
 
 
-def _tetgen_faces(node: Path) -> np.ndarray | None:
+def _tetgen_faces(node: Path) -> tuple[np.ndarray, np.ndarray] | None:
     """(k, 3) 0-based vertex ids of the triangles in the TetGen ``.face`` file next to
-    ``node``: TetGen lists the boundary and the constrained internal facets of its mesh
-    there. None when there is no such file; an unreadable one is ignored with a warning
-    (the mesh itself is in ``.node`` / ``.ele``)."""
+    ``node`` and their (k,) boundary markers (0 without): TetGen lists the boundary and
+    the constrained internal facets of its mesh there. None when there is no such file;
+    an unreadable one is ignored with a warning (the mesh is in ``.node`` / ``.ele``)."""
     face = node.with_suffix(".face")
     if not face.is_file():
         return None
@@ -575,34 +607,44 @@ def _tetgen_faces(node: Path) -> np.ndarray | None:
     try:
         base = int(float(next(itertools.islice(rows(node), 1, None))[0]))  # first node id
         lines = rows(face)
-        count = int(next(lines)[0])
-        ids = np.array([r[1:4] for r in itertools.islice(lines, count)], dtype=np.int64)
-        if ids.shape != (count, 3):
-            raise ValueError(f"{count} faces announced, {len(ids)} read")
+        header = next(lines)
+        count, with_markers = int(header[0]), len(header) > 1 and int(header[1]) == 1
+        data = [r[1 : 5 if with_markers else 4] for r in itertools.islice(lines, count)]
+        table = np.array(data, dtype=np.int64)
+        if table.shape != (count, 4 if with_markers else 3):
+            raise ValueError(f"{count} faces announced, {len(data)} read")
     except (OSError, ValueError, IndexError, StopIteration) as e:
         warnings.warn(
             f"{face}: not a readable TetGen face file ({_reason(e)}); ignored", stacklevel=3
         )
         return None
-    return ids - base
+    markers = table[:, 3] if with_markers else np.zeros(count, np.int64)
+    return table[:, :3] - base, markers
 
 
 def _meshio_mesh(mesh: TetMesh, fmt: str, cell_data: dict):
     import meshio
 
     region = np.array(mesh.region, dtype=np.int64)
+    blocks = [meshio.CellBlock("tetra", np.array(mesh.tets, dtype=np.int64))]
     if fmt == "gmsh":
         data = {"gmsh:physical": [region], "gmsh:geometrical": [region]}
-        data.update({k: [np.asarray(v)] for k, v in cell_data.items()})
+        if not len(mesh.protected_faces):  # see ``save``: not with a triangle block
+            data.update({k: [np.asarray(v)] for k, v in cell_data.items()})
     elif fmt == "medit":
         data = {"medit:ref": [region]}
     else:
-        data = {"tetgen:ref": [region]}
-    return meshio.Mesh(
-        np.array(mesh.points, dtype=np.float64),
-        [meshio.CellBlock("tetra", np.array(mesh.tets, dtype=np.int64))],
-        cell_data=data,
-    )
+        return meshio.Mesh(
+            np.array(mesh.points, np.float64), blocks, cell_data={"tetgen:ref": [region]}
+        )
+    if len(mesh.protected_faces):
+        # the protected faces as triangle elements, their labels as physical tags /
+        # references (Gmsh physical surfaces, Medit references: what solvers read)
+        blocks.append(meshio.CellBlock("triangle", np.array(mesh.protected_faces, np.int64)))
+        labels = np.array(mesh.protected_face_labels, np.int64)
+        for arrays in data.values():
+            arrays.append(labels)
+    return meshio.Mesh(np.array(mesh.points, dtype=np.float64), blocks, cell_data=data)
 
 
 # ---------------------------------------------------------------------------------------
@@ -648,10 +690,10 @@ def load(path: str | os.PathLike) -> TetMesh:
     Formats by extension: ``.vtu``, ``.vtk`` (VTK), ``.msh`` (Gmsh 2.2 / 4.1; physical
     tags -> region), ``.mesh`` / ``.meshb`` (Medit; references -> region), ``.node`` /
     ``.ele`` (TetGen, both files next to each other; first element attribute -> region;
-    the ``.face`` file, if there is one, for internal facets).
-    Lower-dimensional cells (boundary triangles, lines, vertices) are ignored; triangles
-    between two tets (embedded or internal surfaces) become protected faces. A globally reversed orientation is fixed with a warning (see
-    ``TetMesh.from_arrays``).
+    the ``.face`` file, if there is one, with its facet markers). Triangles that are faces
+    of the tets become protected faces, labelled by their physical tags / references /
+    markers; lines and vertices are ignored. A globally reversed orientation is fixed
+    with a warning (see ``TetMesh.from_arrays``).
 
     Raises:
         MeshFileError: the file is missing, a directory, of unknown extension, or unreadable.
@@ -788,25 +830,35 @@ def save(
         dropped = list(cell_data)
         if len(dropped) > 4:
             dropped = [f"{len(dropped)} cell arrays ({', '.join(dropped[:3])}, ...)"]
-        if len(mesh.protected_faces) or len(mesh.protected_edges):
-            dropped.append("protected faces/edges")
+        if fmt == "tetgen" and len(mesh.protected_faces):
+            dropped.append("protected faces")
+        if len(mesh.protected_edges):
+            dropped.append("protected edges")
         if dropped:
+            stored = "region labels" + (" and labelled triangles" if fmt == "medit" else "")
             warnings.warn(
-                f"{p}: the {_FORMAT_NAMES[fmt]} format stores only the region labels; "
+                f"{p}: the {_FORMAT_NAMES[fmt]} format stores only the {stored}; "
                 f"not saved: {', '.join(dropped)}",
                 stacklevel=2,
             )
-    elif fmt == "gmsh" and (len(mesh.protected_faces) or len(mesh.protected_edges)):
-        warnings.warn(
-            f"{p}: protected faces/edges are not saved in Gmsh files (use .vtu)", stacklevel=2
-        )
-    if fmt in ("gmsh", "medit") and len(mesh.region):
-        lo, hi = int(mesh.region.min()), int(mesh.region.max())
-        if lo < -(2**31) or hi >= 2**31:
-            raise MeshFileError(
-                f"{p}: region labels [{lo}, {hi}] do not fit the 32-bit tags of the "
-                f"{_FORMAT_NAMES[fmt]} format"
+    elif fmt == "gmsh":
+        dropped = ["protected edges"] if len(mesh.protected_edges) else []
+        if len(mesh.protected_faces) and cell_data:
+            # meshio 5.3 writes element data over two element blocks in a way its own
+            # reader refuses ("Incompatible cell data"): the labelled triangles win
+            dropped.insert(0, f"{len(cell_data)} cell array(s) (with surface triangles)")
+        if dropped:
+            warnings.warn(
+                f"{p}: not saved in the Gmsh file: {', '.join(dropped)} (use .vtu)", stacklevel=2
             )
+    for what, values in (("region", mesh.region), ("surface", mesh.protected_face_labels)):
+        if fmt in ("gmsh", "medit") and len(values):
+            lo, hi = int(values.min()), int(values.max())
+            if lo < -(2**31) or hi >= 2**31:
+                raise MeshFileError(
+                    f"{p}: {what} labels [{lo}, {hi}] do not fit the 32-bit tags of the "
+                    f"{_FORMAT_NAMES[fmt]} format"
+                )
     targets = [p]
     if fmt == "tetgen":
         targets = [p.with_suffix(".node"), p.with_suffix(".ele")]

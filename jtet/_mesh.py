@@ -157,6 +157,10 @@ class TetMesh:
         protected_faces: (k, 3) int64 user-protected triangles (sorted vertex triples);
             they are subfacets in addition to the boundary and region interfaces.
         protected_edges: (k, 2) int64 user-protected edges (sorted pairs); subsegments.
+        protected_face_labels: (k,) int64 label of every protected face (0 when the
+            input gave none): a Gmsh physical surface, a Medit reference, a TetGen facet
+            marker. Faces of different labels are different surfaces, so flips never move
+            the border between two labels, and the savers write the labels back.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it
@@ -168,6 +172,7 @@ class TetMesh:
     region: Int[np.ndarray, " m"] = field(default=None)
     protected_faces: Int[np.ndarray, "k 3"] = field(default=None)
     protected_edges: Int[np.ndarray, "k 2"] = field(default=None)
+    protected_face_labels: Int[np.ndarray, " k"] = field(default=None)
 
     def __post_init__(self):
         points = _checked_points(self.points)
@@ -177,13 +182,14 @@ class TetMesh:
             raise MeshInputError(
                 f"region must have one label per tet ({len(tets)}), got {region.shape}"
             )
-        pf = self._entity_array(self.protected_faces, 3, "protected_faces", len(points))
+        pf, pl = self._face_array(self.protected_faces, self.protected_face_labels, len(points))
         pe = self._entity_array(self.protected_edges, 2, "protected_edges", len(points))
         object.__setattr__(self, "points", _readonly(points))
         object.__setattr__(self, "tets", _readonly(tets))
         object.__setattr__(self, "region", _readonly(region))
         object.__setattr__(self, "protected_faces", _readonly(pf))
         object.__setattr__(self, "protected_edges", _readonly(pe))
+        object.__setattr__(self, "protected_face_labels", _readonly(pl))
 
     def _derive(self, *, tets_checked: int = 0, **changes) -> TetMesh:
         """``replace(**changes)`` checking only what is new.
@@ -215,11 +221,13 @@ class TetMesh:
                 raise MeshInputError(
                     f"region must have one label per tet ({len(tets)}), got {region.shape}"
                 )
-        pf, pe = self.protected_faces, self.protected_edges
-        if "protected_faces" in changes or len(points) != self.n_points:
-            pf = self._entity_array(
-                changes.get("protected_faces", pf), 3, "protected_faces", len(points)
+        pf, pe, pl = self.protected_faces, self.protected_edges, self.protected_face_labels
+        if "protected_faces" in changes:  # new faces: new labels, 0 unless given
+            pf, pl = self._face_array(
+                changes["protected_faces"], changes.get("protected_face_labels"), len(points)
             )
+        elif "protected_face_labels" in changes or len(points) != self.n_points:
+            pf, pl = self._face_array(pf, changes.get("protected_face_labels", pl), len(points))
         if "protected_edges" in changes or len(points) != self.n_points:
             pe = self._entity_array(
                 changes.get("protected_edges", pe), 2, "protected_edges", len(points)
@@ -232,6 +240,7 @@ class TetMesh:
             ("region", region),
             ("protected_faces", pf),
             ("protected_edges", pe),
+            ("protected_face_labels", pl),
         ):
             object.__setattr__(out, name, _readonly(value))
         return out
@@ -270,6 +279,28 @@ class TetMesh:
             raise MeshInputError(f"{name} entry {a[rep][0].tolist()} repeats a vertex")
         return np.unique(a, axis=0)
 
+    @classmethod
+    def _face_array(cls, faces, labels, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+        """Protected faces as sorted, distinct vertex triples (k, 3) and their labels (k,);
+        a face listed twice keeps the label it is first listed with."""
+        if faces is None or np.asarray(faces).size == 0:
+            if labels is not None and np.asarray(labels).size:
+                raise MeshInputError("protected_face_labels given without protected_faces")
+            return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
+        raw = np.asarray(faces)
+        pf = cls._entity_array(raw, 3, "protected_faces", n_points)  # checks, sorts, dedupes
+        if labels is None:
+            return pf, np.zeros(len(pf), np.int64)
+        lab = np.asarray(labels).reshape(-1)
+        if lab.shape != (len(raw),):
+            raise MeshInputError(
+                f"protected_face_labels must have one label per protected face "
+                f"({len(raw)}), got {np.shape(labels)}"
+            )
+        lab = cls._labels(lab, len(raw))
+        _, first = np.unique(np.sort(raw.astype(np.int64), axis=1), axis=0, return_index=True)
+        return pf, lab[first]
+
     # ------------------------------------------------------------------ constructors
     @classmethod
     def from_arrays(
@@ -279,6 +310,7 @@ class TetMesh:
         region=None,
         protected_faces=None,
         protected_edges=None,
+        protected_face_labels=None,
         *,
         source: str = "input",
     ) -> TetMesh:
@@ -292,7 +324,7 @@ class TetMesh:
         warning. Otherwise a mesh mixing both orientations is kept as it is: its negative
         tets are truly inverted (reported by ``is_valid()``; edge removal can repair some).
         """
-        mesh = cls(points, tets, region, protected_faces, protected_edges)
+        mesh = cls(points, tets, region, protected_faces, protected_edges, protected_face_labels)
         vol = _orient_volumes6(mesh.points, mesh.tets)
         neg, pos = int((vol < 0).sum()), int((vol > 0).sum())
         if neg and not pos:
@@ -302,7 +334,7 @@ class TetMesh:
                 stacklevel=2,
             )
             t = mesh.tets[:, [1, 0, 2, 3]]
-            mesh = cls(mesh.points, t, mesh.region, mesh.protected_faces, mesh.protected_edges)
+            mesh = mesh.replace(tets=t)
         elif neg and len(face_conflicts(mesh.tets, mesh.n_points)[1]):
             # Mixed orientation with inconsistent vertex orders (e.g. the simplices of
             # scipy.spatial.Delaunay): if listing every negative tet the other way round
@@ -324,7 +356,7 @@ class TetMesh:
                     "convention of positive volume",
                     stacklevel=2,
                 )
-                mesh = cls(mesh.points, t, mesh.region, mesh.protected_faces, mesh.protected_edges)
+                mesh = mesh.replace(tets=t)
             else:
                 warnings.warn(
                     f"{source}: the tets' vertex orders are inconsistent (tets sharing a face "
@@ -415,6 +447,7 @@ class TetMesh:
             self.region[sel],
             protected_faces=local[self.protected_faces[faces_in]],
             protected_edges=local[self.protected_edges[edges_in]],
+            protected_face_labels=self.protected_face_labels[faces_in],
         )
         return sub._with_feature_angle(self._feature_angle), verts, faces_in
 

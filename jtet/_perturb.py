@@ -326,12 +326,16 @@ class _Submesh:
         protected = np.concatenate(
             [mesh.protected_faces[~self.pf_in], to_global[sub.protected_faces]]
         )
+        labels = np.concatenate(
+            [mesh.protected_face_labels[~self.pf_in], sub.protected_face_labels]
+        )
         out = mesh._derive(
             points=points,
             tets=np.concatenate([mesh.tets[keep], to_global[sub.tets]]),
             tets_checked=int(keep.sum()),
             region=np.concatenate([mesh.region[keep], sub.region]),
             protected_faces=protected,
+            protected_face_labels=labels,
         )
         return out, keep
 
@@ -355,7 +359,8 @@ class Outcome:
         mesh = self.mesh
         if mesh is not None:
             mesh = (mesh.points, mesh.tets, mesh.region, mesh.protected_faces,
-                    mesh.protected_edges, mesh._feature_angle)  # fmt: skip
+                    mesh.protected_edges, mesh.protected_face_labels,
+                    mesh._feature_angle)  # fmt: skip
         return Outcome(self.key, mesh, self.q, self.stats, self.seconds, self.stop)
 
     def submesh(self):
@@ -364,8 +369,8 @@ class Outcome:
             return self.mesh
         from ._mesh import TetMesh
 
-        points, tets, region, faces, edges, angle = self.mesh
-        return TetMesh(points, tets, region, faces, edges)._with_feature_angle(angle)
+        *arrays, angle = self.mesh
+        return TetMesh(*arrays)._with_feature_angle(angle)
 
 
 class RoundState:
@@ -392,7 +397,8 @@ class RoundState:
         """The round's start, for ``start`` in another process (from the snapshot: an
         attempt may be changing ``sub`` on another thread meanwhile)."""
         m, q, lo, hi, _ = self.start_state
-        mesh = (m.points, m.tets, m.region, m.protected_faces, m.protected_edges)
+        mesh = (m.points, m.tets, m.region, m.protected_faces, m.protected_edges,
+                m.protected_face_labels)  # fmt: skip
         elapsed = time.perf_counter() - self.t0
         return (mesh, m._feature_angle, q, lo, hi, self.sub.opts, self.worst, self.good,
                 elapsed, self.kickable)  # fmt: skip

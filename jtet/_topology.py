@@ -357,7 +357,9 @@ class Topology:
         # reports its face error, as when they ran first.
         face_part, edge_part, vertex_part = run_parts(
             [
-                lambda: _face_groups(tets, n, region, mesh.protected_faces, it),
+                lambda: _face_groups(
+                    tets, n, region, mesh.protected_faces, it, mesh.protected_face_labels
+                ),
                 lambda: _edge_groups(tets, n, it),
                 lambda: _vertex_groups(tets, n, it),
             ],
@@ -391,10 +393,13 @@ class Topology:
         )
 
 
-def _face_groups(tets, n: int, region, protected_faces, it) -> dict[str, np.ndarray]:
+def _face_groups(
+    tets, n: int, region, protected_faces, it, protected_labels=None
+) -> dict[str, np.ndarray]:
     """The face fields of ``Topology`` (faces .. surface_id) of the tets (m, 4) of a mesh
-    with n points, ids of type ``it``; raises ``MeshInputError`` for a face in more than
-    two tets or a protected face that is not a face."""
+    with n points, ids of type ``it``, protected faces (k, 3) with labels (k,) (None:
+    0); raises ``MeshInputError`` for a face in more than two tets or a protected face
+    that is not a face."""
     m = len(tets)
     tf = sorted_rows(tets, TET_FACES).reshape(-1, 3)  # (4m, 3)
     fperm, fptr, inv = _group(row_keys(tf, n), it)
@@ -422,13 +427,18 @@ def _face_groups(tets, n: int, region, protected_faces, it) -> dict[str, np.ndar
     side0, side1 = np.take(face_tets[:, 0], tet_faces), np.take(face_tets[:, 1], tet_faces)
     other = np.where(side0 == np.arange(m, dtype=it)[:, None], side1, side0)
     protected = np.zeros(F, bool)
+    label = np.zeros(F, np.int64)
     if len(protected_faces):
         idx = match_rows(faces, protected_faces, n)
         if (idx < 0).any():
             bad = protected_faces[idx < 0][0].tolist()
             raise MeshInputError(f"protected face {bad} is not a face of the mesh")
         protected[idx] = True
-    boundary_face, interface_face, subfacet, surface_id = _face_flags(face_tets, region, protected)
+        if protected_labels is not None:
+            label[idx] = protected_labels
+    boundary_face, interface_face, subfacet, surface_id = _face_flags(
+        face_tets, region, protected, label
+    )
     return dict(
         faces=faces,
         tet_faces=tet_faces,
@@ -503,15 +513,15 @@ def _vertex_groups(tets, n: int, it) -> dict[str, np.ndarray]:
     return dict(vert_tets_ptr=vert_tets_ptr, vert_tets=(vorder // 4).astype(it))
 
 
-def _face_flags(face_tets, region, protected):
+def _face_flags(face_tets, region, protected, label):
     """Boundary, interface, subfacet flags (F,) and surface ids (F,) of every face.
 
     ``face_tets`` (F, 2) with -1 in slot 1 for a boundary face, ``region`` (m,) tet labels,
-    ``protected`` (F,) bool user-protected faces. Shared by ``Topology.build`` and the
-    incremental update so both give identical arrays.
+    ``protected`` (F,) bool user-protected faces, ``label`` (F,) their labels. Shared by
+    ``Topology.build`` and the incremental update so both give identical arrays.
     """
     boundary_face, interface_face, subfacet = _face_kinds(face_tets, region, protected)
-    surface_id = _surface_ids(face_tets, region, boundary_face, interface_face, protected)
+    surface_id = _surface_ids(face_tets, region, boundary_face, interface_face, protected, label)
     return boundary_face, interface_face, subfacet, surface_id
 
 
@@ -525,13 +535,14 @@ def _face_kinds(face_tets, region, protected):
     return boundary_face, interface_face, boundary_face | interface_face | protected
 
 
-def _surface_ids(face_tets, region, boundary_face, interface_face, protected):
+def _surface_ids(face_tets, region, boundary_face, interface_face, protected, label):
     """(F,) id of the bounding surface of every subfacet (-1 elsewhere): the rank of its
     surface kind among the kinds present, so it depends on the subfacets only."""
-    # Surface identity: the (region, region) pair it separates, and whether the user
-    # protected it: protected faces inside one region form surfaces of their own, and a
-    # protected patch of the boundary or of an interface is a surface apart from the rest
-    # of it, so the edges around the patch are subsegments and no flip moves its border.
+    # Surface identity: the (region, region) pair it separates, whether the user
+    # protected it and with which label: protected faces inside one region form surfaces
+    # of their own, and a protected patch of the boundary or of an interface (each label
+    # its own) is a surface apart from the rest of it, so the edges around the patch are
+    # subsegments and no flip moves its border.
     sub = np.flatnonzero(boundary_face | interface_face | protected)
     ft = face_tets[sub]
     two = ft[:, 1] >= 0
@@ -539,12 +550,16 @@ def _surface_ids(face_tets, region, boundary_face, interface_face, protected):
     r1 = np.where(two, region[np.maximum(ft[:, 1], 0)], r0)
     rmin, rmax = np.minimum(r0, r1), np.maximum(r0, r1)
     c0 = np.where(boundary_face[sub], -1, rmin)
-    c2 = protected[sub]
+    # 0: not protected; 1 + the rank of the label among the protected faces' labels
+    prot = protected[sub]
+    labels, lrank = np.unique(label[sub][prot], return_inverse=True)
+    c2 = np.zeros(len(sub), np.int64)
+    c2[prot] = 1 + lrank.reshape(-1)
     # rank of the row (c0, rmax, c2) among the distinct rows, as np.unique(axis=0) would
     # give, from one 1-D key: values replaced by their rank keep the lexicographic order
     vals, vrank = np.unique(np.concatenate([c0, rmax]), return_inverse=True)
     vrank = vrank.reshape(-1)
-    code = (vrank[: len(sub)] * np.int64(len(vals)) + vrank[len(sub) :]) * 2 + c2
+    code = (vrank[: len(sub)] * np.int64(len(vals)) + vrank[len(sub) :]) * (1 + len(labels)) + c2
     _, surface_code = np.unique(code, return_inverse=True)
     surface_id = np.full(len(face_tets), -1, face_tets.dtype)
     surface_id[sub] = surface_code.reshape(-1)

@@ -231,7 +231,8 @@ def _update(old: Topology, old_mesh, new_mesh, keep, feature_angle) -> Topology 
 
 def _update_face_flags(old: Topology, old_mesh, new_mesh, fu, region):
     """(boundary, interface, subfacet, surface_id) of the new faces, and the (new) ids of
-    the faces whose user protection changed; None if a protected face is missing.
+    the faces whose user protection or its label changed; None if a protected face is
+    missing.
 
     Carried faces keep their tets and regions, hence their flags; regrouped faces and
     those whose protection changed are recomputed. Surface ids rank the surface kinds
@@ -243,9 +244,17 @@ def _update_face_flags(old: Topology, old_mesh, new_mesh, fu, region):
     if (p_new < 0).any():
         return None
     p_old = fu.fmap[_lookup(old.face_keys, row_keys(old_mesh.protected_faces, n))]
-    prot_changed = np.setxor1d(p_new, p_old[p_old >= 0])
     protected = np.zeros(F1, bool)
     protected[p_new] = True
+    label = np.zeros(F1, np.int64)
+    label[p_new] = new_mesh.protected_face_labels
+    # the faces whose protection or label changed (a label change moves surface borders)
+    was = p_old >= 0
+    protected_before = np.zeros(F1, bool)
+    protected_before[p_old[was]] = True
+    label_before = np.zeros(F1, np.int64)
+    label_before[p_old[was]] = old_mesh.protected_face_labels[was]
+    prot_changed = np.flatnonzero((protected != protected_before) | (label != label_before))
     src = fu.src  # added faces (src >= F0, clipped) are all regrouped
     boundary_face = np.take(old.boundary_face, src, mode="clip")
     interface_face = np.take(old.interface_face, src, mode="clip")
@@ -253,7 +262,7 @@ def _update_face_flags(old: Topology, old_mesh, new_mesh, fu, region):
     redo = _ids(F1, fu.redo, prot_changed)
     b, i, sf = _face_kinds(fu.face_tets[redo], region, protected[redo])
     boundary_face[redo], interface_face[redo], subfacet[redo] = b, i, sf
-    surface_id = _surface_ids(fu.face_tets, region, boundary_face, interface_face, protected)
+    surface_id = _surface_ids(fu.face_tets, region, boundary_face, interface_face, protected, label)
     return boundary_face, interface_face, subfacet, surface_id, prot_changed
 
 

@@ -53,6 +53,7 @@ class MeshSpec:
     protect_edges: float = 0.0  # fraction of edges protected
     protect_faces: float = 0.0  # fraction of interior faces protected
     protect_boundary: float = 0.0  # fraction of boundary faces protected
+    face_labels: int = 0  # protected faces get labels 0 .. face_labels - 1 (0: all 0)
 
 
 def _points(spec: MeshSpec, rng: np.random.Generator) -> np.ndarray:
@@ -137,7 +138,12 @@ def build_mesh(spec: MeshSpec) -> jtet.TetMesh | None:
         if spec.protect_boundary:  # their 2-2 flips must keep them protected
             outer = f[cnt == 1]
             pf = np.concatenate([pf, outer[rng.random(len(outer)) < spec.protect_boundary]])
-    return jtet.TetMesh(pts, mesh.tets, region, pf, pe)
+    labels = None
+    if pf is not None and len(pf) and spec.face_labels:
+        # labels by position (a slab per label), so labelled patches have borders
+        c = pts[pf].mean(axis=1) @ rng.standard_normal(3)
+        labels = np.digitize(c, np.quantile(c, np.linspace(0, 1, spec.face_labels + 1)[1:-1]))
+    return jtet.TetMesh(pts, mesh.tets, region, pf, pe, labels)
 
 
 @st.composite
@@ -165,7 +171,8 @@ def mesh_specs(draw, damage: bool | None = None, labels: bool | None = None) -> 
         pe = draw(st.sampled_from([0.0, 0.0, 0.05, 0.3]))
         pf = draw(st.sampled_from([0.0, 0.0, 0.05, 0.2]))
         pb = draw(st.sampled_from([0.0, 0.0, 0.3, 1.0]))
-    return MeshSpec(kind, n, seed, scale, n_moved, move, regions, n_regions, pe, pf, pb)
+    fl = draw(st.sampled_from([0, 2, 3])) if lab else 0
+    return MeshSpec(kind, n, seed, scale, n_moved, move, regions, n_regions, pe, pf, pb, fl)
 
 
 @st.composite

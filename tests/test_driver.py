@@ -601,3 +601,25 @@ def test_protected_boundary_faces_stay_protected_through_flips(part):
         plain = jtet.improve(mesh)
         assert [h["successes"] for h in result.history] == [h["successes"] for h in plain.history]
         assert result.stats_after.min_dihedral == plain.stats_after.min_dihedral
+
+
+def test_labelled_boundary_patches_keep_their_borders_and_areas():
+    """Boundary faces labelled by x (two labels meeting on flat faces of the box, as two
+    Gmsh physical surfaces on one wall): flips may re-triangulate each patch, never move
+    the border between them, and every new face carries its patch's label."""
+    mesh = jtet.demo_mesh("two_regions")
+    T = mesh.topology
+    boundary = np.sort(T.faces[T.boundary_face], axis=1)
+    labels = np.where(mesh.points[boundary].mean(axis=1)[:, 0] < 0.5, 3, 8)
+    labelled = mesh.replace(protected_faces=boundary, protected_face_labels=labels)
+    result = jtet.improve(labelled, check=True)  # the checker compares areas per label
+    assert result.status == "converged"
+    out = result.mesh
+    for label in (3, 8):
+        before, after = (
+            boundary[labels == label],
+            out.protected_faces[out.protected_face_labels == label],
+        )
+        assert _area(out, after) == pytest.approx(_area(mesh, before), rel=1e-12)
+        assert _border_edges(after) == _border_edges(before)
+    assert len(out.protected_faces) == len(boundary)  # the whole boundary, still labelled
