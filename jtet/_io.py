@@ -447,25 +447,25 @@ def _gmsh41_every_block():
             _gmsh41._read_elements = original
 
 
+def _block_labels(m, blocks: list[int], name: str, source: str) -> np.ndarray | None:
+    """The integer cell array ``name`` of the meshio mesh ``m`` over the cells of
+    ``blocks``, concatenated (None when ``m`` has no such array)."""
+    if name not in m.cell_data:
+        return None
+    return np.concatenate([_labels(m.cell_data[name][i], name, source) for i in blocks])
+
+
 def _block_regions(m, blocks: list[int], source: str) -> np.ndarray | None:
     """Region labels of the cells in ``blocks`` of the meshio mesh ``m``, from the first
     of ``REGION_ARRAYS`` it has (None: no labels)."""
-    for name in REGION_ARRAYS:
-        if name in m.cell_data:
-            return np.concatenate([_labels(m.cell_data[name][i], name, source) for i in blocks])
-    return None
+    name = next((a for a in REGION_ARRAYS if a in m.cell_data), None)
+    return None if name is None else _block_labels(m, blocks, name, source)
 
 
 def _gmsh_tags(m, blocks: list[int], source: str):
     """(physical, elementary) tags (each (k,) or None) of the cells in ``blocks`` of a
     Gmsh file read by meshio ``m``; physical 0: in no physical group."""
-
-    def tags(name):
-        if name not in m.cell_data:
-            return None
-        return np.concatenate([_labels(m.cell_data[name][i], name, source) for i in blocks])
-
-    return tags("gmsh:physical"), tags("gmsh:geometrical")
+    return tuple(_block_labels(m, blocks, a, source) for a in ("gmsh:physical", "gmsh:geometrical"))
 
 
 def _gmsh_regions(m, blocks: list[int], source: str) -> np.ndarray | None:
