@@ -246,7 +246,7 @@ class TetMesh:
         return out
 
     @staticmethod
-    def _labels(region, m: int) -> np.ndarray:
+    def _labels(region, m: int, what: str = "region labels", item: str = "tet") -> np.ndarray:
         if region is None:
             return np.zeros(m, np.int64)
         r = np.asarray(region).reshape(-1)
@@ -256,9 +256,9 @@ class TetMesh:
             whole = np.isfinite(r) & (r == np.round(r))
             if not whole.all():
                 t = int(np.flatnonzero(~whole)[0])
-                raise MeshInputError(f"region labels must be integers; tet {t} has {r[t]!r}")
+                raise MeshInputError(f"{what} must be integers; {item} {t} has {float(r[t])!r}")
             return r.astype(np.int64)
-        raise MeshInputError(f"region labels must be integers, got dtype {r.dtype}")
+        raise MeshInputError(f"{what} must be integers, got dtype {r.dtype}")
 
     @staticmethod
     def _entity_array(a, k: int, name: str, n_points: int) -> np.ndarray:
@@ -297,7 +297,7 @@ class TetMesh:
                 f"protected_face_labels must have one label per protected face "
                 f"({len(raw)}), got {np.shape(labels)}"
             )
-        lab = cls._labels(lab, len(raw))
+        lab = cls._labels(lab, len(raw), "protected face labels", "protected face")
         _, first = np.unique(np.sort(raw.astype(np.int64), axis=1), axis=0, return_index=True)
         return pf, lab[first]
 

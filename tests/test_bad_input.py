@@ -306,6 +306,22 @@ def test_all_negative_is_reoriented():
     assert mesh.is_valid().ok
 
 
+def test_bad_protected_face_labels():
+    m = delaunay_mesh(40, seed=3)
+    faces = m.tets[:2, :3]
+    with pytest.raises(jtet.MeshInputError, match="one label per protected face"):
+        jtet.TetMesh(m.points, m.tets, protected_faces=faces, protected_face_labels=[1])
+    with pytest.raises(jtet.MeshInputError, match="protected face 1 has 2.5"):
+        jtet.TetMesh(m.points, m.tets, protected_faces=faces, protected_face_labels=[1, 2.5])
+    with pytest.raises(jtet.MeshInputError, match="without protected_faces"):
+        jtet.TetMesh(m.points, m.tets, protected_face_labels=[1])
+    # a face listed twice keeps its first label; replacing the faces resets the labels
+    twice = jtet.TetMesh(m.points, m.tets, protected_faces=faces[[0, 1, 0]],
+                         protected_face_labels=[7, 8, 9])  # fmt: skip
+    assert sorted(twice.protected_face_labels.tolist()) == [7, 8]
+    assert twice.replace(protected_faces=faces).protected_face_labels.tolist() == [0, 0]
+
+
 def test_cli_prints_warnings_as_one_line(tmp_path, capsys):
     # the command line says "jtet: warning: <what>", as it says "jtet: error: <what>",
     # not Python's "<file>:<line>: UserWarning:" with a line of jtet's source after it
