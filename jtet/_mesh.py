@@ -261,12 +261,13 @@ class TetMesh:
         raise MeshInputError(f"{what} must be integers, got dtype {r.dtype}")
 
     @staticmethod
-    def _entity_array(a, k: int, name: str, n_points: int) -> np.ndarray:
-        if a is None:
-            return np.zeros((0, k), np.int64)
+    def _entity_array(a, k: int, name: str, n_points: int, return_index: bool = False):
+        """Sorted, distinct vertex tuples (j, k) of ``a``; with ``return_index`` also the
+        index in ``a`` of each one's first listing (j,)."""
+        if a is None or np.asarray(a).size == 0:
+            empty = np.zeros((0, k), np.int64)
+            return (empty, np.zeros(0, np.int64)) if return_index else empty
         a = np.asarray(a)
-        if a.size == 0:
-            return np.zeros((0, k), np.int64)
         if a.ndim != 2 or a.shape[1] != k or not np.issubdtype(a.dtype, np.integer):
             raise MeshInputError(
                 f"{name} must be an integer array of shape (n, {k}), got {a.shape}"
@@ -277,7 +278,7 @@ class TetMesh:
         rep = (a[:, 1:] == a[:, :-1]).any(axis=1)
         if rep.any():
             raise MeshInputError(f"{name} entry {a[rep][0].tolist()} repeats a vertex")
-        return np.unique(a, axis=0)
+        return np.unique(a, axis=0, return_index=return_index)
 
     @classmethod
     def _face_array(cls, faces, labels, n_points: int) -> tuple[np.ndarray, np.ndarray]:
@@ -288,7 +289,7 @@ class TetMesh:
                 raise MeshInputError("protected_face_labels given without protected_faces")
             return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
         raw = np.asarray(faces)
-        pf = cls._entity_array(raw, 3, "protected_faces", n_points)  # checks, sorts, dedupes
+        pf, first = cls._entity_array(raw, 3, "protected_faces", n_points, return_index=True)
         if labels is None:
             return pf, np.zeros(len(pf), np.int64)
         lab = np.asarray(labels).reshape(-1)
@@ -297,9 +298,7 @@ class TetMesh:
                 f"protected_face_labels must have one label per protected face "
                 f"({len(raw)}), got {np.shape(labels)}"
             )
-        lab = cls._labels(lab, len(raw), "protected face labels", "protected face")
-        _, first = np.unique(np.sort(raw.astype(np.int64), axis=1), axis=0, return_index=True)
-        return pf, lab[first]
+        return pf, cls._labels(lab, len(raw), "protected face labels", "protected face")[first]
 
     # ------------------------------------------------------------------ constructors
     @classmethod

@@ -394,12 +394,12 @@ class Topology:
 
 
 def _face_groups(
-    tets, n: int, region, protected_faces, it, protected_labels=None
+    tets, n: int, region, protected_faces, it, protected_labels
 ) -> dict[str, np.ndarray]:
     """The face fields of ``Topology`` (faces .. surface_id) of the tets (m, 4) of a mesh
-    with n points, ids of type ``it``, protected faces (k, 3) with labels (k,) (None:
-    0); raises ``MeshInputError`` for a face in more than two tets or a protected face
-    that is not a face."""
+    with n points, ids of type ``it``, protected faces (k, 3) with labels (k,); raises
+    ``MeshInputError`` for a face in more than two tets or a protected face that is not
+    a face."""
     m = len(tets)
     tf = sorted_rows(tets, TET_FACES).reshape(-1, 3)  # (4m, 3)
     fperm, fptr, inv = _group(row_keys(tf, n), it)
@@ -434,8 +434,7 @@ def _face_groups(
             bad = protected_faces[idx < 0][0].tolist()
             raise MeshInputError(f"protected face {bad} is not a face of the mesh")
         protected[idx] = True
-        if protected_labels is not None:
-            label[idx] = protected_labels
+        label[idx] = protected_labels
     boundary_face, interface_face, subfacet, surface_id = _face_flags(
         face_tets, region, protected, label
     )

@@ -244,17 +244,18 @@ def _update_face_flags(old: Topology, old_mesh, new_mesh, fu, region):
     if (p_new < 0).any():
         return None
     p_old = fu.fmap[_lookup(old.face_keys, row_keys(old_mesh.protected_faces, n))]
+    was = p_old >= 0
+    # the faces whose protection or label changed (a label change moves surface borders),
+    # from the protected faces alone: no whole-mesh arrays per step
+    both, i_new, i_old = np.intersect1d(p_new, p_old[was], return_indices=True)
+    relabelled = both[
+        new_mesh.protected_face_labels[i_new] != old_mesh.protected_face_labels[was][i_old]
+    ]
+    prot_changed = np.union1d(np.setxor1d(p_new, p_old[was]), relabelled)
     protected = np.zeros(F1, bool)
     protected[p_new] = True
     label = np.zeros(F1, np.int64)
     label[p_new] = new_mesh.protected_face_labels
-    # the faces whose protection or label changed (a label change moves surface borders)
-    was = p_old >= 0
-    protected_before = np.zeros(F1, bool)
-    protected_before[p_old[was]] = True
-    label_before = np.zeros(F1, np.int64)
-    label_before[p_old[was]] = old_mesh.protected_face_labels[was]
-    prot_changed = np.flatnonzero((protected != protected_before) | (label != label_before))
     src = fu.src  # added faces (src >= F0, clipped) are all regrouped
     boundary_face = np.take(old.boundary_face, src, mode="clip")
     interface_face = np.take(old.interface_face, src, mode="clip")

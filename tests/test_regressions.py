@@ -273,3 +273,21 @@ def test_boundary_flip_does_not_fold_the_boundary_onto_itself():
         _surface_signature(out, "boundary")[2], _surface_signature(mesh, "boundary")[2]
     )
     InvariantChecker(mesh).check(out, 0, "edge")
+
+
+def test_checker_catches_labelled_area_and_label_changes():
+    # the checker's per-label areas: a face moved to another label changes two areas, a
+    # label that disappears changes the set (each fails on its own)
+    mesh = jtet.demo_mesh("two_regions")
+    T = mesh.topology
+    faces = np.sort(T.faces[T.boundary_face], axis=1)
+    labels = np.where(mesh.points[faces].mean(axis=1)[:, 0] < 0.5, 1, 2)
+    labelled = mesh.replace(protected_faces=faces, protected_face_labels=labels)
+    checker = InvariantChecker(labelled)
+    checker.check(labelled, 0, "edge")  # the same mesh passes
+    moved = labels.copy()
+    moved[np.flatnonzero(labels == 1)[0]] = 2
+    with pytest.raises(jtet.InvariantError, match="area of protected faces per label"):
+        checker.check(labelled.replace(protected_face_labels=moved), 0, "edge")
+    with pytest.raises(jtet.InvariantError, match="protected face labels changed"):
+        checker.check(labelled.replace(protected_face_labels=np.ones_like(labels)), 0, "edge")

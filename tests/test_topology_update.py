@@ -136,6 +136,30 @@ def test_protected_faces_swapped():
     check_step(mesh, out, keep)
 
 
+def test_protected_face_labels_changed_in_place():
+    """The protected faces relabelled (two labels meeting on the plane), one face
+    unprotected and one boundary face newly protected, in a step that moves one tet to
+    the end: the borders between labels become subsegments, as a full build finds them."""
+    mesh = flat_protected_mesh()
+    pf = mesh.protected_faces
+    half = mesh.points[pf].mean(axis=1)[:, 1] < 0.5
+    T = mesh.topology
+    extra = np.sort(T.faces[T.boundary_face][:1], axis=1)
+    for faces, labels in (
+        (pf, np.where(half, 4, 9)),
+        (np.concatenate([pf[1:], extra]), np.concatenate([np.where(half, 4, 9)[1:], [4]])),
+    ):
+        keep = np.ones(mesh.n_tets, bool)
+        keep[0] = False
+        new = mesh.replace(
+            tets=np.concatenate([mesh.tets[1:], mesh.tets[:1]]),
+            protected_faces=faces,
+            protected_face_labels=labels,
+        )
+        check_step(mesh, new, keep)
+        assert new.topology.subsegment.sum() > T.subsegment.sum()  # the label border
+
+
 def test_inverted_input():
     # three tets around an edge, one inverted; the 3-2 flip replaces them all
     pts = np.array([[1.2, 0, 1.0], [0.9, 0, -1.0], [1, 0, 0], [-0.5, 0.8, 0], [-0.5, -0.8, 0.0]])
