@@ -417,6 +417,11 @@ def test_tetgen_constrained_internal_facets_become_protected_faces(tmp_path):
         m = _io.load(tmp_path / name)
         assert m.protected_faces.tolist() == [[0, 1, 2], [1, 2, 3]]
         assert m.protected_face_labels.tolist() == [1, 20]  # the facet markers
+    # tetgen -nn adds each face's two tets; an empty face list is a valid file
+    (tmp_path / "m.face").write_text("2 1\n1 2 3 4 20 1 2\n2 1 2 3 1 1 -1\n")
+    assert _io.load(tmp_path / "m.ele").protected_face_labels.tolist() == [1, 20]
+    (tmp_path / "m.face").write_text("0 1\n")
+    assert len(_io.load(tmp_path / "m.ele").protected_faces) == 0
     (tmp_path / "m.face").write_text("3 1\n1 2 3 4 20\n")  # fewer faces than announced
     with pytest.warns(UserWarning, match="not a readable TetGen face file"):
         m = _io.load(tmp_path / "m.ele")
