@@ -625,7 +625,9 @@ def _order_rings(ptr, c, d, entry_tet):
     edge_manifold = np.zeros(E, bool)
     chain_end = np.full(E, -1, np.int64)
     kmax = int(counts.max(initial=0))
-    if 0 < E * kmax <= PADDED_RING_SLOTS:
+    if E == 0:  # no edge to order (an incremental update of a step that changed no tet)
+        buckets = []
+    elif 0 < E * kmax <= PADDED_RING_SLOTS:
         # few edges (the step updates of small meshes): one bucket padded to the largest
         # ring, ~8 ring sizes' worth of fixed NumPy calls saved
         buckets = [(np.arange(E), kmax, counts)]

@@ -136,10 +136,12 @@ def test_protected_faces_swapped():
     check_step(mesh, out, keep)
 
 
-def test_protected_face_labels_changed_in_place():
+@pytest.mark.parametrize("moved", [1, 0])
+def test_protected_face_labels_changed_in_place(moved):
     """The protected faces relabelled (two labels meeting on the plane), one face
     unprotected and one boundary face newly protected, in a step that moves one tet to
-    the end: the borders between labels become subsegments, as a full build finds them."""
+    the end, or changes no tet at all: the borders between labels become subsegments,
+    as a full build finds them."""
     mesh = flat_protected_mesh()
     pf = mesh.protected_faces
     half = mesh.points[pf].mean(axis=1)[:, 1] < 0.5
@@ -150,14 +152,22 @@ def test_protected_face_labels_changed_in_place():
         (np.concatenate([pf[1:], extra]), np.concatenate([np.where(half, 4, 9)[1:], [4]])),
     ):
         keep = np.ones(mesh.n_tets, bool)
-        keep[0] = False
+        keep[:moved] = False
         new = mesh.replace(
-            tets=np.concatenate([mesh.tets[1:], mesh.tets[:1]]),
+            tets=np.concatenate([mesh.tets[moved:], mesh.tets[:moved]]),
             protected_faces=faces,
             protected_face_labels=labels,
         )
         check_step(mesh, new, keep)
         assert new.topology.subsegment.sum() > T.subsegment.sum()  # the label border
+
+
+@pytest.mark.parametrize("make", [lambda: ball_mesh(3), flat_protected_mesh])
+def test_step_that_changes_nothing(make):
+    """A step that removes and adds no tet (once an IndexError in the ring ordering of
+    the empty set of redone edges) gives the old topology's equal."""
+    mesh = make()
+    check_step(mesh, mesh.replace(), np.ones(mesh.n_tets, bool))
 
 
 def test_inverted_input():
