@@ -405,29 +405,21 @@ def _meshio_module(fmt: str):
     return {"gmsh": meshio.gmsh, "medit": meshio.medit, "tetgen": meshio.tetgen}[fmt]
 
 
-# meshio's Gmsh 4.1 element reader is swapped for the duration of one read (see
-# ``_gmsh41_every_block``); reads in other threads wait
-_GMSH41_READ = threading.Lock()
+# meshio's Gmsh readers are mended for the duration of one read (``_gmsh_read_mends``);
+# reads in other threads wait
+_GMSH_READ = threading.Lock()
 
 
-@contextlib.contextmanager
-def _gmsh41_every_block():
-    """Within it, meshio reads Gmsh 4.1 files whose element blocks are not all in physical
-    groups.
+def _physical_for_every_block(original):
+    """meshio 5.3's Gmsh 4.1 element reader ``original``, mended for files whose element
+    blocks are not all in physical groups.
 
-    meshio 5.3 gives only the blocks of physical groups a ``gmsh:physical`` array, then
+    meshio gives only the blocks of physical groups a ``gmsh:physical`` array, then
     refuses its own mesh ("Incompatible cell data"). Gmsh writes such files with
     ``Mesh.SaveAll = 1`` (``-save_all``) once any physical group is defined: users set it
     when their physical groups are boundary surfaces and the tets are in none. Here each
     block gets its entity's first physical tag, 0 for none.
     """
-    try:
-        from meshio.gmsh import _gmsh41
-
-        original = _gmsh41._read_elements
-    except (ImportError, AttributeError):  # another meshio: its own reader as it is
-        yield
-        return
 
     def read_elements(f, point_tags, physical_tags, *args):
         cells, cell_data, cell_sets = original(f, point_tags, physical_tags, *args)
@@ -439,12 +431,47 @@ def _gmsh41_every_block():
             ]
         return cells, cell_data, cell_sets
 
-    with _GMSH41_READ:
-        _gmsh41._read_elements = read_elements
+    return read_elements
+
+
+def _skip_data(f, tag, *args):
+    """meshio's ``$NodeData`` / ``$ElementData`` reader, replaced by a skip to the block's
+    end: jtet reads no data arrays from Gmsh files, and meshio 5.3 refuses many of those
+    it would read. Gmsh saves a view with its mesh (``PostProcessing.SaveMesh``) as data
+    over the tets only, which meshio's binary reader rejects (element numbers not 1..n)
+    and its ASCII reader puts on the wrong blocks; its 2.2 reader also splits any element
+    data over two or more element blocks at element 2 (the length of a (type, cells)
+    tuple)."""
+    from meshio.gmsh.common import _fast_forward_to_end_block
+
+    _fast_forward_to_end_block(f, tag)
+
+
+@contextlib.contextmanager
+def _gmsh_read_mends():
+    """Within it, meshio reads the Gmsh files it refuses for reasons that do not concern
+    jtet: 4.1 files with element blocks in no physical group (``_physical_for_every_block``)
+    and files with node or element data (``_skip_data``)."""
+    try:
+        from meshio.gmsh import _gmsh22, _gmsh41
+
+        swaps = [
+            (_gmsh41, "_read_elements", _physical_for_every_block(_gmsh41._read_elements)),
+            (_gmsh41, "_read_data", _skip_data),
+            (_gmsh22, "_read_data", _skip_data),
+        ]
+        originals = [getattr(module, name) for module, name, _ in swaps]
+    except (ImportError, AttributeError):  # another meshio: its own readers as they are
+        yield
+        return
+    with _GMSH_READ:
+        for module, name, mended in swaps:
+            setattr(module, name, mended)
         try:
             yield
         finally:
-            _gmsh41._read_elements = original
+            for (module, name, _), original in zip(swaps, originals, strict=True):
+                setattr(module, name, original)
 
 
 def _block_labels(m, blocks: list[int], name: str, source: str) -> np.ndarray | None:
@@ -736,7 +763,7 @@ def load(path: str | os.PathLike) -> TetMesh:
     else:
         captured = ""
         try:
-            with _quiet_meshio() as buf, _gmsh41_every_block():
+            with _quiet_meshio() as buf, _gmsh_read_mends():
                 m = _meshio_module(fmt).read(str(p))
         except Exception as e:
             captured = buf.getvalue()
@@ -849,8 +876,9 @@ def save(
     elif fmt == "gmsh":
         dropped = ["protected edges"] if len(mesh.protected_edges) else []
         if len(mesh.protected_faces) and cell_data:
-            # meshio 5.3 writes element data over two element blocks in a way its own
-            # reader refuses ("Incompatible cell data"): the labelled triangles win
+            # meshio 5.3's Gmsh 2.2 reader splits element data over two or more element
+            # blocks at element 2 and refuses its own file ("Incompatible cell data"),
+            # and meshio is how many solvers read .msh: the labelled triangles win
             dropped.insert(0, f"{len(cell_data)} cell array(s) (with surface triangles)")
         if dropped:
             warnings.warn(

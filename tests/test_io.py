@@ -302,6 +302,68 @@ def test_gmsh41_tets_in_no_physical_group(tmp_path):
     assert _gmsh41._read_elements.__module__ == _gmsh41.__name__
 
 
+def _with_data(text: str, element_ids: tuple, node_ids: tuple) -> str:
+    """An ASCII Gmsh file with a view's ``$ElementData`` / ``$NodeData`` over some of its
+    elements / nodes appended, as Gmsh saves a view with its mesh."""
+    blocks = [
+        f'${tag}\n1\n"err"\n1\n0.0\n3\n0\n1\n{len(ids)}\n'
+        + "".join(f"{i} {0.25 * i}\n" for i in ids)
+        + f"$End{tag}\n"
+        for tag, ids in (("ElementData", element_ids), ("NodeData", node_ids))
+        if ids
+    ]
+    return text + "".join(blocks)
+
+
+@pytest.mark.parametrize("on", ["tets", "nodes"])
+@pytest.mark.parametrize(
+    ("text", "tet_ids"), [(MSH22, (4, 5)), (MSH41, (2, 3))], ids=["v22", "v41"]
+)
+def test_gmsh_files_with_data_are_read(tmp_path, text, tet_ids, on):
+    # a view over the tets or over two nodes saved with the mesh: meshio 5.3 alone
+    # refuses it (data on the wrong blocks, too few node values); jtet skips the data
+    import meshio
+
+    path = tmp_path / "view.msh"
+    if on == "tets":
+        path.write_text(_with_data(text, tet_ids, ()))
+        refusal = "Incompatible cell data"
+    else:
+        path.write_text(_with_data(text, (), (2, 3)))
+        refusal = "len\\(points\\) = 5"
+    with pytest.raises(ValueError, match=refusal):
+        meshio.read(path)
+    m = _io.load(path)
+    np.testing.assert_array_equal(m.tets, TETS2)
+    assert m.region.tolist() == [7, 9]
+    # the mended readers are meshio's own again after the read
+    from meshio.gmsh import _gmsh22, _gmsh41
+
+    assert _gmsh22._read_data.__module__ == _gmsh41._read_data.__module__ == "meshio.gmsh.common"
+
+
+def test_gmsh22_binary_element_data_over_two_blocks(tmp_path):
+    # meshio 5.3 writes such files but its reader splits the data at element 2 (the
+    # triangle block gets two values) and refuses them
+    import meshio
+
+    tri = np.array([[1, 2, 3]])
+    tags = [np.array([3]), np.array([7, 9])]
+    written = meshio.Mesh(
+        PTS5,
+        [meshio.CellBlock("triangle", tri), meshio.CellBlock("tetra", TETS2)],
+        cell_data={"gmsh:physical": tags, "gmsh:geometrical": tags, "q": [[0.1], [0.2, 0.3]]},
+    )
+    path = tmp_path / "b.msh"
+    meshio.gmsh.write(str(path), written, fmt_version="2.2", binary=True)
+    with pytest.raises(ValueError, match="Incompatible"):
+        meshio.read(path)
+    m = _io.load(path)
+    assert m.region.tolist() == [7, 9]
+    assert m.protected_faces.tolist() == [[1, 2, 3]]
+    assert m.protected_face_labels.tolist() == [3]
+
+
 def test_gmsh_triangles_become_labelled_protected_faces(tmp_path):
     # the two tets share face (2, 3, 4) (1-based); a triangle element there is an embedded
     # or internal surface: protected, so flips and smoothing keep it. The boundary
