@@ -11,7 +11,8 @@ physical group, so the surfaces between volumes stay (``_gmsh_regions``). Cells 
 dimension are ignored (lines, vertices), except the triangles that are faces of the tets:
 they become protected faces with their labels (physical surface tags, references, facet
 markers), which the Gmsh and Medit savers write back (``_mesh_triangles``). Any other 3-D
-cell type is an error.
+cell type is an error. meshio's Gmsh readers are mended during reads (``_gmsh_read``) for
+files meshio alone refuses: ``Mesh.SaveAll``, views saved with the mesh, partitions.
 """
 
 from __future__ import annotations
@@ -23,13 +24,13 @@ import itertools
 import os
 import re
 import secrets
-import threading
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ._errors import MeshFileError, MeshInputError
+from ._gmsh_read import gmsh_read_mends
 from ._mesh import TetMesh
 
 #: Cell arrays read as region labels, in order of preference. ``region`` is jtet's own;
@@ -405,75 +406,6 @@ def _meshio_module(fmt: str):
     return {"gmsh": meshio.gmsh, "medit": meshio.medit, "tetgen": meshio.tetgen}[fmt]
 
 
-# meshio's Gmsh readers are mended for the duration of one read (``_gmsh_read_mends``);
-# reads in other threads wait
-_GMSH_READ = threading.Lock()
-
-
-def _physical_for_every_block(original):
-    """meshio 5.3's Gmsh 4.1 element reader ``original``, mended for files whose element
-    blocks are not all in physical groups.
-
-    meshio gives only the blocks of physical groups a ``gmsh:physical`` array, then
-    refuses its own mesh ("Incompatible cell data"). Gmsh writes such files with
-    ``Mesh.SaveAll = 1`` (``-save_all``) once any physical group is defined: users set it
-    when their physical groups are boundary surfaces and the tets are in none. Here each
-    block gets its entity's first physical tag, 0 for none.
-    """
-
-    def read_elements(f, point_tags, physical_tags, *args):
-        cells, cell_data, cell_sets = original(f, point_tags, physical_tags, *args)
-        if physical_tags and len(cell_data.get("gmsh:physical", cells)) != len(cells):
-            entities = cell_data["gmsh:geometrical"]
-            cell_data["gmsh:physical"] = [
-                np.full(len(e), (physical_tags[b.dim].get(int(e[0])) or [0])[0] if len(e) else 0)
-                for b, e in zip(cells, entities, strict=True)
-            ]
-        return cells, cell_data, cell_sets
-
-    return read_elements
-
-
-def _skip_data(f, tag, *args):
-    """meshio's ``$NodeData`` / ``$ElementData`` reader, replaced by a skip to the block's
-    end: jtet reads no data arrays from Gmsh files, and meshio 5.3 refuses many of those
-    it would read. Gmsh saves a view with its mesh (``PostProcessing.SaveMesh``) as data
-    over the tets only, which meshio's binary reader rejects (element numbers not 1..n)
-    and its ASCII reader puts on the wrong blocks; its 2.2 reader also splits any element
-    data over two or more element blocks at element 2 (the length of a (type, cells)
-    tuple)."""
-    from meshio.gmsh.common import _fast_forward_to_end_block
-
-    _fast_forward_to_end_block(f, tag)
-
-
-@contextlib.contextmanager
-def _gmsh_read_mends():
-    """Within it, meshio reads the Gmsh files it refuses for reasons that do not concern
-    jtet: 4.1 files with element blocks in no physical group (``_physical_for_every_block``)
-    and files with node or element data (``_skip_data``)."""
-    try:
-        from meshio.gmsh import _gmsh22, _gmsh41
-
-        swaps = [
-            (_gmsh41, "_read_elements", _physical_for_every_block(_gmsh41._read_elements)),
-            (_gmsh41, "_read_data", _skip_data),
-            (_gmsh22, "_read_data", _skip_data),
-        ]
-        originals = [getattr(module, name) for module, name, _ in swaps]
-    except (ImportError, AttributeError):  # another meshio: its own readers as they are
-        yield
-        return
-    with _GMSH_READ:
-        for module, name, mended in swaps:
-            setattr(module, name, mended)
-        try:
-            yield
-        finally:
-            for (module, name, _), original in zip(swaps, originals, strict=True):
-                setattr(module, name, original)
-
-
 def _block_labels(m, blocks: list[int], name: str, source: str) -> np.ndarray | None:
     """The integer cell array ``name`` of the meshio mesh ``m`` over the cells of
     ``blocks``, concatenated (None when ``m`` has no such array)."""
@@ -763,7 +695,7 @@ def load(path: str | os.PathLike) -> TetMesh:
     else:
         captured = ""
         try:
-            with _quiet_meshio() as buf, _gmsh_read_mends():
+            with _quiet_meshio() as buf, gmsh_read_mends():
                 m = _meshio_module(fmt).read(str(p))
         except Exception as e:
             captured = buf.getvalue()

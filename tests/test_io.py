@@ -364,6 +364,92 @@ def test_gmsh22_binary_element_data_over_two_blocks(tmp_path):
     assert m.protected_face_labels.tolist() == [3]
 
 
+def _partitioned_msh41() -> str:
+    """``MSH41`` split into two partitions as Gmsh writes it: every element on a partition
+    entity (a piece of a model entity, or of the interface between partitions), plus a
+    ghost entity holding a copy of the second tet in the first partition."""
+    lines = MSH41.splitlines()
+    start, end = lines.index("$Elements"), lines.index("$EndElements")
+    partitioned = """$PartitionedEntities
+2
+1
+23 1
+0 0 2 3
+11 2 1 1 1 0 0 0 1 1 0 1 3 0
+12 3 1 2 1 2 0 0 0 1 1 1 0 0
+21 3 1 1 1 0 0 0 1 1 1 1 7 0
+22 3 2 1 2 0 0 0 1 1 1 1 9 0
+23 3 2 1 1 0 0 0 1 1 1 1 9 0
+$EndPartitionedEntities"""
+    elements = """$Elements
+5 5 1 5
+2 11 2 1
+1 1 2 3
+2 12 2 1
+4 2 3 4
+3 21 4 1
+2 1 2 3 4
+3 22 4 1
+3 2 3 4 5
+3 23 4 1
+5 2 3 4 5"""
+    i = lines.index("$EndEntities") + 1
+    return "\n".join([*lines[:i], partitioned, *lines[i:start], elements, *lines[end:]]) + "\n"
+
+
+def test_gmsh41_partitioned(tmp_path):
+    # meshio 5.3 alone fails on the partition entities (KeyError); jtet reads the tets by
+    # their parent volumes, drops the interface triangle (2, 3, 4) and the ghost copy
+    import meshio
+
+    path = tmp_path / "parts.msh"
+    path.write_text(_partitioned_msh41())
+    with pytest.raises(KeyError):
+        meshio.read(path)
+    m = _io.load(path)
+    np.testing.assert_array_equal(m.tets, TETS2)
+    assert m.region.tolist() == [7, 9]
+    assert m.protected_faces.tolist() == [[0, 1, 2]]
+    assert m.protected_face_labels.tolist() == [3]
+
+
+@pytest.mark.parametrize("binary", [0, 1])
+def test_gmsh_partitioned_mesh_reads_as_the_whole_mesh(tmp_path, binary):
+    """Two volumes with physical groups, partitioned by Gmsh into 3 (4.1, the default
+    format): the same tets, regions and labelled surfaces as the file written before
+    partitioning (compared by coordinates: the node order differs)."""
+    gmsh = pytest.importorskip("gmsh")
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
+        gmsh.model.occ.addBox(1, 0, 0, 1, 1, 1)
+        gmsh.model.occ.fragment([(3, 1)], [(3, 2)])
+        gmsh.model.occ.synchronize()
+        gmsh.model.addPhysicalGroup(3, [1], 11)
+        gmsh.model.addPhysicalGroup(3, [2], 12)
+        gmsh.model.addPhysicalGroup(2, [1, 2], 21)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.4)
+        gmsh.option.setNumber("Mesh.Binary", binary)
+        gmsh.model.mesh.generate(3)
+        gmsh.write(str(tmp_path / "whole.msh"))
+        gmsh.model.mesh.partition(3)
+        gmsh.write(str(tmp_path / "parts.msh"))
+    finally:
+        gmsh.finalize()
+
+    def by_coordinates(m):
+        def rows(cells, labels):
+            corners = np.sort(m.points[cells].reshape(len(cells), -1).round(12), axis=1)
+            return sorted(zip(map(tuple, corners), labels.tolist()))
+
+        return rows(m.tets, m.region), rows(m.protected_faces, m.protected_face_labels)
+
+    whole, parts = _io.load(tmp_path / "whole.msh"), _io.load(tmp_path / "parts.msh")
+    assert set(whole.region.tolist()) == {11, 12} and len(whole.protected_faces) > 0
+    assert by_coordinates(parts) == by_coordinates(whole)
+
+
 def test_gmsh_triangles_become_labelled_protected_faces(tmp_path):
     # the two tets share face (2, 3, 4) (1-based); a triangle element there is an embedded
     # or internal surface: protected, so flips and smoothing keep it. The boundary

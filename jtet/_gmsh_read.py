@@ -1,0 +1,188 @@
+"""Mends to meshio 5.3's Gmsh readers, applied for the length of one read.
+
+meshio refuses several kinds of files that Gmsh writes every day, for reasons that do not
+concern jtet (which reads points, tets, triangles and their tags, nothing else):
+
+* 4.1 files whose element blocks are not all in physical groups (``Mesh.SaveAll = 1``):
+  ``_physical_for_every_block``;
+* files with node or element data (a view saved with its mesh): ``_skip_data``;
+* partitioned 4.1 files (``gmsh -part N``, ``Mesh.NbPartitions``), whose elements sit on
+  partition entities that meshio does not read: ``_Partitions``.
+
+``gmsh_read_mends()`` swaps meshio's functions for the mended ones and restores them on
+exit; reads in other threads wait.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import threading
+
+import numpy as np
+
+_GMSH_READ = threading.Lock()
+
+
+@dataclasses.dataclass
+class _Partitions:
+    """The ``$PartitionedEntities`` section of a partitioned Gmsh 4.1 file.
+
+    Gmsh puts every element of a partitioned mesh on a partition entity: a piece of a
+    model entity (its parent) in one partition, or a new entity on the interface between
+    partitions (whose parent is of higher dimension). The tets, read by their parents,
+    are the whole mesh with its volumes; interface triangles are no model surface and are
+    dropped, as are ghost elements (copies of the neighbouring partitions' tets).
+    """
+
+    #: (dim, tag) of each partition entity -> (parent dim, parent tag)
+    parents: dict = dataclasses.field(default_factory=dict)
+    #: per dim: tag -> physical tags, tag -> bounding entities (meshio's own tables)
+    physicals: tuple = ({}, {}, {}, {})
+    bounding: tuple = ({}, {}, {}, {})
+    ghosts: frozenset = frozenset()
+
+    @classmethod
+    def read(cls, f, is_ascii: bool, data_size: int) -> _Partitions:
+        """Parse the section from ``f`` (just after its ``$PartitionedEntities`` line) up
+        to and including ``$EndPartitionedEntities``."""
+        from meshio.gmsh.common import _fast_forward_to_end_block
+
+        fromfile = functools.partial(np.fromfile, sep=" " if is_ascii else "")
+        size_t, c_int, c_double = np.dtype(f"u{data_size}"), np.dtype("i"), np.dtype("d")
+
+        def count() -> int:
+            return int(fromfile(f, size_t, 1)[0])
+
+        out = cls()
+        count()  # number of partitions
+        n_ghosts = count()
+        out.ghosts = frozenset(fromfile(f, c_int, 2 * n_ghosts)[::2].tolist())
+        for dim, n in enumerate(fromfile(f, size_t, 4).tolist()):
+            for _ in range(n):
+                tag, parent_dim, parent_tag = fromfile(f, c_int, 3).tolist()
+                fromfile(f, c_int, count())  # its partitions
+                fromfile(f, c_double, 3 if dim == 0 else 6)  # point or bounding box
+                out.physicals[dim][tag] = fromfile(f, c_int, count()).tolist()
+                if dim > 0:
+                    out.bounding[dim][tag] = fromfile(f, c_int, count())
+                out.parents[dim, tag] = (parent_dim, parent_tag)
+        _fast_forward_to_end_block(f, "PartitionedEntities")
+        return out
+
+    def tables(self, physical_tags, bounding_entities):
+        """meshio's per-dim entity tables with the partition entities added."""
+        physical_tags = physical_tags or ({}, {}, {}, {})
+        bounding_entities = bounding_entities or ({}, {}, {}, {})
+        return (
+            tuple({**a, **b} for a, b in zip(physical_tags, self.physicals, strict=True)),
+            tuple({**a, **b} for a, b in zip(bounding_entities, self.bounding, strict=True)),
+        )
+
+    def to_parents(self, cells, cell_data, cell_sets):
+        """meshio's element blocks without interface and ghost blocks, each with its
+        parent entity as ``gmsh:geometrical``."""
+        entities = cell_data["gmsh:geometrical"]
+        keep, parents = [], []
+        for block, tags in zip(cells, entities, strict=True):
+            tag = int(tags[0]) if len(tags) else 0
+            parent_dim, parent_tag = self.parents.get((block.dim, tag), (block.dim, tag))
+            ghost = block.dim == 3 and tag in self.ghosts
+            keep.append(parent_dim == block.dim and not ghost)
+            parents.append(np.full(len(tags), parent_tag, tags.dtype))
+        cell_data["gmsh:geometrical"] = parents
+
+        def kept(blocks: list) -> list:
+            return [b for b, k in zip(blocks, keep, strict=True) if k]
+
+        return (
+            kept(cells),
+            {name: kept(arrays) for name, arrays in cell_data.items()},
+            {name: kept(s) if len(s) == len(cells) else s for name, s in cell_sets.items()},
+        )
+
+
+def _physical_for_every_block(cell_data, cells, physical_tags) -> None:
+    """Give every block a ``gmsh:physical`` array when meshio gave one only to the
+    blocks of physical groups.
+
+    meshio then refuses its own mesh ("Incompatible cell data"). Gmsh writes such files
+    with ``Mesh.SaveAll = 1`` (``-save_all``) once any physical group is defined: users
+    set it when their physical groups are boundary surfaces and the tets are in none.
+    Here each block gets its entity's first physical tag, 0 for none.
+    """
+    if physical_tags and len(cell_data.get("gmsh:physical", cells)) != len(cells):
+        entities = cell_data["gmsh:geometrical"]
+        cell_data["gmsh:physical"] = [
+            np.full(len(e), (physical_tags[b.dim].get(int(e[0])) or [0])[0] if len(e) else 0)
+            for b, e in zip(cells, entities, strict=True)
+        ]
+
+
+def _skip_data(f, tag, *args) -> None:
+    """meshio's ``$NodeData`` / ``$ElementData`` reader, replaced by a skip to the block's
+    end: jtet reads no data arrays from Gmsh files, and meshio 5.3 refuses many of those
+    it would read. Gmsh saves a view with its mesh (``PostProcessing.SaveMesh``) as data
+    over the tets only, which meshio's binary reader rejects (element numbers not 1..n)
+    and its ASCII reader puts on the wrong blocks; its 2.2 reader also splits any element
+    data over two or more element blocks at element 2 (the length of a (type, cells)
+    tuple)."""
+    from meshio.gmsh.common import _fast_forward_to_end_block
+
+    _fast_forward_to_end_block(f, tag)
+
+
+@contextlib.contextmanager
+def gmsh_read_mends():
+    """Within it, meshio reads the Gmsh files described in the module docstring."""
+    try:
+        from meshio.gmsh import _gmsh22, _gmsh41
+
+        read_buffer, read_elements = _gmsh41.read_buffer, _gmsh41._read_elements
+        skip_block = _gmsh41._fast_forward_to_end_block
+    except (ImportError, AttributeError):  # another meshio: its own readers as they are
+        yield
+        return
+    state: dict = {}  # of the file being read: its format and its partitions
+
+    def mended_read_buffer(f, is_ascii, data_size):
+        state.clear()
+        state.update(is_ascii=is_ascii, data_size=int(data_size))
+        return read_buffer(f, is_ascii, data_size)
+
+    def mended_skip_block(f, block):
+        # meshio skips the sections it does not know: this one it needs
+        if block == "PartitionedEntities" and "is_ascii" in state:
+            state["partitions"] = _Partitions.read(f, state["is_ascii"], state["data_size"])
+        else:
+            skip_block(f, block)
+
+    def mended_read_elements(f, point_tags, physical_tags, bounding_entities, *args):
+        partitions = state.get("partitions")
+        if partitions is not None:
+            physical_tags, bounding_entities = partitions.tables(physical_tags, bounding_entities)
+        cells, cell_data, cell_sets = read_elements(
+            f, point_tags, physical_tags, bounding_entities, *args
+        )
+        _physical_for_every_block(cell_data, cells, physical_tags)
+        if partitions is not None:
+            cells, cell_data, cell_sets = partitions.to_parents(cells, cell_data, cell_sets)
+        return cells, cell_data, cell_sets
+
+    swaps = [
+        (_gmsh41, "read_buffer", mended_read_buffer),
+        (_gmsh41, "_fast_forward_to_end_block", mended_skip_block),
+        (_gmsh41, "_read_elements", mended_read_elements),
+        (_gmsh41, "_read_data", _skip_data),
+        (_gmsh22, "_read_data", _skip_data),
+    ]
+    with _GMSH_READ:
+        originals = [getattr(module, name) for module, name, _ in swaps]
+        for module, name, mended in swaps:
+            setattr(module, name, mended)
+        try:
+            yield
+        finally:
+            for (module, name, _), original in zip(swaps, originals, strict=True):
+                setattr(module, name, original)
