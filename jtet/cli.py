@@ -257,10 +257,42 @@ def cmd_demo(args) -> int:
     return _run_improve(mesh, outdir / "demo_improved.vtu", args, "embedded demo mesh")
 
 
+def _version_line() -> str:
+    """jtet's version and those of what a bug report needs, read from the installed
+    packages' metadata (importing jax to ask it would take a second)."""
+    import platform
+    from importlib import metadata
+
+    from . import __version__
+
+    def version(name: str) -> str:
+        try:
+            return metadata.version(name)
+        except metadata.PackageNotFoundError:
+            return "missing"
+
+    deps = ", ".join(f"{n} {version(n)}" for n in ("jax", "jaxlib", "numpy", "meshio", "pyvista"))
+    return f"jtet {__version__} (Python {platform.python_version()}, {deps})"
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: one unwrapped line, read only when asked for."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(_version_line())
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="jtet",
         description="Improve the quality of tetrahedral meshes (optimal edge removal, multi-face removal, smoothing).",
+    )
+    p.add_argument(
+        "--version", action=_VersionAction, help="print the versions of jtet and its dependencies"
     )
     sub = p.add_subparsers(dest="command", required=True)
     pi = sub.add_parser("improve", help="improve a mesh file and write the result")

@@ -365,6 +365,23 @@ def test_help(argv, expect, capsys):
         assert word in out, word
 
 
+def test_version(capsys, monkeypatch):
+    # one line even on a narrow terminal (argparse's own version action wraps it); the
+    # package's version is the installed distribution's
+    from importlib import metadata
+
+    monkeypatch.setenv("COLUMNS", "40")
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    out = capsys.readouterr().out
+    assert out.count("\n") == 1
+    assert out.startswith(f"jtet {jtet.__version__} (Python ")
+    assert jtet.__version__ == metadata.version("jtet")
+    for name in ("jax", "numpy", "meshio"):
+        assert f"{name} {metadata.version(name)}" in out
+
+
 def test_console_command_ends_with_complete_outputs_and_its_code(small, tmp_path):
     # the installed ``jtet`` command runs cli.run(): main(), then os._exit without the
     # interpreter's teardown; everything main wrote must be there and complete
