@@ -68,6 +68,8 @@ class InvariantChecker:
         self.interface = _surface_signature(mesh, "interface")
         self.n_inverted = self._count_bad(mesh)
         self.labelled = self._label_areas(mesh)
+        self.pinned = mesh.protected_vertices.copy()
+        self.pinned_at = mesh.points[self.pinned]
         self.scale = float(np.abs(mesh.volumes).sum())
         # with a feature angle, flips may replace bent subfacets: the surfaces keep their
         # vertices and labels, but their shape and the volumes they enclose change
@@ -126,6 +128,11 @@ class InvariantChecker:
             fail(
                 f"the area of protected faces per label changed from {self.labelled} to {labelled}"
             )
+        if not np.array_equal(mesh.protected_vertices, self.pinned):
+            fail("the protected vertices changed")
+        moved = (mesh.points[self.pinned] != self.pinned_at).any(axis=1)
+        if moved.any():
+            fail(f"protected vertex {int(self.pinned[moved][0])} moved")
         for which, ref in (("boundary", self.boundary), ("interface", self.interface)):
             labels, sig, verts = _surface_signature(mesh, which)
             same = np.array_equal(labels, ref[0]) and np.array_equal(verts, ref[2])

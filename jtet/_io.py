@@ -8,10 +8,11 @@ one-line reason; VTK's and meshio's console chatter is captured, never printed.
 Region labels come from the first cell array found among ``REGION_ARRAYS``; Gmsh files
 use their physical volume tags, or the elementary (volume entity) tags when no tet is in a
 physical group, so the surfaces between volumes stay (``_gmsh_regions``). Cells of lower
-dimension are ignored (lines, vertices), except the triangles that are faces of the tets:
-they become protected faces with their labels (physical surface tags, references, facet
-markers), which the Gmsh and Medit savers write back (``_mesh_triangles``). Any other 3-D
-cell type is an error. meshio's Gmsh readers are mended during reads (``_gmsh_read``) for
+dimension that are faces, edges and vertices of the tets become protected entities:
+triangles with their labels (physical surface tags, references, facet markers;
+``_mesh_triangles``), lines and points (``_mesh_edges_and_vertices``), which the Gmsh and
+Medit savers write back; other such cells are ignored with a warning. Any other 3-D cell
+type is an error. meshio's Gmsh readers are mended during reads (``_gmsh_read``) for
 files meshio alone refuses: ``Mesh.SaveAll``, views saved with the mesh, partitions.
 """
 
@@ -41,10 +42,11 @@ REGION_ARRAYS = ("region", "gmsh:physical", "medit:ref", "CellEntityIds", "tetge
 #: Field-data arrays in which ``mesh_to_grid`` stores the protected faces / edges.
 PROTECTED_FACES_ARRAY = "jtet:protected_faces"
 PROTECTED_EDGES_ARRAY = "jtet:protected_edges"
+PROTECTED_VERTICES_ARRAY = "jtet:protected_vertices"
 PROTECTED_FACE_LABELS_ARRAY = "jtet:protected_face_labels"
 
 _VTK_TETRA = 10
-_VTK_TRIANGLE = 5
+_VTK_VERTEX, _VTK_LINE, _VTK_TRIANGLE = 1, 3, 5
 # Quadratic and higher-order tetrahedra: VTK_QUADRATIC_TETRA, VTK_HIGHER_ORDER_TETRAHEDRON,
 # VTK_LAGRANGE_TETRAHEDRON, VTK_BEZIER_TETRAHEDRON.
 _VTK_HIGH_ORDER_TETS = (24, 64, 71, 78)
@@ -155,9 +157,10 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     Returns:
         ``(points (n, 3) float64, tets (m, 4) int64, region (m,) int64 or None,
         protected_faces (k, 3) or None, protected_edges (k, 2) or None, protected face
-        labels (k,) or None)``: the arguments of ``TetMesh.from_arrays``. Region labels
-        come from the first of ``REGION_ARRAYS``; protected entities from the field data
-        written by ``mesh_to_grid`` and the triangle cells that are faces of the tets.
+        labels (k,) or None, protected_vertices (j,) or None)``: the arguments of
+        ``TetMesh.from_arrays``. Region labels come from the first of ``REGION_ARRAYS``;
+        protected entities from the field data written by ``mesh_to_grid`` and the
+        triangle, line and vertex cells that are faces, edges and vertices of the tets.
     """
     import pyvista as pv
 
@@ -229,7 +232,21 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
         if faces is not None:  # the field data's own faces first: their labels win
             pf = faces if pf is None else np.concatenate([pf, faces])
             labels = tri_labels if labels is None else np.concatenate([labels, tri_labels])
-    return points, tets, region, pf, pe, labels
+    pv_field = _field_entities(grid, PROTECTED_VERTICES_ARRAY, 1)
+    pinned = None if pv_field is None else pv_field[:, 0]
+
+    def cells(vtk_type: int, k: int) -> np.ndarray:
+        chosen = celltypes == vtk_type
+        return conn[offsets[:-1][chosen][:, None] + np.arange(k)]
+
+    edges, vertices = _mesh_edges_and_vertices(
+        tets, cells(_VTK_LINE, 2), cells(_VTK_VERTEX, 1), len(points), source
+    )
+    if edges is not None:
+        pe = edges if pe is None else np.concatenate([pe, edges])
+    if vertices is not None:
+        pinned = vertices if pinned is None else np.concatenate([pinned, vertices])
+    return points, tets, region, pf, pe, labels, pinned
 
 
 def _check_cell_data(mesh: TetMesh, cell_data: dict | None) -> dict:
@@ -255,8 +272,9 @@ def _check_cell_data(mesh: TetMesh, cell_data: dict | None) -> dict:
 def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
     """A ``pyvista.UnstructuredGrid`` of ``mesh``: tetra cells, a ``region`` cell array,
     the arrays of ``cell_data`` (name -> (m, ...) array), and the protected faces, their
-    labels and the protected edges (when any) as field data ``jtet:protected_faces``,
-    ``jtet:protected_face_labels``, ``jtet:protected_edges``."""
+    labels, the protected edges and vertices (when any) as field data
+    ``jtet:protected_faces``, ``jtet:protected_face_labels``, ``jtet:protected_edges``,
+    ``jtet:protected_vertices``."""
     import pyvista as pv
 
     extra = _check_cell_data(mesh, cell_data)
@@ -272,6 +290,8 @@ def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
         grid.field_data[PROTECTED_FACE_LABELS_ARRAY] = np.array(mesh.protected_face_labels)
     if len(mesh.protected_edges):
         grid.field_data[PROTECTED_EDGES_ARRAY] = np.array(mesh.protected_edges)
+    if len(mesh.protected_vertices):
+        grid.field_data[PROTECTED_VERTICES_ARRAY] = np.array(mesh.protected_vertices)
     return grid
 
 
@@ -494,11 +514,64 @@ def _mesh_triangles(tets: np.ndarray, tri: np.ndarray, labels, n: int, source: s
     return tri[is_face], labels[is_face]
 
 
-def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None):
+def _mesh_edges_and_vertices(tets: np.ndarray, lines, vertices, n: int, source: str):
+    """The line cells ``lines`` (k, 2) of a file that are edges of its tets ``tets``
+    (m, 4), as sorted distinct rows, and its vertex cells ``vertices`` (j,) that are
+    vertices of the tets, sorted and distinct: ``(edges, vertices)``, None for none.
+
+    They become protected edges and vertices. Gmsh writes its model curves and points
+    as such cells (all of them without physical groups, else those of physical curves
+    and points): a curve or point embedded in a volume then stays where it is, as nodes
+    stay on their model entities in Gmsh's own optimizer. The others are ignored with a
+    warning.
+    """
+    from ._topology import TET_EDGES, row_keys
+
+    if not len(tets) or tets.min() < 0 or tets.max() >= n:
+        return None, None  # from_arrays reports bad tets
+    edges = pinned = None
+    lines = np.asarray(lines, np.int64).reshape(-1, 2)
+    if len(lines):
+        ok = (lines.min(axis=1) >= 0) & (lines.max(axis=1) < n) & (lines[:, 0] != lines[:, 1])
+        lines = np.unique(np.sort(lines[ok], axis=1), axis=0)
+        # only tets with two line vertices can have such an edge
+        marked = np.zeros(n, bool)
+        marked[lines.reshape(-1)] = True
+        near = tets[marked[tets].sum(axis=1) >= 2]
+        tet_edges = np.sort(near[:, TET_EDGES].reshape(-1, 2), axis=1)
+        tet_edges = tet_edges[marked[tet_edges].all(axis=1)]
+        keys = row_keys(np.concatenate([tet_edges, lines]), n)  # one call: keys that compare
+        is_edge = np.isin(keys[len(tet_edges) :], keys[: len(tet_edges)])
+        strays = int((~is_edge).sum()) + int((~ok).sum())
+        if strays:
+            warnings.warn(
+                f"{source}: {strays} line(s) of the file are not edges of its tets; ignored",
+                stacklevel=4,
+            )
+        edges = lines[is_edge] if is_edge.any() else None
+    vertices = np.asarray(vertices, np.int64).reshape(-1)
+    if len(vertices):
+        in_tets = np.zeros(n, bool)
+        in_tets[tets.reshape(-1)] = True
+        ok = (vertices >= 0) & (vertices < n)
+        ok[ok] = in_tets[vertices[ok]]
+        if not ok.all():
+            warnings.warn(
+                f"{source}: {int((~ok).sum())} vertex cell(s) of the file are not vertices "
+                "of its tets; ignored",
+                stacklevel=4,
+            )
+        pinned = np.unique(vertices[ok]) if ok.any() else None
+    return edges, pinned
+
+
+def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, vertices=None):
     """Like ``grid_to_arrays`` for a ``meshio.Mesh``: tets of every tetra block, region,
-    and as labelled protected faces the triangles of its triangle blocks and of
+    as labelled protected faces the triangles of its triangle blocks and of
     ``triangles`` ((k, 3) ids, (k,) labels: a TetGen ``.face`` file) that are faces of
-    the tets (``_mesh_triangles``)."""
+    the tets (``_mesh_triangles``), as protected edges and vertices its line and vertex
+    cells and ``vertices`` ((j,) ids: Medit's ``RequiredVertices``) that are edges and
+    vertices of the tets (``_mesh_edges_and_vertices``)."""
     keep_blocks, bad = [], {}
     for i, block in enumerate(m.cells):
         dim = getattr(block, "dim", 3)
@@ -544,7 +617,18 @@ def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None):
         tri = np.concatenate([tri, triangles[0]])
         labels = np.concatenate([labels, triangles[1]])
     faces, labels = _mesh_triangles(tets, tri, labels, len(points), source)
-    return points, tets, region, faces, None, labels
+
+    def cells(kind: str, k: int) -> np.ndarray:
+        return np.concatenate(
+            [np.zeros((0, k), np.int64)]
+            + [np.asarray(b.data, np.int64).reshape(-1, k) for b in m.cells if b.type == kind]
+        )
+
+    pins = cells("vertex", 1).reshape(-1)
+    if vertices is not None:
+        pins = np.concatenate([pins, vertices])
+    edges, pinned = _mesh_edges_and_vertices(tets, cells("line", 2), pins, len(points), source)
+    return points, tets, region, faces, edges, labels, pinned
 
 
 def _tetgen_faces(node: Path) -> tuple[np.ndarray, np.ndarray] | None:
@@ -591,24 +675,76 @@ def _meshio_mesh(mesh: TetMesh, fmt: str, cell_data: dict):
 
     region = np.array(mesh.region, dtype=np.int64)
     blocks = [meshio.CellBlock("tetra", np.array(mesh.tets, dtype=np.int64))]
-    if fmt == "gmsh":
-        data = {"gmsh:physical": [region], "gmsh:geometrical": [region]}
-        if not len(mesh.protected_faces):  # see ``save``: not with a triangle block
-            data.update({k: [np.asarray(v)] for k, v in cell_data.items()})
-    elif fmt == "medit":
-        data = {"medit:ref": [region]}
-    else:
+    if fmt == "tetgen":
         return meshio.Mesh(
             np.array(mesh.points, np.float64), blocks, cell_data={"tetgen:ref": [region]}
         )
-    if len(mesh.protected_faces):
-        # the protected faces as triangle elements, their labels as physical tags /
-        # references (Gmsh physical surfaces, Medit references: what solvers read)
-        blocks.append(meshio.CellBlock("triangle", np.array(mesh.protected_faces, np.int64)))
-        labels = np.array(mesh.protected_face_labels, np.int64)
+    data = {name: [region] for name in _TAG_ARRAYS[fmt]}
+    extra = _lower_blocks(mesh, fmt)
+    if fmt == "gmsh" and not extra:  # see ``save``: no element data over several blocks
+        data.update({k: [np.asarray(v)] for k, v in cell_data.items()})
+    for kind, cells, tags in extra:
+        blocks.append(meshio.CellBlock(kind, np.array(cells, np.int64)))
         for arrays in data.values():
-            arrays.append(labels)
+            arrays.append(np.array(tags, np.int64))
     return meshio.Mesh(np.array(mesh.points, dtype=np.float64), blocks, cell_data=data)
+
+
+#: the cell arrays meshio writes as a Gmsh / Medit file's element tags
+_TAG_ARRAYS = {"gmsh": ("gmsh:physical", "gmsh:geometrical"), "medit": ("medit:ref",)}
+
+
+def _lower_blocks(mesh: TetMesh, fmt: str) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(meshio cell type, cells, tags) of the protected entities a Gmsh / Medit file
+    stores as elements: the faces as triangles tagged with their labels (Gmsh physical
+    surfaces, Medit references: what solvers read), the edges as lines and, in Gmsh
+    files, the vertices as point elements (tag 0: jtet keeps no labels for them; Medit
+    files get ``RequiredVertices``, ``_append_required_vertices``)."""
+    out = []
+    if len(mesh.protected_faces):
+        out.append(("triangle", mesh.protected_faces, mesh.protected_face_labels))
+    if len(mesh.protected_edges):
+        out.append(("line", mesh.protected_edges, np.zeros(len(mesh.protected_edges))))
+    if fmt == "gmsh" and len(mesh.protected_vertices):
+        pv = mesh.protected_vertices
+        out.append(("vertex", pv[:, None], np.zeros(len(pv))))
+    return out
+
+
+_REQUIRED_VERTICES = re.compile(rb"^[ \t]*RequiredVertices[ \t]*\r?$", re.MULTILINE)
+
+
+def _medit_required_vertices(path: Path) -> np.ndarray | None:
+    """0-based ids (k,) of an ASCII Medit file's ``RequiredVertices`` (vertices MMG
+    never moves; meshio skips the section), None without one."""
+    import mmap
+
+    with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+        found = _REQUIRED_VERTICES.search(data)
+        if found is None:
+            return None
+        # the count, then the ids (at most ~21 bytes each): bounded slices of the map
+        head = data[found.end() : found.end() + 32].split(maxsplit=1)
+        count = int(head[0]) if head and head[0].isdigit() else 0
+        ids = data[found.end() : found.end() + 32 + 24 * count].split()[1 : count + 1]
+    if not head or not head[0].isdigit() or len(ids) != count or not all(map(bytes.isdigit, ids)):
+        raise MeshInputError(f"{path}: unreadable RequiredVertices section")
+    return np.array(ids, np.int64) - 1
+
+
+def _append_required_vertices(path: Path, vertices: np.ndarray) -> None:
+    """Put the protected ``vertices`` (k,) as ``RequiredVertices`` (1-based) before the
+    final ``End`` of the ASCII Medit file meshio wrote at ``path``."""
+    with open(path, "r+b") as f:
+        f.seek(max(f.seek(0, os.SEEK_END) - 64, 0))
+        tail = f.read()
+        end = tail.rfind(b"End")
+        if end < 0:
+            raise MeshFileError(f"{path}: the Medit file has no final End")
+        f.seek(f.tell() - len(tail) + end)
+        f.truncate()
+        ids = "\n".join(map(str, (np.asarray(vertices) + 1).tolist()))
+        f.write(f"RequiredVertices\n{len(vertices)}\n{ids}\n\nEnd\n".encode())
 
 
 # ---------------------------------------------------------------------------------------
@@ -656,8 +792,9 @@ def load(path: str | os.PathLike) -> TetMesh:
     ``.ele`` (TetGen, both files next to each other; first element attribute -> region;
     the ``.face`` file, if there is one, with its facet markers). Triangles that are faces
     of the tets become protected faces, labelled by their physical tags / references /
-    markers; lines and vertices are ignored. A globally reversed orientation is fixed
-    with a warning (see ``TetMesh.from_arrays``).
+    markers; lines and points (Medit: ``Edges``, ``RequiredVertices``) that are edges and
+    vertices of the tets become protected edges and vertices. A globally reversed
+    orientation is fixed with a warning (see ``TetMesh.from_arrays``).
 
     Raises:
         MeshFileError: the file is missing, a directory, of unknown extension, or unreadable.
@@ -703,7 +840,8 @@ def load(path: str | os.PathLike) -> TetMesh:
                 f"{p}: not a readable {_FORMAT_NAMES[fmt]} file ({_reason(e, captured)})"
             ) from None
         faces = _tetgen_faces(p.with_suffix(".node")) if fmt == "tetgen" else None
-        arrays = _meshio_to_arrays(m, source, fmt, faces)
+        required = _medit_required_vertices(p) if ext == ".mesh" else None
+        arrays = _meshio_to_arrays(m, source, fmt, faces, required)
     try:
         return TetMesh.from_arrays(*arrays, source=source)
     except MeshInputError as e:
@@ -723,6 +861,8 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict) -> None:
             _meshio_module(fmt).write(str(tmp), m, fmt_version="2.2", binary=True)
         else:
             _meshio_module(fmt).write(str(tmp), m)
+    if fmt == "medit" and len(mesh.protected_vertices) and tmp.suffix.lower() == ".mesh":
+        _append_required_vertices(tmp, mesh.protected_vertices)
 
 
 def new_temp_file(parent: Path, prefix: str, suffix: str) -> Path:
@@ -765,12 +905,15 @@ def save(
 
     ``.vtu`` (zlib-compressed binary XML) and ``.vtk`` (binary legacy) store the region as a
     ``region`` cell array plus every array of ``cell_data`` (name -> one value per tet) and
-    the protected faces / edges as field data. ``.msh`` (Gmsh 2.2 binary, which every
-    Gmsh-aware tool reads) stores the region as physical and elementary tags, plus
-    ``cell_data`` as element data. ``.mesh`` /
-    ``.meshb`` (Medit; region -> references) and ``.node`` / ``.ele`` (TetGen, both files are
-    written; region -> element attribute) store only the region: other cell data and the
-    protected entities are dropped with a warning.
+    the protected entities as field data. ``.msh`` (Gmsh 2.2 binary, which every
+    Gmsh-aware tool reads) stores the region as physical and elementary tags, the
+    protected faces as triangles tagged with their labels, edges and vertices as line and
+    point elements, and ``cell_data`` as element data when there are no protected
+    entities. ``.mesh`` / ``.meshb`` (Medit) store the region as references, the protected
+    faces and edges as ``Triangles`` and ``Edges``, the vertices as ``RequiredVertices``
+    (``.mesh`` only). ``.node`` / ``.ele`` (TetGen, both files are written; region ->
+    element attribute) store only the region. What a format cannot store is dropped with
+    a warning.
 
     The file is written to a temporary file in the same directory and moved into place, so
     ``path`` is either the complete new file or left untouched.
@@ -796,25 +939,29 @@ def save(
             dropped = [f"{len(dropped)} cell arrays ({', '.join(dropped[:3])}, ...)"]
         if fmt == "tetgen" and len(mesh.protected_faces):
             dropped.append("protected faces")
-        if len(mesh.protected_edges):
+        if fmt == "tetgen" and len(mesh.protected_edges):
             dropped.append("protected edges")
+        if len(mesh.protected_vertices) and (fmt == "tetgen" or ext == ".meshb"):
+            dropped.append("protected vertices")
         if dropped:
-            stored = "region labels" + (" and labelled triangles" if fmt == "medit" else "")
+            stored = {
+                ".mesh": "region labels and protected faces, edges and vertices",
+                ".meshb": "region labels and protected faces and edges",
+            }.get(ext, "region labels")
             warnings.warn(
                 f"{p}: the {_FORMAT_NAMES[fmt]} format stores only the {stored}; "
                 f"not saved: {', '.join(dropped)}",
                 stacklevel=2,
             )
     elif fmt == "gmsh":
-        dropped = ["protected edges"] if len(mesh.protected_edges) else []
-        if len(mesh.protected_faces) and cell_data:
+        if _lower_blocks(mesh, fmt) and cell_data:
             # meshio 5.3's Gmsh 2.2 reader splits element data over two or more element
             # blocks at element 2 and refuses its own file ("Incompatible cell data"),
-            # and meshio is how many solvers read .msh: the labelled triangles win
-            dropped.insert(0, f"{len(cell_data)} cell array(s) (with surface triangles)")
-        if dropped:
+            # and meshio is how many solvers read .msh: the protected entities win
             warnings.warn(
-                f"{p}: not saved in the Gmsh file: {', '.join(dropped)} (use .vtu)", stacklevel=2
+                f"{p}: not saved in the Gmsh file: {len(cell_data)} cell array(s) (with "
+                "protected triangles, lines or points) (use .vtu)",
+                stacklevel=2,
             )
     for what, values in (("region", mesh.region), ("surface", mesh.protected_face_labels)):
         if fmt in ("gmsh", "medit") and len(values):

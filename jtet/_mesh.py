@@ -161,6 +161,8 @@ class TetMesh:
             input gave none): a Gmsh physical surface, a Medit reference, a TetGen facet
             marker. Faces of different labels are different surfaces, so flips never move
             the border between two labels, and the savers write the labels back.
+        protected_vertices: (k,) int64 user-protected vertices (sorted, distinct): never
+            moved (a Gmsh point embedded in a volume, a point source, a probe).
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it
@@ -173,6 +175,7 @@ class TetMesh:
     protected_faces: Int[np.ndarray, "k 3"] = field(default=None)
     protected_edges: Int[np.ndarray, "k 2"] = field(default=None)
     protected_face_labels: Int[np.ndarray, " k"] = field(default=None)
+    protected_vertices: Int[np.ndarray, " k"] = field(default=None)
 
     def __post_init__(self):
         points = _checked_points(self.points)
@@ -184,12 +187,14 @@ class TetMesh:
             )
         pf, pl = self._face_array(self.protected_faces, self.protected_face_labels, len(points))
         pe = self._entity_array(self.protected_edges, 2, "protected_edges", len(points))
+        pv = self._vertex_array(self.protected_vertices, len(points))
         object.__setattr__(self, "points", _readonly(points))
         object.__setattr__(self, "tets", _readonly(tets))
         object.__setattr__(self, "region", _readonly(region))
         object.__setattr__(self, "protected_faces", _readonly(pf))
         object.__setattr__(self, "protected_edges", _readonly(pe))
         object.__setattr__(self, "protected_face_labels", _readonly(pl))
+        object.__setattr__(self, "protected_vertices", _readonly(pv))
 
     def _derive(self, *, tets_checked: int = 0, **changes) -> TetMesh:
         """``replace(**changes)`` checking only what is new.
@@ -232,6 +237,9 @@ class TetMesh:
             pe = self._entity_array(
                 changes.get("protected_edges", pe), 2, "protected_edges", len(points)
             )
+        pv = self.protected_vertices
+        if "protected_vertices" in changes or len(points) < self.n_points:
+            pv = self._vertex_array(changes.get("protected_vertices", pv), len(points))
         out = object.__new__(type(self))
         object.__setattr__(out, "_feature_angle", self._feature_angle)
         for name, value in (
@@ -241,6 +249,7 @@ class TetMesh:
             ("protected_faces", pf),
             ("protected_edges", pe),
             ("protected_face_labels", pl),
+            ("protected_vertices", pv),
         ):
             object.__setattr__(out, name, _readonly(value))
         return out
@@ -280,6 +289,23 @@ class TetMesh:
             raise MeshInputError(f"{name} entry {a[rep][0].tolist()} repeats a vertex")
         return np.unique(a, axis=0, return_index=return_index)
 
+    @staticmethod
+    def _vertex_array(a, n_points: int) -> np.ndarray:
+        """Protected vertices as sorted, distinct ids (k,)."""
+        if a is None or np.asarray(a).size == 0:
+            return np.zeros(0, np.int64)
+        a = np.asarray(a)
+        if a.ndim != 1 or not np.issubdtype(a.dtype, np.integer):
+            raise MeshInputError(
+                f"protected_vertices must be a 1-D integer array of vertex ids, got shape "
+                f"{a.shape} of {a.dtype}"
+            )
+        if ((a < 0) | (a >= n_points)).any():
+            raise MeshInputError(
+                f"protected_vertices holds vertex indices out of range [0, {n_points})"
+            )
+        return np.unique(a.astype(np.int64))
+
     @classmethod
     def _face_array(cls, faces, labels, n_points: int) -> tuple[np.ndarray, np.ndarray]:
         """Protected faces as sorted, distinct vertex triples (k, 3) and their labels (k,);
@@ -310,6 +336,7 @@ class TetMesh:
         protected_faces=None,
         protected_edges=None,
         protected_face_labels=None,
+        protected_vertices=None,
         *,
         source: str = "input",
     ) -> TetMesh:
@@ -323,7 +350,10 @@ class TetMesh:
         warning. Otherwise a mesh mixing both orientations is kept as it is: its negative
         tets are truly inverted (reported by ``is_valid()``; edge removal can repair some).
         """
-        mesh = cls(points, tets, region, protected_faces, protected_edges, protected_face_labels)
+        mesh = cls(
+            points, tets, region, protected_faces, protected_edges, protected_face_labels,
+            protected_vertices,
+        )  # fmt: skip
         vol = _orient_volumes6(mesh.points, mesh.tets)
         neg, pos = int((vol < 0).sum()), int((vol > 0).sum())
         if neg and not pos:
@@ -426,8 +456,8 @@ class TetMesh:
 
     def _part(self, sel: np.ndarray) -> tuple[TetMesh, np.ndarray, np.ndarray]:
         """The tets where ``sel`` (m,) is True as a mesh of their own (same feature
-        angle), with the protected faces and edges that are faces and edges of those
-        tets. Returns (submesh, verts, faces_in): ``verts`` (v,) maps the submesh's vertex
+        angle), with the protected faces, edges and vertices that are faces, edges and
+        vertices of those tets. Returns (submesh, verts, faces_in): ``verts`` (v,) maps the submesh's vertex
         ids to this mesh's (sorted), ``faces_in`` (k,) marks the protected faces taken."""
         from ._topology import TET_EDGES, TET_FACES, match_rows
 
@@ -440,6 +470,7 @@ class TetMesh:
         edges = np.sort(tets[:, TET_EDGES].reshape(-1, 2), axis=1)
         faces_in = match_rows(faces, self.protected_faces, n) >= 0
         edges_in = match_rows(edges, self.protected_edges, n) >= 0
+        pv_local = local[self.protected_vertices]
         sub = TetMesh(
             self.points[verts],
             local[tets],
@@ -447,6 +478,7 @@ class TetMesh:
             protected_faces=local[self.protected_faces[faces_in]],
             protected_edges=local[self.protected_edges[edges_in]],
             protected_face_labels=self.protected_face_labels[faces_in],
+            protected_vertices=pv_local[pv_local >= 0],
         )
         return sub._with_feature_angle(self._feature_angle), verts, faces_in
 
@@ -492,7 +524,9 @@ class TetMesh:
 
     def __repr__(self) -> str:
         nreg = len(np.unique(self.region))
+        pv = len(self.protected_vertices)
         return (
             f"TetMesh({self.n_points} points, {self.n_tets} tets, {nreg} region(s), "
-            f"{len(self.protected_faces)} protected faces, {len(self.protected_edges)} protected edges)"
+            f"{len(self.protected_faces)} protected faces, {len(self.protected_edges)} protected edges"
+            + (f", {pv} protected vertices)" if pv else ")")
         )

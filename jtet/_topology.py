@@ -381,6 +381,7 @@ class Topology:
         vertex_kind, surface_normal, segment_direction = _vertex_kinds(
             points, faces, subfacet, edges, subsegment, n
         )
+        pin_vertices(mesh.protected_vertices, vertex_kind, surface_normal, segment_direction)
         return cls(
             **face_part,
             **edge_part,
@@ -759,6 +760,14 @@ def _incidences(rows: np.ndarray, selected: np.ndarray, n: int) -> np.ndarray:
     verts = rows[ids].reshape(-1)
     order, _ = _stable_sort(verts, max(n - 1, 1).bit_length())  # row ids stay ascending
     return np.column_stack([verts[order], np.repeat(ids, rows.shape[1])[order]])
+
+
+def pin_vertices(protected, kind, normal, direction) -> None:
+    """Make the ``protected`` (k,) vertices corners, in place in ``kind`` (n,), ``normal``
+    and ``direction`` (n, 3): smoothing and kicks never move a corner."""
+    kind[protected] = CORNER
+    normal[protected] = 0.0
+    direction[protected] = 0.0
 
 
 def _vertex_kinds_at(points, vids, vf, faces, ve, edges):

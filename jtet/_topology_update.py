@@ -35,6 +35,7 @@ from ._topology import (
     index_bound,
     index_dtype,
     local_index,
+    pin_vertices,
     row_keys,
     run_parts,
     sorted_lookup,
@@ -109,6 +110,8 @@ def _compatible(old: Topology, old_mesh, new_mesh, keep: np.ndarray, kept_first:
     ):
         return False
     if not np.array_equal(new_mesh.protected_edges, old_mesh.protected_edges):
+        return False
+    if not np.array_equal(new_mesh.protected_vertices, old_mesh.protected_vertices):
         return False
     return kept_first or (
         np.array_equal(new_mesh.tets[:K], old_mesh.tets[keep])
@@ -197,6 +200,7 @@ def _update(old: Topology, old_mesh, new_mesh, keep, feature_angle) -> Topology 
         vertex_kind, surface_normal, segment_direction = _update_vertex_kinds(
             old, points, tets, fu, subfacet, eu, subsegment, vert_tets_ptr, vert_tets, vids
         )
+    pin_vertices(new_mesh.protected_vertices, vertex_kind, surface_normal, segment_direction)
     topo = Topology(
         faces=fu.faces,
         tet_faces=fu.tet_faces,

@@ -12,7 +12,7 @@ qhull returns zero-volume tets), and points in a cube with points on its flat fa
 (both orientations), passed through ``TetMesh.from_arrays``, which reorders tets listed
 inside out. Optional damage: interior vertices moved far enough to invert tets. Optional
 labels: region labels by random plane splits or random per tet (almost every face becomes
-an interface: a test of protection), random protected edges and faces.
+an interface: a test of protection), random protected edges, faces and vertices.
 
 Meshes have 20-200 points, so the padded batches of the kernels (``bucket_capacity``)
 take one or two sizes and jitted kernels are compiled once per (ring size, measure).
@@ -54,6 +54,7 @@ class MeshSpec:
     protect_faces: float = 0.0  # fraction of interior faces protected
     protect_boundary: float = 0.0  # fraction of boundary faces protected
     face_labels: int = 0  # protected faces get labels 0 .. face_labels - 1 (0: all 0)
+    protect_vertices: float = 0.0  # fraction of vertices protected (never moved)
 
 
 def _points(spec: MeshSpec, rng: np.random.Generator) -> np.ndarray:
@@ -143,7 +144,10 @@ def build_mesh(spec: MeshSpec) -> jtet.TetMesh | None:
         # labels by position (a slab per label), so labelled patches have borders
         c = pts[pf].mean(axis=1) @ rng.standard_normal(3)
         labels = np.digitize(c, np.quantile(c, np.linspace(0, 1, spec.face_labels + 1)[1:-1]))
-    return jtet.TetMesh(pts, mesh.tets, region, pf, pe, labels)
+    pv = None
+    if spec.protect_vertices:
+        pv = np.flatnonzero(rng.random(len(pts)) < spec.protect_vertices)
+    return jtet.TetMesh(pts, mesh.tets, region, pf, pe, labels, pv)
 
 
 @st.composite
@@ -172,7 +176,8 @@ def mesh_specs(draw, damage: bool | None = None, labels: bool | None = None) -> 
         pf = draw(st.sampled_from([0.0, 0.0, 0.05, 0.2]))
         pb = draw(st.sampled_from([0.0, 0.0, 0.3, 1.0]))
     fl = draw(st.sampled_from([0, 2, 3])) if lab else 0
-    return MeshSpec(kind, n, seed, scale, n_moved, move, regions, n_regions, pe, pf, pb, fl)
+    pv = draw(st.sampled_from([0.0, 0.0, 0.1, 0.5])) if lab else 0.0
+    return MeshSpec(kind, n, seed, scale, n_moved, move, regions, n_regions, pe, pf, pb, fl, pv)
 
 
 @st.composite

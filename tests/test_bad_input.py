@@ -322,6 +322,23 @@ def test_bad_protected_face_labels():
     assert twice.replace(protected_faces=faces).protected_face_labels.tolist() == [0, 0]
 
 
+def test_bad_protected_vertices():
+    m = delaunay_mesh(40, seed=3)
+    with pytest.raises(jtet.MeshInputError, match="out of range"):
+        jtet.TetMesh(m.points, m.tets, protected_vertices=[0, m.n_points])
+    with pytest.raises(jtet.MeshInputError, match="1-D integer array"):
+        jtet.TetMesh(m.points, m.tets, protected_vertices=[[0, 1]])
+    with pytest.raises(jtet.MeshInputError, match="1-D integer array"):
+        jtet.TetMesh(m.points, m.tets, protected_vertices=[0.5])
+    # sorted and distinct; kept through replace(), checked again for fewer points
+    pinned = jtet.TetMesh(m.points, m.tets, protected_vertices=[5, 2, 5])
+    assert pinned.protected_vertices.tolist() == [2, 5]
+    assert pinned.replace(region=np.ones(m.n_tets, int)).protected_vertices.tolist() == [2, 5]
+    assert "2 protected vertices" in repr(pinned)
+    with pytest.raises(jtet.MeshInputError, match="out of range"):
+        pinned.replace(points=m.points[:4], tets=[[0, 1, 2, 3]], region=[0])
+
+
 def test_cli_prints_warnings_as_one_line(tmp_path, capsys):
     # the command line says "jtet: warning: <what>", as it says "jtet: error: <what>",
     # not Python's "<file>:<line>: UserWarning:" with a line of jtet's source after it

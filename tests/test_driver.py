@@ -603,6 +603,20 @@ def test_protected_boundary_faces_stay_protected_through_flips(part):
         assert result.stats_after.min_dihedral == plain.stats_after.min_dihedral
 
 
+def test_protected_vertices_never_move():
+    """Interior vertices protected (a point source, a probe): the whole run, perturbation
+    rounds included, leaves them where they are; unprotected, most of them move."""
+    mesh = jtet.demo_mesh()
+    pinned = np.flatnonzero(mesh.topology.vertex_kind == 0)[::5]
+    result = jtet.improve(mesh.replace(protected_vertices=pinned), check=True)
+    assert result.stats_after.min_dihedral > 25
+    np.testing.assert_array_equal(result.mesh.points[pinned], mesh.points[pinned])
+    np.testing.assert_array_equal(result.mesh.protected_vertices, pinned)
+    free = jtet.improve(mesh)
+    moved = (free.mesh.points[pinned] != mesh.points[pinned]).any(axis=1)
+    assert moved.mean() > 0.5
+
+
 def test_labelled_boundary_patches_keep_their_borders_and_areas():
     """Boundary faces labelled by x (two labels meeting on flat faces of the box, as two
     Gmsh physical surfaces on one wall): flips may re-triangulate each patch, never move

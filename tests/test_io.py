@@ -13,6 +13,7 @@ import jtet
 from jtet import _io
 from jtet._errors import MeshFileError, MeshInputError
 from jtet._quality import tet_dihedrals
+from jtet._topology import CORNER
 
 FORMATS = ["vtu", "vtk", "msh", "mesh", "meshb", "node", "ele"]
 
@@ -79,14 +80,49 @@ def test_vtk_keeps_cell_data_and_protection(tmp_path, labelled, ext):
 
 
 def test_msh_keeps_cell_data_and_physical_tags(tmp_path, labelled):
-    plain = labelled.replace(protected_faces=np.zeros((0, 3), int))
+    plain = labelled.replace(protected_faces=None, protected_edges=None)
     q = plain.quality()
     path = tmp_path / "m.msh"
-    with pytest.warns(UserWarning, match="protected edges"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing is left out
         _io.save(plain, path, cell_data={"quality": q})
     m = meshio.gmsh.read(path)
     np.testing.assert_array_equal(m.cell_data["quality"][0], q)
     np.testing.assert_array_equal(m.cell_data["gmsh:physical"][0], plain.region)
+    # with protected entities (element blocks of their own) the per-tet arrays are left
+    # out, with a warning: meshio would refuse the file
+    with pytest.warns(UserWarning, match=r"1 cell array\(s\) \(with protected triangles, lines"):
+        _io.save(labelled, path, cell_data={"quality": q})
+    assert "quality" not in meshio.gmsh.read(path).cell_data
+
+
+@pytest.mark.parametrize("ext", ["msh", "mesh", "meshb", "vtu", "vtk", "node"])
+def test_protected_entities_round_trip(tmp_path, labelled, ext):
+    """Protected faces (with labels), edges and vertices come back from every format
+    that stores them: Gmsh triangles, lines and points; Medit triangles, edges and
+    RequiredVertices (not in the binary .meshb); VTK field data. TetGen stores none. A
+    warning names what a format leaves out."""
+    mesh = labelled.replace(
+        protected_faces=labelled.protected_faces,
+        protected_face_labels=np.arange(len(labelled.protected_faces)) + 11,
+        protected_vertices=[7, 3, 12],
+    )
+    path = tmp_path / f"m.{ext}"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _io.save(mesh, path)
+    dropped = " ".join(str(w.message) for w in caught)
+    back = _io.load(path)
+    names = ("protected_faces", "protected_face_labels", "protected_edges", "protected_vertices")
+    stored = {"node": (), "meshb": names[:3]}.get(ext, names)
+    for name in names:
+        if name in stored:
+            np.testing.assert_array_equal(getattr(back, name), getattr(mesh, name), err_msg=name)
+        else:
+            assert len(getattr(back, name)) == 0, name
+            assert name.replace("_", " ").replace(" labels", "") in dropped, (name, dropped)
+    np.testing.assert_array_equal(back.region, mesh.region)
+    assert back.protected_vertices.tolist() == ([3, 7, 12] if ext not in ("node", "meshb") else [])
 
 
 @pytest.mark.parametrize("ext", ["msh", "mesh", "vtu"])
@@ -480,6 +516,94 @@ def test_vtk_triangles_become_labelled_protected_faces(tmp_path):
     grid.save(tmp_path / "m.vtu")
     m = _io.load(tmp_path / "m.vtu")
     assert m.protected_face_labels.tolist() == [5, 20] and m.region.tolist() == [1, 1]
+
+
+def test_line_and_vertex_cells_become_protected_edges_and_vertices(tmp_path):
+    # lines that are edges of the tets (the shared edge (1, 2) inside, (0, 1) on the
+    # boundary) and points that are their vertices are protected; (0, 4) is no edge and
+    # vertex 5 is in no tet: both ignored with a warning
+    points = np.vstack([PTS5, [[3.0, 3.0, 3.0]]])
+    cells = {
+        pv.CellType.TETRA: TETS2,
+        pv.CellType.LINE: np.array([[2, 1], [0, 1], [0, 4]]),
+        pv.CellType.VERTEX: np.array([[4], [5], [4]]),
+    }
+    with pytest.warns(UserWarning) as caught:
+        m = jtet.TetMesh.from_pyvista(pv.UnstructuredGrid(cells, points))
+    messages = " ".join(str(w.message) for w in caught)
+    assert "1 line(s) of the file are not edges of its tets" in messages
+    assert "1 vertex cell(s) of the file are not vertices of its tets" in messages
+    assert m.protected_edges.tolist() == [[0, 1], [1, 2]]
+    assert m.protected_vertices.tolist() == [4]
+    T = m.topology
+    assert T.subsegment[[T.edges.tolist().index(e) for e in ([0, 1], [1, 2])]].all()
+    assert T.vertex_kind[4] == CORNER
+    # the same from a Gmsh file: line elements (1) and point elements (15)
+    lines = MSH22.splitlines()
+    start, end = lines.index("$Elements"), lines.index("$EndElements")
+    elements = lines[start + 2 : end] + ["6 1 2 0 5 2 3", "7 15 2 0 6 5"]
+    lines[start + 1 : end] = [str(len(elements)), *elements]
+    path = tmp_path / "lines.msh"
+    path.write_text("\n".join(lines) + "\n")
+    m = _io.load(path)  # with MSH22's own line (1, 2) and point (1) elements (1-based)
+    assert m.protected_edges.tolist() == [[0, 1], [1, 2]]
+    assert m.protected_vertices.tolist() == [0, 4]
+
+
+def test_medit_required_vertices(tmp_path):
+    # MMG never moves its RequiredVertices (1-based); meshio skips the section, jtet reads
+    # it, with MMG's other sections around it (Corners, Ridges: skipped)
+    text = MEDIT.replace("End\n", "Corners\n1\n1\nRequiredVertices\n2\n5\n 2\nRidges\n0\nEnd\n")
+    path = tmp_path / "mmg.mesh"
+    path.write_text(text)
+    assert _io.load(path).protected_vertices.tolist() == [1, 4]
+    path.write_text(MEDIT.replace("End\n", "RequiredVertices\n3\n5\n2\nEnd\n"))
+    with pytest.raises(jtet.MeshInputError, match="unreadable RequiredVertices"):
+        _io.load(path)
+
+
+def test_gmsh_embedded_point_and_curve_stay(tmp_path):
+    """A point and a curve embedded in a Gmsh volume (``gmsh.model.mesh.embed``): the
+    point element's vertex never moves and the curve's edges stay, as Gmsh keeps nodes
+    on their model entities. Unprotected, the point's vertex moves."""
+    gmsh = pytest.importorskip("gmsh")
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        box = gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
+        point = gmsh.model.occ.addPoint(0.31, 0.47, 0.53)
+        a, b = gmsh.model.occ.addPoint(0.2, 0.2, 0.3), gmsh.model.occ.addPoint(0.8, 0.7, 0.6)
+        line = gmsh.model.occ.addLine(a, b)
+        gmsh.model.occ.synchronize()
+        gmsh.model.mesh.embed(0, [point], 3, box)
+        gmsh.model.mesh.embed(1, [line], 3, box)
+        for name, value in (("MeshSizeMax", 0.15), ("Algorithm3D", 1), ("Optimize", 0)):
+            gmsh.option.setNumber(f"Mesh.{name}", value)
+        gmsh.model.mesh.generate(3)
+        gmsh.write(str(tmp_path / "embedded.msh"))
+    finally:
+        gmsh.finalize()
+    mesh = _io.load(tmp_path / "embedded.msh")
+    target = np.array([0.31, 0.47, 0.53])
+    (vertex,) = np.flatnonzero((mesh.points == target).all(axis=1))
+    assert vertex in mesh.protected_vertices
+    a, b = np.array([0.2, 0.2, 0.3]), np.array([0.8, 0.7, 0.6])
+
+    def on_curve(m):
+        p = m.points[m.protected_edges]
+        off = np.linalg.norm(np.cross(p - a, b - a), axis=2).max(axis=1)
+        return m.protected_edges[off < 1e-12]
+
+    curve = on_curve(mesh)
+    assert len(curve) >= 4
+    result = jtet.improve(mesh, check=True)
+    out = result.mesh
+    assert result.stats_after.min_dihedral > result.stats_before.min_dihedral
+    assert (out.points[vertex] == target).all()
+    np.testing.assert_array_equal(on_curve(out), curve)
+    np.testing.assert_array_equal(out.points[curve], mesh.points[curve])
+    free = jtet.improve(mesh.replace(protected_vertices=None, protected_edges=None))
+    assert (free.mesh.points[curve.reshape(-1)] != mesh.points[curve.reshape(-1)]).any()
 
 
 def test_gmsh_embedded_surface_survives_improve(tmp_path):

@@ -275,6 +275,20 @@ def test_boundary_flip_does_not_fold_the_boundary_onto_itself():
     InvariantChecker(mesh).check(out, 0, "edge")
 
 
+def test_checker_catches_a_moved_or_dropped_protected_vertex():
+    mesh = jtet.demo_mesh()
+    pinned = np.flatnonzero(mesh.topology.vertex_kind == 0)[:5]
+    mesh = mesh.replace(protected_vertices=pinned)
+    checker = InvariantChecker(mesh)
+    checker.check(mesh, 0, "smooth")  # the same mesh passes
+    points = mesh.points.copy()
+    points[pinned[2]] += 1e-9
+    with pytest.raises(jtet.InvariantError, match=f"protected vertex {pinned[2]} moved"):
+        checker.check(mesh.replace(points=points), 0, "smooth")
+    with pytest.raises(jtet.InvariantError, match="protected vertices changed"):
+        checker.check(mesh.replace(protected_vertices=pinned[1:]), 0, "smooth")
+
+
 def test_checker_catches_labelled_area_and_label_changes():
     # the checker's per-label areas: a face moved to another label changes two areas, a
     # label that disappears changes the set (each fails on its own)

@@ -19,7 +19,7 @@ from jtet._apply import replace_tets
 from jtet._edge_removal import edge_removal_pass
 from jtet._errors import MeshInputError
 from jtet._multiface import multiface_removal_pass
-from jtet._topology import Topology
+from jtet._topology import CORNER, Topology
 
 
 def assert_same(got: Topology, want: Topology):
@@ -168,6 +168,25 @@ def test_step_that_changes_nothing(make):
     the empty set of redone edges) gives the old topology's equal."""
     mesh = make()
     check_step(mesh, mesh.replace(), np.ones(mesh.n_tets, bool))
+
+
+def test_protected_vertices_are_corners_after_an_update():
+    """Protected interior vertices are corners (never moved) in the build and after
+    incremental updates whose changed tets hold them; a step that changes the protected
+    vertices takes the full build."""
+    mesh = ball_mesh(5)
+    T = mesh.topology
+    pinned = np.flatnonzero(T.vertex_kind == 0)[::3]
+    mesh = mesh.replace(protected_vertices=pinned)
+    assert (mesh.topology.vertex_kind[pinned] == CORNER).all()
+    assert (mesh.topology.surface_normal[pinned] == 0).all()
+    steps = run_passes(mesh)  # every step is checked against a full build
+    assert steps > 0
+    keep = np.ones(mesh.n_tets, bool)
+    fewer = mesh.replace(protected_vertices=pinned[1:])
+    assert not U._compatible(mesh.topology, mesh, fewer, keep, False)
+    topo = U.update_topology(mesh.topology, mesh, fewer, keep)
+    assert_same(topo, Topology.build(fewer, fewer._feature_angle))
 
 
 def test_inverted_input():
