@@ -1,6 +1,7 @@
 """Mesh I/O: format round trips, region labels, bad inputs, atomic saves, demo meshes."""
 
 import os
+import sys
 import warnings
 
 import meshio
@@ -780,6 +781,50 @@ def test_truncated_files_are_a_file_error(tmp_path, capfd, labelled, ext, frac):
         _io.load(cut)
     _one_line(e)
     assert capfd.readouterr() == ("", "")
+
+
+@pytest.mark.parametrize("which", ["ele", "node"])
+def test_tetgen_file_of_comments_only(tmp_path, which):
+    # meshio's TetGen reader waited forever for a header line in such a file (a copy cut
+    # short after its comment)
+    (tmp_path / "m.node").write_text(TETGEN_NODE)
+    (tmp_path / "m.ele").write_text(TETGEN_ELE)
+    (tmp_path / f"m.{which}").write_text("# This file was crea")
+    with pytest.raises(MeshFileError, match=f"m.{which}: not a readable TetGen file .no header"):
+        _io.load(tmp_path / "m.node")
+
+
+def test_vtk_reader_crash_is_a_file_error(tmp_path, labelled, monkeypatch, capfd):
+    """VTK's readers are run in a forked child: a legacy file truncated inside its field
+    data (a segmentation fault in VTK 9) and a reader that dies by a signal become a
+    one-line ``MeshFileError``; the process goes on and prints nothing."""
+    full = tmp_path / "full.vtk"
+    _quiet_save(labelled, full)
+    cut = tmp_path / "cut.vtk"
+    cut.write_bytes(full.read_bytes()[:102])  # in the FIELD header
+    with pytest.raises(MeshFileError, match="cut.vtk: not a readable legacy VTK file") as e:
+        _io.load(cut)
+    _one_line(e)
+    if sys.platform.startswith("linux"):
+        import signal
+
+        def crash(*args):
+            os.kill(os.getpid(), signal.SIGSEGV)
+
+        monkeypatch.setattr(_io, "_vtk_arrays_here", crash)
+        with pytest.raises(MeshFileError, match=r"VTK's reader crashed with SIGSEGV: the file is"):
+            _io.load(full)
+    assert capfd.readouterr() == ("", "")
+
+
+def test_vtk_reader_warnings_reach_the_caller(tmp_path):
+    # the child's warnings (here: a triangle that is no face of the tets) are raised
+    # again in the loading process
+    cells = {pv.CellType.TETRA: TETS2, pv.CellType.TRIANGLE: np.array([[0, 1, 4]])}
+    pv.UnstructuredGrid(cells, PTS5).save(tmp_path / "stray.vtu")
+    with pytest.warns(UserWarning, match="1 triangle.* not faces of its tets"):
+        m = _io.load(tmp_path / "stray.vtu")
+    np.testing.assert_array_equal(m.tets, TETS2)
 
 
 @pytest.mark.parametrize(("name", "text"), [("v22.msh", MSH22), ("v41.msh", MSH41)])
