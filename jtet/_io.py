@@ -386,6 +386,25 @@ def _vtk_arrays_here(path: Path, fmt: str, source: str):
     return grid_to_arrays(grid, source)
 
 
+def _limit_child_memory(path: Path) -> None:
+    """Cap the address space of the reading child at what it has plus 1 GB plus 100x
+    the file's size (compressed tet meshes inflate 1-5x; VTK holds ~2 copies). Damaged
+    block headers may announce terabytes: VTK then spent 30 s allocating before its
+    abort; with the cap it fails at once."""
+    import resource
+
+    try:
+        with open("/proc/self/status") as f:
+            now = next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmSize:"))
+        budget = now + 2**30 + 100 * path.stat().st_size
+        soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+        if hard != resource.RLIM_INFINITY:
+            budget = min(budget, hard)
+        resource.setrlimit(resource.RLIMIT_AS, (budget, hard))
+    except (OSError, ValueError, StopIteration):
+        pass  # no /proc or no limits here: read without a cap
+
+
 def _vtk_file_arrays(path: Path, fmt: str, source: str):
     """``grid_to_arrays`` of the VTK file ``path``, read in a forked child process.
 
@@ -419,6 +438,7 @@ def _vtk_file_arrays(path: Path, fmt: str, source: str):
             faulthandler.disable()
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, 2)
+            _limit_child_memory(path)
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 value = _vtk_arrays_here(path, fmt, source)

@@ -3,6 +3,7 @@
 import os
 import sys
 import warnings
+from pathlib import Path
 
 import meshio
 import numpy as np
@@ -1096,3 +1097,19 @@ def test_demo_two_regions():
 def test_unknown_demo_mesh():
     with pytest.raises(MeshInputError, match="unknown demo mesh"):
         _io.demo_mesh("nope")
+
+
+def test_damaged_files_fuzz(tmp_path, capsys):
+    """A short run of experiments/fuzz_files.py: 20 damaged versions of a labelled mesh
+    in every format each load or are refused with a JtetError (none crashes, none raises
+    another exception)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+    try:
+        import fuzz_files
+    finally:
+        sys.path.pop(0)
+    code = fuzz_files.main(["--tries", "20", "--seed", "3", "--keep", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    rows = [line.split() for line in out.splitlines() if line.split()[:1] in (["vtu"], ["node"])]
+    assert len(rows) == 2 and all(int(r[1]) + int(r[2]) == 20 for r in rows), out
