@@ -89,7 +89,7 @@ def run_format(fmt: str, tries: int, seed: int, keep: Path) -> dict:
     originals = {n: (work / n).read_bytes() for n in names}
     counts = collections.Counter()
     others = collections.Counter()
-    for _ in range(tries):
+    for t in range(tries):
         target = names[rng.integers(len(names))]
         for n in names:
             data = _mutate(originals[n], rng) if n == target else originals[n]
@@ -106,7 +106,9 @@ def run_format(fmt: str, tries: int, seed: int, keep: Path) -> dict:
         except Exception as e:
             counts["other"] += 1
             where = traceback.extract_tb(e.__traceback__)[-1]
-            others[f"{type(e).__name__} at {Path(where.filename).name}:{where.lineno}"] += 1
+            others[f"{type(e).__name__} at {Path(where.filename).name}:{where.lineno}: {e}"] += 1
+            for n in names:  # kept for a regression test
+                shutil.copy(work / n.replace("src", "mut"), keep / n.replace("src", f"other{t}"))
     shutil.rmtree(work, ignore_errors=True)
     return {"counts": dict(counts), "others": dict(others)}
 

@@ -139,10 +139,17 @@ def _pick_region(arrays: dict, n_cells: int, keep: np.ndarray, source: str) -> n
     return None
 
 
-def _field_entities(grid, name: str, k: int) -> np.ndarray | None:
+def _field_entities(grid, name: str, k: int, source: str) -> np.ndarray | None:
+    """The vertex-id rows (j, k) of field-data array ``name`` (``mesh_to_grid``'s)."""
     if name not in grid.field_data:
         return None
-    return np.asarray(grid.field_data[name]).reshape(-1, k).astype(np.int64)
+    a = np.asarray(grid.field_data[name])
+    if a.size % k or not (np.issubdtype(a.dtype, np.integer) or a.size == 0):
+        raise MeshInputError(
+            f"{source}: field data {name!r} ({a.size} values of {a.dtype}) is not a list of "
+            f"{k}-vertex rows of ids"
+        )
+    return a.reshape(-1, k).astype(np.int64)
 
 
 def grid_to_arrays(grid, source: str = "pyvista grid"):
@@ -216,8 +223,8 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     tets = conn[offsets[:-1][is_tet][:, None] + np.arange(4)]
     points = np.asarray(grid.points, dtype=np.float64)
     region = _pick_region(dict(grid.cell_data), n_cells, is_tet, source)
-    pf = _field_entities(grid, PROTECTED_FACES_ARRAY, 3)
-    pe = _field_entities(grid, PROTECTED_EDGES_ARRAY, 2)
+    pf = _field_entities(grid, PROTECTED_FACES_ARRAY, 3, source)
+    pe = _field_entities(grid, PROTECTED_EDGES_ARRAY, 2, source)
     labels = None
     if pf is not None:
         labels = np.zeros(len(pf), np.int64)
@@ -232,7 +239,7 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
         if faces is not None:  # the field data's own faces first: their labels win
             pf = faces if pf is None else np.concatenate([pf, faces])
             labels = tri_labels if labels is None else np.concatenate([labels, tri_labels])
-    pv_field = _field_entities(grid, PROTECTED_VERTICES_ARRAY, 1)
+    pv_field = _field_entities(grid, PROTECTED_VERTICES_ARRAY, 1, source)
     pinned = None if pv_field is None else pv_field[:, 0]
 
     def cells(vtk_type: int, k: int) -> np.ndarray:

@@ -1113,3 +1113,17 @@ def test_damaged_files_fuzz(tmp_path, capsys):
     assert code == 0, out
     rows = [line.split() for line in out.splitlines() if line.split()[:1] in (["vtu"], ["node"])]
     assert len(rows) == 2 and all(int(r[1]) + int(r[2]) == 20 for r in rows), out
+
+
+@pytest.mark.parametrize(
+    ("name", "values"),
+    [("jtet:protected_edges", [0, 1, 2]), ("jtet:protected_faces", [0.0, 1.0, 2.0])],
+)
+def test_damaged_protected_field_data(tmp_path, name, values):
+    # found by fuzz_files: a damaged .vtu whose protected edges held 3 ids (a bare
+    # ValueError from a reshape before); float ids are no ids either
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: TETS2}, PTS5)
+    grid.field_data[name] = np.array(values)
+    grid.save(tmp_path / "m.vtu")
+    with pytest.raises(MeshInputError, match=f"field data '{name}' .* not a list of"):
+        _io.load(tmp_path / "m.vtu")
