@@ -222,7 +222,9 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
         )
     tets = conn[offsets[:-1][is_tet][:, None] + np.arange(4)]
     points = np.asarray(grid.points, dtype=np.float64)
-    region = _pick_region(dict(grid.cell_data), n_cells, is_tet, source)
+    # by name: a damaged file may hold an array without one (pyvista then refuses dict())
+    cell_arrays = {k: grid.cell_data[k] for k in grid.cell_data.keys() if isinstance(k, str)}
+    region = _pick_region(cell_arrays, n_cells, is_tet, source)
     pf = _field_entities(grid, PROTECTED_FACES_ARRAY, 3, source)
     pe = _field_entities(grid, PROTECTED_EDGES_ARRAY, 2, source)
     labels = None
@@ -233,7 +235,7 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     is_tri = celltypes == _VTK_TRIANGLE
     if is_tri.any():  # e.g. Gmsh's VTK export: as from .msh, labelled by the region array
         tri = conn[offsets[:-1][is_tri][:, None] + np.arange(3)]
-        tri_labels = _pick_region(dict(grid.cell_data), n_cells, is_tri, source)
+        tri_labels = _pick_region(cell_arrays, n_cells, is_tri, source)
         tri_labels = np.zeros(len(tri), np.int64) if tri_labels is None else tri_labels
         faces, tri_labels = _mesh_triangles(tets, tri, tri_labels, len(points), source)
         if faces is not None:  # the field data's own faces first: their labels win

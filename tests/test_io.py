@@ -1127,3 +1127,13 @@ def test_damaged_protected_field_data(tmp_path, name, values):
     grid.save(tmp_path / "m.vtu")
     with pytest.raises(MeshInputError, match=f"field data '{name}' .* not a list of"):
         _io.load(tmp_path / "m.vtu")
+
+
+def test_damaged_vtk_array_name():
+    # found by fuzz_files: a legacy file whose cell array name lost a byte ('reg\xc1on',
+    # not UTF-8): pyvista gives bytes as its key and refused dict() with a TypeError;
+    # the arrays are now taken by name, and the file's real fault (a damaged tet) is
+    # what the error says
+    path = Path(__file__).parent / "data" / "damaged_array_name.vtk"
+    with pytest.raises(MeshInputError, match="tet 17 has vertex indices .* out of range"):
+        _io.load(path)
