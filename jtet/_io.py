@@ -585,6 +585,23 @@ def _gmsh_surface_labels(m, blocks: list[int], source: str) -> np.ndarray | None
     return physical if physical is not None and physical.any() else entity
 
 
+def _of_tets(tets: np.ndarray, rows: np.ndarray, local: np.ndarray, n: int) -> np.ndarray:
+    """(k,) bool: which sorted vertex rows (k, j) are faces (``local`` = TET_FACES, j = 3)
+    or edges (TET_EDGES, j = 2) of the tets (m, 4) over n points."""
+    from ._topology import row_keys
+
+    j = rows.shape[1]
+    # only tets with j marked vertices can have such a face or edge (a few percent of the
+    # tets for boundary triangles: 0.7 -> 0.07 s for a 983k-tet cube)
+    marked = np.zeros(n, bool)
+    marked[rows.reshape(-1)] = True
+    near = tets[marked[tets].sum(axis=1) >= j]
+    subs = np.sort(near[:, local].reshape(-1, j), axis=1)
+    subs = subs[marked[subs].all(axis=1)]
+    keys = row_keys(np.concatenate([subs, rows]), n)  # one call: keys that compare
+    return np.isin(keys[len(subs) :], keys[: len(subs)])
+
+
 def _mesh_triangles(tets: np.ndarray, tri: np.ndarray, labels, n: int, source: str):
     """The triangles ``tri`` (k, 3) of a file that are faces of its tets ``tets`` (m, 4),
     as sorted rows, with their ``labels`` (k,): ``(faces, labels)``, or ``(None, None)``
@@ -597,22 +614,14 @@ def _mesh_triangles(tets: np.ndarray, tri: np.ndarray, labels, n: int, source: s
     through it and smoothing would move its vertices off it. Triangles that are no face
     of a tet are ignored with a warning.
     """
-    from ._topology import TET_FACES, row_keys
+    from ._topology import TET_FACES
 
     if not len(tri) or not len(tets) or tets.min() < 0 or tets.max() >= n:
         return None, None  # from_arrays reports bad tets
     inside = (tri.min(axis=1) >= 0) & (tri.max(axis=1) < n)
     tri, first = np.unique(np.sort(tri[inside], axis=1), axis=0, return_index=True)
     labels = np.asarray(labels, np.int64)[inside][first]
-    # only tets with three triangle vertices can have such a face (a few percent of the
-    # tets for boundary triangles: 0.7 -> 0.07 s for a 983k-tet cube)
-    marked = np.zeros(n, bool)
-    marked[tri.reshape(-1)] = True
-    near = tets[marked[tets].sum(axis=1) >= 3]
-    faces = np.sort(near[:, TET_FACES].reshape(-1, 3), axis=1)
-    faces = faces[marked[faces].all(axis=1)]
-    keys = row_keys(np.concatenate([faces, tri]), n)  # one call: keys that compare
-    is_face = np.isin(keys[len(faces) :], keys[: len(faces)])
+    is_face = _of_tets(tets, tri, TET_FACES, n)
     strays = int((~is_face).sum()) + int((~inside).sum())
     if strays:
         warnings.warn(
@@ -635,7 +644,7 @@ def _mesh_edges_and_vertices(tets: np.ndarray, lines, vertices, n: int, source: 
     stay on their model entities in Gmsh's own optimizer. The others are ignored with a
     warning.
     """
-    from ._topology import TET_EDGES, row_keys
+    from ._topology import TET_EDGES
 
     if not len(tets) or tets.min() < 0 or tets.max() >= n:
         return None, None  # from_arrays reports bad tets
@@ -644,14 +653,7 @@ def _mesh_edges_and_vertices(tets: np.ndarray, lines, vertices, n: int, source: 
     if len(lines):
         ok = (lines.min(axis=1) >= 0) & (lines.max(axis=1) < n) & (lines[:, 0] != lines[:, 1])
         lines = np.unique(np.sort(lines[ok], axis=1), axis=0)
-        # only tets with two line vertices can have such an edge
-        marked = np.zeros(n, bool)
-        marked[lines.reshape(-1)] = True
-        near = tets[marked[tets].sum(axis=1) >= 2]
-        tet_edges = np.sort(near[:, TET_EDGES].reshape(-1, 2), axis=1)
-        tet_edges = tet_edges[marked[tet_edges].all(axis=1)]
-        keys = row_keys(np.concatenate([tet_edges, lines]), n)  # one call: keys that compare
-        is_edge = np.isin(keys[len(tet_edges) :], keys[: len(tet_edges)])
+        is_edge = _of_tets(tets, lines, TET_EDGES, n)
         strays = int((~is_edge).sum()) + int((~ok).sum())
         if strays:
             warnings.warn(

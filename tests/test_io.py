@@ -488,17 +488,22 @@ def test_gmsh_partitioned_mesh_reads_as_the_whole_mesh(tmp_path, binary):
     assert by_coordinates(parts) == by_coordinates(whole)
 
 
+def _msh22_with(path, elements: list[str]):
+    """``MSH22`` with the element lines ``elements`` appended, written to ``path``."""
+    lines = MSH22.splitlines()
+    start, end = lines.index("$Elements"), lines.index("$EndElements")
+    elements = lines[start + 2 : end] + elements
+    lines[start + 1 : end] = [str(len(elements)), *elements]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
 def test_gmsh_triangles_become_labelled_protected_faces(tmp_path):
     # the two tets share face (2, 3, 4) (1-based); a triangle element there is an embedded
     # or internal surface: protected, so flips and smoothing keep it. The boundary
     # triangle (1, 2, 3) of physical surface 3 is protected with its label, so its
     # patch keeps its border and is written back; (1, 2, 5) is no face of a tet.
-    lines = MSH22.splitlines()
-    start, end = lines.index("$Elements"), lines.index("$EndElements")
-    elements = lines[start + 2 : end] + ["6 2 2 4 1 2 3 4", "7 2 2 4 1 1 2 5"]
-    lines[start + 1 : end] = [str(len(elements)), *elements]
-    path = tmp_path / "inner.msh"
-    path.write_text("\n".join(lines) + "\n")
+    path = _msh22_with(tmp_path / "inner.msh", ["6 2 2 4 1 2 3 4", "7 2 2 4 1 1 2 5"])
     with pytest.warns(UserWarning, match="1 triangle.* not faces of its tets"):
         m = _io.load(path)
     assert m.protected_faces.tolist() == [[0, 1, 2], [1, 2, 3]]
@@ -541,12 +546,7 @@ def test_line_and_vertex_cells_become_protected_edges_and_vertices(tmp_path):
     assert T.subsegment[[T.edges.tolist().index(e) for e in ([0, 1], [1, 2])]].all()
     assert T.vertex_kind[4] == CORNER
     # the same from a Gmsh file: line elements (1) and point elements (15)
-    lines = MSH22.splitlines()
-    start, end = lines.index("$Elements"), lines.index("$EndElements")
-    elements = lines[start + 2 : end] + ["6 1 2 0 5 2 3", "7 15 2 0 6 5"]
-    lines[start + 1 : end] = [str(len(elements)), *elements]
-    path = tmp_path / "lines.msh"
-    path.write_text("\n".join(lines) + "\n")
+    path = _msh22_with(tmp_path / "lines.msh", ["6 1 2 0 5 2 3", "7 15 2 0 6 5"])
     m = _io.load(path)  # with MSH22's own line (1, 2) and point (1) elements (1-based)
     assert m.protected_edges.tolist() == [[0, 1], [1, 2]]
     assert m.protected_vertices.tolist() == [0, 4]
@@ -564,28 +564,41 @@ def test_medit_required_vertices(tmp_path):
         _io.load(path)
 
 
-def test_gmsh_embedded_point_and_curve_stay(tmp_path):
-    """A point and a curve embedded in a Gmsh volume (``gmsh.model.mesh.embed``): the
-    point element's vertex never moves and the curve's edges stay, as Gmsh keeps nodes
-    on their model entities. Unprotected, the point's vertex moves."""
+def _gmsh_box_with(tmp_path, add):
+    """A Gmsh unit box with the entities ``add(occ, box)`` returns embedded in it, meshed
+    (h = 0.15, Delaunay, unoptimized) into ``embedded.msh``. ``add`` returns the
+    (dim, tag) pairs to embed and the (dim, tags, physical tag) groups to define."""
     gmsh = pytest.importorskip("gmsh")
     gmsh.initialize()
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         box = gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
-        point = gmsh.model.occ.addPoint(0.31, 0.47, 0.53)
-        a, b = gmsh.model.occ.addPoint(0.2, 0.2, 0.3), gmsh.model.occ.addPoint(0.8, 0.7, 0.6)
-        line = gmsh.model.occ.addLine(a, b)
-        gmsh.model.occ.synchronize()
-        gmsh.model.mesh.embed(0, [point], 3, box)
-        gmsh.model.mesh.embed(1, [line], 3, box)
+        embedded, groups = add(gmsh.model.occ, box)
+        for dim, tag in embedded:
+            gmsh.model.mesh.embed(dim, [tag], 3, box)
+        for dim, tags, physical in groups:
+            gmsh.model.addPhysicalGroup(dim, tags, physical)
         for name, value in (("MeshSizeMax", 0.15), ("Algorithm3D", 1), ("Optimize", 0)):
             gmsh.option.setNumber(f"Mesh.{name}", value)
         gmsh.model.mesh.generate(3)
         gmsh.write(str(tmp_path / "embedded.msh"))
     finally:
         gmsh.finalize()
-    mesh = _io.load(tmp_path / "embedded.msh")
+    return tmp_path / "embedded.msh"
+
+
+def test_gmsh_embedded_point_and_curve_stay(tmp_path):
+    """A point and a curve embedded in a Gmsh volume (``gmsh.model.mesh.embed``): the
+    point element's vertex never moves and the curve's edges stay, as Gmsh keeps nodes
+    on their model entities. Unprotected, the point's vertex moves."""
+
+    def point_and_curve(occ, box):
+        point = occ.addPoint(0.31, 0.47, 0.53)
+        line = occ.addLine(occ.addPoint(0.2, 0.2, 0.3), occ.addPoint(0.8, 0.7, 0.6))
+        occ.synchronize()
+        return [(0, point), (1, line)], []
+
+    mesh = _io.load(_gmsh_box_with(tmp_path, point_and_curve))
     target = np.array([0.31, 0.47, 0.53])
     (vertex,) = np.flatnonzero((mesh.points == target).all(axis=1))
     assert vertex in mesh.protected_vertices
@@ -612,23 +625,13 @@ def test_gmsh_embedded_surface_survives_improve(tmp_path):
     """A Gmsh surface embedded in a volume (``gmsh.model.mesh.embed``) stays where it is.
     Before its triangles were protected, smoothing moved its vertices up to 0.033 off the
     plane (h = 0.08)."""
-    gmsh = pytest.importorskip("gmsh")
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        box = gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
-        square = gmsh.model.occ.addRectangle(0.2, 0.2, 0.5, 0.6, 0.6)
-        gmsh.model.occ.synchronize()
-        gmsh.model.mesh.embed(2, [square], 3, box)
-        gmsh.model.addPhysicalGroup(3, [box], 1)
-        gmsh.model.addPhysicalGroup(2, [square], 20)
-        for name, value in (("MeshSizeMax", 0.15), ("Algorithm3D", 1), ("Optimize", 0)):
-            gmsh.option.setNumber(f"Mesh.{name}", value)
-        gmsh.model.mesh.generate(3)
-        gmsh.write(str(tmp_path / "embedded.msh"))
-    finally:
-        gmsh.finalize()
-    mesh = _io.load(tmp_path / "embedded.msh")
+
+    def square(occ, box):
+        tag = occ.addRectangle(0.2, 0.2, 0.5, 0.6, 0.6)
+        occ.synchronize()
+        return [(2, tag)], [(3, [box], 1), (2, [tag], 20)]
+
+    mesh = _io.load(_gmsh_box_with(tmp_path, square))
     inner = mesh.protected_faces
     assert len(inner) > 10 and np.allclose(mesh.points[inner][..., 2], 0.5)
     result = jtet.improve(mesh, check=True)
