@@ -43,6 +43,8 @@ REGION_ARRAYS = ("region", "gmsh:physical", "medit:ref", "CellEntityIds", "tetge
 PROTECTED_FACES_ARRAY = "jtet:protected_faces"
 PROTECTED_EDGES_ARRAY = "jtet:protected_edges"
 PROTECTED_VERTICES_ARRAY = "jtet:protected_vertices"
+PROTECTED_EDGE_LABELS_ARRAY = "jtet:protected_edge_labels"
+PROTECTED_VERTEX_LABELS_ARRAY = "jtet:protected_vertex_labels"
 PROTECTED_FACE_LABELS_ARRAY = "jtet:protected_face_labels"
 
 _VTK_TETRA = 10
@@ -241,21 +243,44 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
         if faces is not None:  # the field data's own faces first: their labels win
             pf = faces if pf is None else np.concatenate([pf, faces])
             labels = tri_labels if labels is None else np.concatenate([labels, tri_labels])
-    pv_field = _field_entities(grid, PROTECTED_VERTICES_ARRAY, 1, source)
-    pinned = None if pv_field is None else pv_field[:, 0]
+    pv = _field_entities(grid, PROTECTED_VERTICES_ARRAY, 1, source)
+    pv = None if pv is None else pv[:, 0]
+    edge_labels = _field_labels(grid, PROTECTED_EDGE_LABELS_ARRAY, pe, source)
+    vertex_labels = _field_labels(grid, PROTECTED_VERTEX_LABELS_ARRAY, pv, source)
 
-    def cells(vtk_type: int, k: int) -> np.ndarray:
+    def cells(vtk_type: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+        # the cells and their labels (from the region array, as for triangles)
         chosen = celltypes == vtk_type
-        return conn[offsets[:-1][chosen][:, None] + np.arange(k)]
+        found = _pick_region(cell_arrays, n_cells, chosen, source)
+        tags = np.zeros(int(chosen.sum()), np.int64) if found is None else found
+        return conn[offsets[:-1][chosen][:, None] + np.arange(k)], tags
 
-    edges, vertices = _mesh_edges_and_vertices(
-        tets, cells(_VTK_LINE, 2), cells(_VTK_VERTEX, 1), len(points), source
+    (edges, e_tags), (verts, v_tags) = _mesh_edges_and_vertices(
+        tets, *cells(_VTK_LINE, 2), *cells(_VTK_VERTEX, 1), len(points), source
     )
-    if edges is not None:
-        pe = edges if pe is None else np.concatenate([pe, edges])
-    if vertices is not None:
-        pinned = vertices if pinned is None else np.concatenate([pinned, vertices])
-    return points, tets, region, pf, pe, labels, pinned
+    # the field data's own entities first: their labels win
+    pe, edge_labels = _joined(pe, edge_labels, edges, e_tags)
+    pv, vertex_labels = _joined(pv, vertex_labels, verts, v_tags)
+    return points, tets, region, pf, pe, labels, pv, edge_labels, vertex_labels
+
+
+def _field_labels(grid, name: str, rows, source: str) -> np.ndarray | None:
+    """Labels (k,) of the field-data ``rows`` from field-data array ``name``, zeros
+    without one, None without rows."""
+    if rows is None:
+        return None
+    if name not in grid.field_data:
+        return np.zeros(len(rows), np.int64)
+    return _labels(grid.field_data[name], name, source)
+
+
+def _joined(rows, labels, more, more_labels):
+    """(rows, labels) followed by (more, more_labels); None parts are left out."""
+    if more is None:
+        return rows, labels
+    if rows is None:
+        return more, more_labels
+    return np.concatenate([rows, more]), np.concatenate([labels, more_labels])
 
 
 def _check_cell_data(mesh: TetMesh, cell_data: dict | None) -> dict:
@@ -299,8 +324,11 @@ def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
         grid.field_data[PROTECTED_FACE_LABELS_ARRAY] = np.array(mesh.protected_face_labels)
     if len(mesh.protected_edges):
         grid.field_data[PROTECTED_EDGES_ARRAY] = np.array(mesh.protected_edges)
+    if len(mesh.protected_edges):
+        grid.field_data[PROTECTED_EDGE_LABELS_ARRAY] = np.array(mesh.protected_edge_labels)
     if len(mesh.protected_vertices):
         grid.field_data[PROTECTED_VERTICES_ARRAY] = np.array(mesh.protected_vertices)
+        grid.field_data[PROTECTED_VERTEX_LABELS_ARRAY] = np.array(mesh.protected_vertex_labels)
     return grid
 
 
@@ -633,10 +661,14 @@ def _mesh_triangles(tets: np.ndarray, tri: np.ndarray, labels, n: int, source: s
     return tri[is_face], labels[is_face]
 
 
-def _mesh_edges_and_vertices(tets: np.ndarray, lines, vertices, n: int, source: str):
+def _mesh_edges_and_vertices(
+    tets: np.ndarray, lines, line_labels, vertices, vertex_labels, n: int, source: str
+):
     """The line cells ``lines`` (k, 2) of a file that are edges of its tets ``tets``
     (m, 4), as sorted distinct rows, and its vertex cells ``vertices`` (j,) that are
-    vertices of the tets, sorted and distinct: ``(edges, vertices)``, None for none.
+    vertices of the tets, sorted and distinct, each with its labels (``line_labels``
+    (k,), ``vertex_labels`` (j,); one listed twice keeps its first label):
+    ``((edges, labels), (vertices, labels))``, (None, None) for none.
 
     They become protected edges and vertices. Gmsh writes its model curves and points
     as such cells (all of them without physical groups, else those of physical curves
@@ -646,13 +678,15 @@ def _mesh_edges_and_vertices(tets: np.ndarray, lines, vertices, n: int, source: 
     """
     from ._topology import TET_EDGES
 
+    none = (None, None)
     if not len(tets) or tets.min() < 0 or tets.max() >= n:
-        return None, None  # from_arrays reports bad tets
-    edges = pinned = None
+        return none, none  # from_arrays reports bad tets
+    edges = pinned = none
     lines = np.asarray(lines, np.int64).reshape(-1, 2)
     if len(lines):
         ok = (lines.min(axis=1) >= 0) & (lines.max(axis=1) < n) & (lines[:, 0] != lines[:, 1])
-        lines = np.unique(np.sort(lines[ok], axis=1), axis=0)
+        lines, first = np.unique(np.sort(lines[ok], axis=1), axis=0, return_index=True)
+        labels = np.asarray(line_labels, np.int64)[ok][first]
         is_edge = _of_tets(tets, lines, TET_EDGES, n)
         strays = int((~is_edge).sum()) + int((~ok).sum())
         if strays:
@@ -660,7 +694,8 @@ def _mesh_edges_and_vertices(tets: np.ndarray, lines, vertices, n: int, source: 
                 f"{source}: {strays} line(s) of the file are not edges of its tets; ignored",
                 stacklevel=4,
             )
-        edges = lines[is_edge] if is_edge.any() else None
+        if is_edge.any():
+            edges = lines[is_edge], labels[is_edge]
     vertices = np.asarray(vertices, np.int64).reshape(-1)
     if len(vertices):
         in_tets = np.zeros(n, bool)
@@ -673,7 +708,9 @@ def _mesh_edges_and_vertices(tets: np.ndarray, lines, vertices, n: int, source: 
                 "of its tets; ignored",
                 stacklevel=4,
             )
-        pinned = np.unique(vertices[ok]) if ok.any() else None
+        if ok.any():
+            ids, first = np.unique(vertices[ok], return_index=True)
+            pinned = ids, np.asarray(vertex_labels, np.int64)[ok][first]
     return edges, pinned
 
 
@@ -730,17 +767,26 @@ def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, vertices=No
         labels = np.concatenate([labels, triangles[1]])
     faces, labels = _mesh_triangles(tets, tri, labels, len(points), source)
 
-    def cells(kind: str, k: int) -> np.ndarray:
-        return np.concatenate(
-            [np.zeros((0, k), np.int64)]
-            + [np.asarray(b.data, np.int64).reshape(-1, k) for b in m.cells if b.type == kind]
-        )
+    def cells(kind: str, k: int) -> tuple[np.ndarray, np.ndarray]:
+        # the cells of every block of this type and their labels (physical / entity tags,
+        # references), as for triangles
+        chosen = [i for i, b in enumerate(m.cells) if b.type == kind]
+        rows = [np.asarray(m.cells[i].data, np.int64).reshape(-1, k) for i in chosen]
+        rows = np.concatenate([np.zeros((0, k), np.int64), *rows])
+        found = None
+        if chosen:
+            found = (_gmsh_surface_labels if fmt == "gmsh" else _block_regions)(m, chosen, source)
+        return rows, np.zeros(len(rows), np.int64) if found is None else found
 
-    pins = cells("vertex", 1).reshape(-1)
-    if vertices is not None:
-        pins = np.concatenate([pins, vertices])
-    edges, pinned = _mesh_edges_and_vertices(tets, cells("line", 2), pins, len(points), source)
-    return points, tets, region, faces, edges, labels, pinned
+    lines, line_labels = cells("line", 2)
+    pins, pin_labels = cells("vertex", 1)
+    if vertices is not None:  # Medit's RequiredVertices: no labels
+        pins = np.concatenate([pins.reshape(-1), vertices])
+        pin_labels = np.concatenate([pin_labels, np.zeros(len(vertices), np.int64)])
+    (edges, edge_labels), (pinned, pinned_labels) = _mesh_edges_and_vertices(
+        tets, lines, line_labels, pins, pin_labels, len(points), source
+    )
+    return points, tets, region, faces, edges, labels, pinned, edge_labels, pinned_labels
 
 
 def _tetgen_faces(node: Path) -> tuple[np.ndarray, np.ndarray] | None:
@@ -810,16 +856,16 @@ def _lower_blocks(mesh: TetMesh, fmt: str) -> list[tuple[str, np.ndarray, np.nda
     """(meshio cell type, cells, tags) of the protected entities a Gmsh / Medit file
     stores as elements: the faces as triangles tagged with their labels (Gmsh physical
     surfaces, Medit references: what solvers read), the edges as lines and, in Gmsh
-    files, the vertices as point elements (tag 0: jtet keeps no labels for them; Medit
-    files get ``RequiredVertices``, ``_append_required_vertices``)."""
+    files, the vertices as point elements, each tagged with its label (Medit files get
+    ``RequiredVertices``, which hold no labels: ``_append_required_vertices``)."""
     out = []
     if len(mesh.protected_faces):
         out.append(("triangle", mesh.protected_faces, mesh.protected_face_labels))
     if len(mesh.protected_edges):
-        out.append(("line", mesh.protected_edges, np.zeros(len(mesh.protected_edges))))
+        out.append(("line", mesh.protected_edges, mesh.protected_edge_labels))
     if fmt == "gmsh" and len(mesh.protected_vertices):
         pv = mesh.protected_vertices
-        out.append(("vertex", pv[:, None], np.zeros(len(pv))))
+        out.append(("vertex", pv[:, None], mesh.protected_vertex_labels))
     return out
 
 
@@ -1084,7 +1130,12 @@ def save(
                 "protected triangles, lines or points) (use .vtu)",
                 stacklevel=2,
             )
-    for what, values in (("region", mesh.region), ("surface", mesh.protected_face_labels)):
+    for what, values in (
+        ("region", mesh.region),
+        ("surface", mesh.protected_face_labels),
+        ("edge", mesh.protected_edge_labels),
+        ("vertex", mesh.protected_vertex_labels),
+    ):
         if fmt in ("gmsh", "medit") and len(values):
             lo, hi = int(values.min()), int(values.max())
             if lo < -(2**31) or hi >= 2**31:

@@ -145,6 +145,14 @@ def topology_face_conflicts(tets: np.ndarray, topology) -> tuple[np.ndarray, np.
     return t[mis], np.unique(t[dup], axis=0)
 
 
+#: the kinds of protected entities: their field, their labels' field, their vertex count
+PROTECTED = {
+    "face": ("protected_faces", "protected_face_labels", 3),
+    "edge": ("protected_edges", "protected_edge_labels", 2),
+    "vertex": ("protected_vertices", "protected_vertex_labels", 1),
+}
+
+
 @dataclass(frozen=True, eq=False, repr=False)
 class TetMesh:
     """An immutable tetrahedral mesh.
@@ -163,6 +171,9 @@ class TetMesh:
             the border between two labels, and the savers write the labels back.
         protected_vertices: (k,) int64 user-protected vertices (sorted, distinct): never
             moved (a Gmsh point embedded in a volume, a point source, a probe).
+        protected_edge_labels, protected_vertex_labels: (k,) int64 labels of the
+            protected edges and vertices (0 when the input gave none: Gmsh physical
+            curves and points, Medit references), written back by the savers.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it
@@ -176,6 +187,8 @@ class TetMesh:
     protected_edges: Int[np.ndarray, "k 2"] = field(default=None)
     protected_face_labels: Int[np.ndarray, " k"] = field(default=None)
     protected_vertices: Int[np.ndarray, " k"] = field(default=None)
+    protected_edge_labels: Int[np.ndarray, " k"] = field(default=None)
+    protected_vertex_labels: Int[np.ndarray, " k"] = field(default=None)
 
     def __post_init__(self):
         points = _checked_points(self.points)
@@ -185,16 +198,16 @@ class TetMesh:
             raise MeshInputError(
                 f"region must have one label per tet ({len(tets)}), got {region.shape}"
             )
-        pf, pl = self._face_array(self.protected_faces, self.protected_face_labels, len(points))
-        pe = self._entity_array(self.protected_edges, 2, "protected_edges", len(points))
-        pv = self._vertex_array(self.protected_vertices, len(points))
         object.__setattr__(self, "points", _readonly(points))
         object.__setattr__(self, "tets", _readonly(tets))
         object.__setattr__(self, "region", _readonly(region))
-        object.__setattr__(self, "protected_faces", _readonly(pf))
-        object.__setattr__(self, "protected_edges", _readonly(pe))
-        object.__setattr__(self, "protected_face_labels", _readonly(pl))
-        object.__setattr__(self, "protected_vertices", _readonly(pv))
+        for what in PROTECTED:
+            name, label_name, _ = PROTECTED[what]
+            rows, labels = self._labelled(
+                getattr(self, name), getattr(self, label_name), what, len(points)
+            )
+            object.__setattr__(self, name, _readonly(rows))
+            object.__setattr__(self, label_name, _readonly(labels))
 
     def _derive(self, *, tets_checked: int = 0, **changes) -> TetMesh:
         """``replace(**changes)`` checking only what is new.
@@ -226,31 +239,22 @@ class TetMesh:
                 raise MeshInputError(
                     f"region must have one label per tet ({len(tets)}), got {region.shape}"
                 )
-        pf, pe, pl = self.protected_faces, self.protected_edges, self.protected_face_labels
-        if "protected_faces" in changes:  # new faces: new labels, 0 unless given
-            pf, pl = self._face_array(
-                changes["protected_faces"], changes.get("protected_face_labels"), len(points)
-            )
-        elif "protected_face_labels" in changes or len(points) != self.n_points:
-            pf, pl = self._face_array(pf, changes.get("protected_face_labels", pl), len(points))
-        if "protected_edges" in changes or len(points) != self.n_points:
-            pe = self._entity_array(
-                changes.get("protected_edges", pe), 2, "protected_edges", len(points)
-            )
-        pv = self.protected_vertices
-        if "protected_vertices" in changes or len(points) < self.n_points:
-            pv = self._vertex_array(changes.get("protected_vertices", pv), len(points))
+        fields = {"points": points, "tets": tets, "region": region}
+        for what in PROTECTED:
+            name, label_name, _ = PROTECTED[what]
+            rows, labels = getattr(self, name), getattr(self, label_name)
+            if name in changes:  # new entities: new labels, 0 unless given
+                rows, labels = self._labelled(
+                    changes[name], changes.get(label_name), what, len(points)
+                )
+            elif label_name in changes or len(points) != self.n_points:
+                rows, labels = self._labelled(
+                    rows, changes.get(label_name, labels), what, len(points)
+                )
+            fields[name], fields[label_name] = rows, labels
         out = object.__new__(type(self))
         object.__setattr__(out, "_feature_angle", self._feature_angle)
-        for name, value in (
-            ("points", points),
-            ("tets", tets),
-            ("region", region),
-            ("protected_faces", pf),
-            ("protected_edges", pe),
-            ("protected_face_labels", pl),
-            ("protected_vertices", pv),
-        ):
+        for name, value in fields.items():
             object.__setattr__(out, name, _readonly(value))
         return out
 
@@ -289,42 +293,38 @@ class TetMesh:
             raise MeshInputError(f"{name} entry {a[rep][0].tolist()} repeats a vertex")
         return np.unique(a, axis=0, return_index=return_index)
 
-    @staticmethod
-    def _vertex_array(a, n_points: int) -> np.ndarray:
-        """Protected vertices as sorted, distinct ids (k,)."""
-        if a is None or np.asarray(a).size == 0:
-            return np.zeros(0, np.int64)
-        a = np.asarray(a)
-        if a.ndim != 1 or not np.issubdtype(a.dtype, np.integer):
-            raise MeshInputError(
-                f"protected_vertices must be a 1-D integer array of vertex ids, got shape "
-                f"{a.shape} of {a.dtype}"
-            )
-        if ((a < 0) | (a >= n_points)).any():
-            raise MeshInputError(
-                f"protected_vertices holds vertex indices out of range [0, {n_points})"
-            )
-        return np.unique(a.astype(np.int64))
-
     @classmethod
-    def _face_array(cls, faces, labels, n_points: int) -> tuple[np.ndarray, np.ndarray]:
-        """Protected faces as sorted, distinct vertex triples (k, 3) and their labels (k,);
-        a face listed twice keeps the label it is first listed with."""
-        if faces is None or np.asarray(faces).size == 0:
+    def _labelled(cls, rows, labels, what: str, n_points: int) -> tuple[np.ndarray, np.ndarray]:
+        """Protected faces / edges / vertices (``what``: one of ``PROTECTED``) as sorted,
+        distinct vertex rows (k, 3) / (k, 2) / ids (k,), and their labels (k,) (0 unless
+        given); an entity listed twice keeps the label it is first listed with."""
+        name, label_name, j = PROTECTED[what]
+        if rows is None or np.asarray(rows).size == 0:
             if labels is not None and np.asarray(labels).size:
-                raise MeshInputError("protected_face_labels given without protected_faces")
-            return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
-        raw = np.asarray(faces)
-        pf, first = cls._entity_array(raw, 3, "protected_faces", n_points, return_index=True)
+                raise MeshInputError(f"{label_name} given without {name}")
+            return np.zeros((0, j) if j > 1 else 0, np.int64), np.zeros(0, np.int64)
+        raw = np.asarray(rows)
+        if j == 1:  # vertex ids: a 1-D array
+            if raw.ndim != 1 or not np.issubdtype(raw.dtype, np.integer):
+                raise MeshInputError(
+                    f"{name} must be a 1-D integer array of vertex ids, got shape "
+                    f"{raw.shape} of {raw.dtype}"
+                )
+            raw = raw.reshape(-1, 1)
+        unique, first = cls._entity_array(raw, j, name, n_points, return_index=True)
+        if j == 1:
+            unique = unique[:, 0]
         if labels is None:
-            return pf, np.zeros(len(pf), np.int64)
+            return unique, np.zeros(len(unique), np.int64)
         lab = np.asarray(labels).reshape(-1)
         if lab.shape != (len(raw),):
             raise MeshInputError(
-                f"protected_face_labels must have one label per protected face "
+                f"{label_name} must have one label per protected {what} "
                 f"({len(raw)}), got {np.shape(labels)}"
             )
-        return pf, cls._labels(lab, len(raw), "protected face labels", "protected face")[first]
+        return unique, cls._labels(lab, len(raw), f"protected {what} labels", f"protected {what}")[
+            first
+        ]
 
     # ------------------------------------------------------------------ constructors
     @classmethod
@@ -337,6 +337,8 @@ class TetMesh:
         protected_edges=None,
         protected_face_labels=None,
         protected_vertices=None,
+        protected_edge_labels=None,
+        protected_vertex_labels=None,
         *,
         source: str = "input",
     ) -> TetMesh:
@@ -352,7 +354,7 @@ class TetMesh:
         """
         mesh = cls(
             points, tets, region, protected_faces, protected_edges, protected_face_labels,
-            protected_vertices,
+            protected_vertices, protected_edge_labels, protected_vertex_labels,
         )  # fmt: skip
         vol = _orient_volumes6(mesh.points, mesh.tets)
         neg, pos = int((vol < 0).sum()), int((vol > 0).sum())
@@ -471,6 +473,7 @@ class TetMesh:
         faces_in = match_rows(faces, self.protected_faces, n) >= 0
         edges_in = match_rows(edges, self.protected_edges, n) >= 0
         pv_local = local[self.protected_vertices]
+        pv_in = pv_local >= 0
         sub = TetMesh(
             self.points[verts],
             local[tets],
@@ -478,7 +481,9 @@ class TetMesh:
             protected_faces=local[self.protected_faces[faces_in]],
             protected_edges=local[self.protected_edges[edges_in]],
             protected_face_labels=self.protected_face_labels[faces_in],
-            protected_vertices=pv_local[pv_local >= 0],
+            protected_vertices=pv_local[pv_in],
+            protected_edge_labels=self.protected_edge_labels[edges_in],
+            protected_vertex_labels=self.protected_vertex_labels[pv_in],
         )
         return sub._with_feature_angle(self._feature_angle), verts, faces_in
 

@@ -360,7 +360,8 @@ class Outcome:
         if mesh is not None:
             mesh = (mesh.points, mesh.tets, mesh.region, mesh.protected_faces,
                     mesh.protected_edges, mesh.protected_face_labels,
-                    mesh.protected_vertices, mesh._feature_angle)  # fmt: skip
+                    mesh.protected_vertices, mesh.protected_edge_labels,
+                    mesh.protected_vertex_labels, mesh._feature_angle)  # fmt: skip
         return Outcome(self.key, mesh, self.q, self.stats, self.seconds, self.stop)
 
     def submesh(self):
@@ -398,7 +399,8 @@ class RoundState:
         attempt may be changing ``sub`` on another thread meanwhile)."""
         m, q, lo, hi, _ = self.start_state
         mesh = (m.points, m.tets, m.region, m.protected_faces, m.protected_edges,
-                m.protected_face_labels, m.protected_vertices)  # fmt: skip
+                m.protected_face_labels, m.protected_vertices, m.protected_edge_labels,
+                m.protected_vertex_labels)  # fmt: skip
         elapsed = time.perf_counter() - self.t0
         return (mesh, m._feature_angle, q, lo, hi, self.sub.opts, self.worst, self.good,
                 elapsed, self.kickable)  # fmt: skip

@@ -337,6 +337,17 @@ def test_bad_protected_vertices():
     assert "2 protected vertices" in repr(pinned)
     with pytest.raises(jtet.MeshInputError, match="out of range"):
         pinned.replace(points=m.points[:4], tets=[[0, 1, 2, 3]], region=[0])
+    # labels: one per entity, integers, not without the entities
+    with pytest.raises(jtet.MeshInputError, match="one label per protected vertex"):
+        pinned.replace(protected_vertex_labels=[1])
+    with pytest.raises(jtet.MeshInputError, match="protected edge 0 has 0.5"):
+        jtet.TetMesh(m.points, m.tets, protected_edges=m.tets[:1, :2], protected_edge_labels=[0.5])
+    with pytest.raises(jtet.MeshInputError, match="protected_edge_labels given without"):
+        jtet.TetMesh(m.points, m.tets, protected_edge_labels=[1])
+    assert pinned.replace(protected_vertex_labels=[7, 8]).protected_vertex_labels.tolist() == [
+        7,
+        8,
+    ]
 
 
 def test_cli_prints_warnings_as_one_line(tmp_path, capsys):

@@ -100,29 +100,38 @@ def test_msh_keeps_cell_data_and_physical_tags(tmp_path, labelled):
 
 @pytest.mark.parametrize("ext", ["msh", "mesh", "meshb", "vtu", "vtk", "node"])
 def test_protected_entities_round_trip(tmp_path, labelled, ext):
-    """Protected faces (with labels), edges and vertices come back from every format
-    that stores them: Gmsh triangles, lines and points; Medit triangles, edges and
-    RequiredVertices (not in the binary .meshb); VTK field data. TetGen stores none. A
-    warning names what a format leaves out."""
+    """Protected faces, edges and vertices with their labels come back from every format
+    that stores them: Gmsh triangles, lines and points tagged with their labels
+    (physical groups); Medit triangles and edges with references, RequiredVertices
+    without labels (and not in the binary .meshb); VTK field data. TetGen stores none.
+    A warning names what a format leaves out."""
     mesh = labelled.replace(
         protected_faces=labelled.protected_faces,
         protected_face_labels=np.arange(len(labelled.protected_faces)) + 11,
+        protected_edges=labelled.protected_edges,
+        protected_edge_labels=np.arange(len(labelled.protected_edges)) + 31,
         protected_vertices=[7, 3, 12],
+        protected_vertex_labels=[41, 42, 43],
     )
+    assert mesh.protected_vertex_labels.tolist() == [42, 41, 43]  # with their sorted ids
     path = tmp_path / f"m.{ext}"
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         _io.save(mesh, path)
     dropped = " ".join(str(w.message) for w in caught)
     back = _io.load(path)
-    names = ("protected_faces", "protected_face_labels", "protected_edges", "protected_vertices")
-    stored = {"node": (), "meshb": names[:3]}.get(ext, names)
+    names = ("protected_faces", "protected_face_labels", "protected_edges",
+             "protected_edge_labels", "protected_vertices", "protected_vertex_labels")  # fmt: skip
+    stored = {"node": (), "meshb": names[:4], "mesh": names[:5]}.get(ext, names)
     for name in names:
         if name in stored:
             np.testing.assert_array_equal(getattr(back, name), getattr(mesh, name), err_msg=name)
+        elif name == "protected_vertex_labels" and ext == "mesh":
+            assert back.protected_vertex_labels.tolist() == [0, 0, 0]
         else:
             assert len(getattr(back, name)) == 0, name
-            assert name.replace("_", " ").replace(" labels", "") in dropped, (name, dropped)
+            if not name.endswith("labels"):  # the entities are named in the warning
+                assert name.replace("_", " ") in dropped, (name, dropped)
     np.testing.assert_array_equal(back.region, mesh.region)
     assert back.protected_vertices.tolist() == ([3, 7, 12] if ext not in ("node", "meshb") else [])
 
@@ -596,12 +605,13 @@ def test_gmsh_embedded_point_and_curve_stay(tmp_path):
         point = occ.addPoint(0.31, 0.47, 0.53)
         line = occ.addLine(occ.addPoint(0.2, 0.2, 0.3), occ.addPoint(0.8, 0.7, 0.6))
         occ.synchronize()
-        return [(0, point), (1, line)], []
+        return [(0, point), (1, line)], [(3, [box], 1), (1, [line], 40), (0, [point], 50)]
 
     mesh = _io.load(_gmsh_box_with(tmp_path, point_and_curve))
     target = np.array([0.31, 0.47, 0.53])
     (vertex,) = np.flatnonzero((mesh.points == target).all(axis=1))
-    assert vertex in mesh.protected_vertices
+    assert mesh.protected_vertices.tolist() == [vertex]  # the only physical point
+    assert mesh.protected_vertex_labels.tolist() == [50]
     a, b = np.array([0.2, 0.2, 0.3]), np.array([0.8, 0.7, 0.6])
 
     def on_curve(m):
@@ -617,6 +627,11 @@ def test_gmsh_embedded_point_and_curve_stay(tmp_path):
     assert (out.points[vertex] == target).all()
     np.testing.assert_array_equal(on_curve(out), curve)
     np.testing.assert_array_equal(out.points[curve], mesh.points[curve])
+    # the physical curve and point keep their group numbers through the run and a save
+    jtet.save(out, tmp_path / "out.msh")
+    back = _io.load(tmp_path / "out.msh")
+    assert set(back.protected_edge_labels.tolist()) == {40}
+    assert back.protected_vertex_labels.tolist() == [50]
     free = jtet.improve(mesh.replace(protected_vertices=None, protected_edges=None))
     assert (free.mesh.points[curve.reshape(-1)] != mesh.points[curve.reshape(-1)]).any()
 
