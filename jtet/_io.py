@@ -9,9 +9,9 @@ Region labels come from the first cell array found among ``REGION_ARRAYS``; Gmsh
 use their physical volume tags, or the elementary (volume entity) tags when no tet is in a
 physical group, so the surfaces between volumes stay (``_gmsh_regions``). Cells of lower
 dimension that are faces, edges and vertices of the tets become protected entities:
-triangles with their labels (physical surface tags, references, facet markers;
-``_mesh_triangles``), lines and points (``_mesh_edges_and_vertices``), which the Gmsh and
-Medit savers write back; other such cells are ignored with a warning. Any other 3-D cell
+triangles with their labels (physical surface tags, references, facet markers), lines
+and points (``_mesh_cells``, ``_mesh_vertices``), which the Gmsh and Medit savers write
+back; other such cells are ignored with a warning. Any other 3-D cell
 type is an error. meshio's Gmsh readers are mended during reads (``_gmsh_read``) for
 files meshio alone refuses: ``Mesh.SaveAll``, views saved with the mesh, partitions.
 """
@@ -229,39 +229,30 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     region = _pick_region(cell_arrays, n_cells, is_tet, source)
     pf = _field_entities(grid, PROTECTED_FACES_ARRAY, 3, source)
     pe = _field_entities(grid, PROTECTED_EDGES_ARRAY, 2, source)
-    labels = None
-    if pf is not None:
-        labels = np.zeros(len(pf), np.int64)
-        if PROTECTED_FACE_LABELS_ARRAY in grid.field_data:
-            labels = _labels(grid.field_data[PROTECTED_FACE_LABELS_ARRAY], "labels", source)
-    is_tri = celltypes == _VTK_TRIANGLE
-    if is_tri.any():  # e.g. Gmsh's VTK export: as from .msh, labelled by the region array
-        tri = conn[offsets[:-1][is_tri][:, None] + np.arange(3)]
-        tri_labels = _pick_region(cell_arrays, n_cells, is_tri, source)
-        tri_labels = np.zeros(len(tri), np.int64) if tri_labels is None else tri_labels
-        faces, tri_labels = _mesh_triangles(tets, tri, tri_labels, len(points), source)
-        if faces is not None:  # the field data's own faces first: their labels win
-            pf = faces if pf is None else np.concatenate([pf, faces])
-            labels = tri_labels if labels is None else np.concatenate([labels, tri_labels])
     pv = _field_entities(grid, PROTECTED_VERTICES_ARRAY, 1, source)
     pv = None if pv is None else pv[:, 0]
+    face_labels = _field_labels(grid, PROTECTED_FACE_LABELS_ARRAY, pf, source)
     edge_labels = _field_labels(grid, PROTECTED_EDGE_LABELS_ARRAY, pe, source)
     vertex_labels = _field_labels(grid, PROTECTED_VERTEX_LABELS_ARRAY, pv, source)
 
     def cells(vtk_type: int, k: int) -> tuple[np.ndarray, np.ndarray]:
-        # the cells and their labels (from the region array, as for triangles)
+        # the cells and their labels from the region array (Gmsh's VTK export writes its
+        # triangles, lines and points as cells, labelled as in .msh)
         chosen = celltypes == vtk_type
         found = _pick_region(cell_arrays, n_cells, chosen, source)
         tags = np.zeros(int(chosen.sum()), np.int64) if found is None else found
         return conn[offsets[:-1][chosen][:, None] + np.arange(k)], tags
 
-    (edges, e_tags), (verts, v_tags) = _mesh_edges_and_vertices(
-        tets, *cells(_VTK_LINE, 2), *cells(_VTK_VERTEX, 1), len(points), source
-    )
+    n = len(points)
     # the field data's own entities first: their labels win
-    pe, edge_labels = _joined(pe, edge_labels, edges, e_tags)
-    pv, vertex_labels = _joined(pv, vertex_labels, verts, v_tags)
-    return points, tets, region, pf, pe, labels, pv, edge_labels, vertex_labels
+    pf, face_labels = _joined(
+        pf, face_labels, *_mesh_cells(tets, *cells(_VTK_TRIANGLE, 3), n, source)
+    )
+    pe, edge_labels = _joined(pe, edge_labels, *_mesh_cells(tets, *cells(_VTK_LINE, 2), n, source))
+    pv, vertex_labels = _joined(
+        pv, vertex_labels, *_mesh_vertices(tets, *cells(_VTK_VERTEX, 1), n, source)
+    )
+    return points, tets, region, pf, pe, face_labels, pv, edge_labels, vertex_labels
 
 
 def _field_labels(grid, name: str, rows, source: str) -> np.ndarray | None:
@@ -324,7 +315,6 @@ def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
         grid.field_data[PROTECTED_FACE_LABELS_ARRAY] = np.array(mesh.protected_face_labels)
     if len(mesh.protected_edges):
         grid.field_data[PROTECTED_EDGES_ARRAY] = np.array(mesh.protected_edges)
-    if len(mesh.protected_edges):
         grid.field_data[PROTECTED_EDGE_LABELS_ARRAY] = np.array(mesh.protected_edge_labels)
     if len(mesh.protected_vertices):
         grid.field_data[PROTECTED_VERTICES_ARRAY] = np.array(mesh.protected_vertices)
@@ -613,114 +603,85 @@ def _gmsh_surface_labels(m, blocks: list[int], source: str) -> np.ndarray | None
     return physical if physical is not None and physical.any() else entity
 
 
-def _of_tets(tets: np.ndarray, rows: np.ndarray, local: np.ndarray, n: int) -> np.ndarray:
-    """(k,) bool: which sorted vertex rows (k, j) are faces (``local`` = TET_FACES, j = 3)
-    or edges (TET_EDGES, j = 2) of the tets (m, 4) over n points."""
-    from ._topology import row_keys
+def _mesh_cells(tets: np.ndarray, cells: np.ndarray, labels, n: int, source: str):
+    """The triangles (k, 3) or lines (k, 2) ``cells`` of a file that are faces / edges of
+    its tets ``tets`` (m, 4), as sorted rows with their ``labels`` (k,): ``(rows,
+    labels)``, or ``(None, None)`` when there are none. A cell listed twice keeps its
+    first label.
 
-    j = rows.shape[1]
+    They become protected faces / edges. A labelled patch of the boundary (a Gmsh
+    physical surface, a Medit reference, a TetGen facet marker) keeps its border and is
+    written back with its label; a surface between two tets (embedded in a volume, or
+    between two volumes of one region) stays in place, where as ordinary faces flips
+    would cut through it and smoothing would move its vertices off it. Gmsh writes its
+    model curves as lines (all of them without physical groups, else those of physical
+    curves): a curve embedded in a volume keeps its edges, as nodes stay on their model
+    entities in Gmsh's own optimizer. Cells that are no face / edge of a tet are ignored
+    with a warning.
+    """
+    from ._topology import TET_EDGES, TET_FACES, row_keys
+
+    j = cells.shape[1]
+    local, noun, part = (TET_FACES, "triangle", "faces") if j == 3 else (TET_EDGES, "line", "edges")
+    if not len(cells) or not len(tets) or tets.min() < 0 or tets.max() >= n:
+        return None, None  # from_arrays reports bad tets
+    inside = (cells.min(axis=1) >= 0) & (cells.max(axis=1) < n)
+    rows, first = np.unique(np.sort(cells[inside], axis=1), axis=0, return_index=True)
+    labels = np.asarray(labels, np.int64)[inside][first]
     # only tets with j marked vertices can have such a face or edge (a few percent of the
     # tets for boundary triangles: 0.7 -> 0.07 s for a 983k-tet cube)
     marked = np.zeros(n, bool)
     marked[rows.reshape(-1)] = True
     near = tets[marked[tets].sum(axis=1) >= j]
-    subs = np.sort(near[:, local].reshape(-1, j), axis=1)
-    subs = subs[marked[subs].all(axis=1)]
-    keys = row_keys(np.concatenate([subs, rows]), n)  # one call: keys that compare
-    return np.isin(keys[len(subs) :], keys[: len(subs)])
-
-
-def _mesh_triangles(tets: np.ndarray, tri: np.ndarray, labels, n: int, source: str):
-    """The triangles ``tri`` (k, 3) of a file that are faces of its tets ``tets`` (m, 4),
-    as sorted rows, with their ``labels`` (k,): ``(faces, labels)``, or ``(None, None)``
-    when there are none. A triangle listed twice keeps its first label.
-
-    They become protected faces. A labelled patch of the boundary (a Gmsh physical
-    surface, a Medit reference, a TetGen facet marker) keeps its border and is written
-    back with its label; a surface between two tets (embedded in a volume, or between
-    two volumes of one region) stays in place, where as ordinary faces flips would cut
-    through it and smoothing would move its vertices off it. Triangles that are no face
-    of a tet are ignored with a warning.
-    """
-    from ._topology import TET_FACES
-
-    if not len(tri) or not len(tets) or tets.min() < 0 or tets.max() >= n:
-        return None, None  # from_arrays reports bad tets
-    inside = (tri.min(axis=1) >= 0) & (tri.max(axis=1) < n)
-    tri, first = np.unique(np.sort(tri[inside], axis=1), axis=0, return_index=True)
-    labels = np.asarray(labels, np.int64)[inside][first]
-    is_face = _of_tets(tets, tri, TET_FACES, n)
-    strays = int((~is_face).sum()) + int((~inside).sum())
+    parts = np.sort(near[:, local].reshape(-1, j), axis=1)
+    parts = parts[marked[parts].all(axis=1)]
+    keys = row_keys(np.concatenate([parts, rows]), n)  # one call: keys that compare
+    found = np.isin(keys[len(parts) :], keys[: len(parts)])
+    strays = int((~found).sum()) + int((~inside).sum())
     if strays:
         warnings.warn(
-            f"{source}: {strays} triangle(s) of the file are not faces of its tets; ignored",
+            f"{source}: {strays} {noun}(s) of the file are not {part} of its tets; ignored",
             stacklevel=4,
         )
-    if not is_face.any():
+    if not found.any():
         return None, None
-    return tri[is_face], labels[is_face]
+    return rows[found], labels[found]
 
 
-def _mesh_edges_and_vertices(
-    tets: np.ndarray, lines, line_labels, vertices, vertex_labels, n: int, source: str
-):
-    """The line cells ``lines`` (k, 2) of a file that are edges of its tets ``tets``
-    (m, 4), as sorted distinct rows, and its vertex cells ``vertices`` (j,) that are
-    vertices of the tets, sorted and distinct, each with its labels (``line_labels``
-    (k,), ``vertex_labels`` (j,); one listed twice keeps its first label):
-    ``((edges, labels), (vertices, labels))``, (None, None) for none.
+def _mesh_vertices(tets: np.ndarray, vertices, labels, n: int, source: str):
+    """The vertex cells ``vertices`` (j,) of a file that are vertices of its tets, sorted
+    and distinct, with their ``labels`` (j,): ``(ids, labels)``, ``(None, None)`` for
+    none. A vertex listed twice keeps its first label.
 
-    They become protected edges and vertices. Gmsh writes its model curves and points
-    as such cells (all of them without physical groups, else those of physical curves
-    and points): a curve or point embedded in a volume then stays where it is, as nodes
-    stay on their model entities in Gmsh's own optimizer. The others are ignored with a
-    warning.
+    They become protected vertices: Gmsh writes its model points as such cells, so a
+    point embedded in a volume stays where it is. The others are ignored with a warning.
     """
-    from ._topology import TET_EDGES
-
-    none = (None, None)
-    if not len(tets) or tets.min() < 0 or tets.max() >= n:
-        return none, none  # from_arrays reports bad tets
-    edges = pinned = none
-    lines = np.asarray(lines, np.int64).reshape(-1, 2)
-    if len(lines):
-        ok = (lines.min(axis=1) >= 0) & (lines.max(axis=1) < n) & (lines[:, 0] != lines[:, 1])
-        lines, first = np.unique(np.sort(lines[ok], axis=1), axis=0, return_index=True)
-        labels = np.asarray(line_labels, np.int64)[ok][first]
-        is_edge = _of_tets(tets, lines, TET_EDGES, n)
-        strays = int((~is_edge).sum()) + int((~ok).sum())
-        if strays:
-            warnings.warn(
-                f"{source}: {strays} line(s) of the file are not edges of its tets; ignored",
-                stacklevel=4,
-            )
-        if is_edge.any():
-            edges = lines[is_edge], labels[is_edge]
     vertices = np.asarray(vertices, np.int64).reshape(-1)
-    if len(vertices):
-        in_tets = np.zeros(n, bool)
-        in_tets[tets.reshape(-1)] = True
-        ok = (vertices >= 0) & (vertices < n)
-        ok[ok] = in_tets[vertices[ok]]
-        if not ok.all():
-            warnings.warn(
-                f"{source}: {int((~ok).sum())} vertex cell(s) of the file are not vertices "
-                "of its tets; ignored",
-                stacklevel=4,
-            )
-        if ok.any():
-            ids, first = np.unique(vertices[ok], return_index=True)
-            pinned = ids, np.asarray(vertex_labels, np.int64)[ok][first]
-    return edges, pinned
+    if not len(vertices) or not len(tets) or tets.min() < 0 or tets.max() >= n:
+        return None, None  # from_arrays reports bad tets
+    in_tets = np.zeros(n, bool)
+    in_tets[tets.reshape(-1)] = True
+    ok = (vertices >= 0) & (vertices < n)
+    ok[ok] = in_tets[vertices[ok]]
+    if not ok.all():
+        warnings.warn(
+            f"{source}: {int((~ok).sum())} vertex cell(s) of the file are not vertices "
+            "of its tets; ignored",
+            stacklevel=4,
+        )
+    if not ok.any():
+        return None, None
+    ids, first = np.unique(vertices[ok], return_index=True)
+    return ids, np.asarray(labels, np.int64)[ok][first]
 
 
 def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, vertices=None):
     """Like ``grid_to_arrays`` for a ``meshio.Mesh``: tets of every tetra block, region,
     as labelled protected faces the triangles of its triangle blocks and of
     ``triangles`` ((k, 3) ids, (k,) labels: a TetGen ``.face`` file) that are faces of
-    the tets (``_mesh_triangles``), as protected edges and vertices its line and vertex
-    cells and ``vertices`` ((j,) ids: Medit's ``RequiredVertices``) that are edges and
-    vertices of the tets (``_mesh_edges_and_vertices``)."""
+    the tets, as protected edges and vertices its line and vertex cells and
+    ``vertices`` ((j,) ids: Medit's ``RequiredVertices``) that are edges and vertices of
+    the tets (``_mesh_cells``, ``_mesh_vertices``)."""
     keep_blocks, bad = [], {}
     for i, block in enumerate(m.cells):
         dim = getattr(block, "dim", 3)
@@ -755,21 +716,10 @@ def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, vertices=No
     points = np.asarray(m.points, dtype=np.float64)
     if points.ndim == 2 and points.shape[1] == 2:
         raise MeshInputError(f"{source}: the points are 2-D; jtet needs a 3-D tet mesh")
-    blocks = [i for i, b in enumerate(m.cells) if b.type == "triangle"]
-    tri = np.zeros((0, 3), np.int64)
-    labels = np.zeros(0, np.int64)
-    if blocks:
-        tri = np.concatenate([np.asarray(m.cells[i].data, np.int64).reshape(-1, 3) for i in blocks])
-        found = (_gmsh_surface_labels if fmt == "gmsh" else _block_regions)(m, blocks, source)
-        labels = np.zeros(len(tri), np.int64) if found is None else found
-    if triangles is not None:
-        tri = np.concatenate([tri, triangles[0]])
-        labels = np.concatenate([labels, triangles[1]])
-    faces, labels = _mesh_triangles(tets, tri, labels, len(points), source)
 
     def cells(kind: str, k: int) -> tuple[np.ndarray, np.ndarray]:
         # the cells of every block of this type and their labels (physical / entity tags,
-        # references), as for triangles
+        # references)
         chosen = [i for i, b in enumerate(m.cells) if b.type == kind]
         rows = [np.asarray(m.cells[i].data, np.int64).reshape(-1, k) for i in chosen]
         rows = np.concatenate([np.zeros((0, k), np.int64), *rows])
@@ -778,14 +728,18 @@ def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, vertices=No
             found = (_gmsh_surface_labels if fmt == "gmsh" else _block_regions)(m, chosen, source)
         return rows, np.zeros(len(rows), np.int64) if found is None else found
 
-    lines, line_labels = cells("line", 2)
+    n = len(points)
+    tri, tri_labels = cells("triangle", 3)
+    if triangles is not None:
+        tri = np.concatenate([tri, triangles[0]])
+        tri_labels = np.concatenate([tri_labels, triangles[1]])
+    faces, labels = _mesh_cells(tets, tri, tri_labels, n, source)
+    edges, edge_labels = _mesh_cells(tets, *cells("line", 2), n, source)
     pins, pin_labels = cells("vertex", 1)
     if vertices is not None:  # Medit's RequiredVertices: no labels
         pins = np.concatenate([pins.reshape(-1), vertices])
         pin_labels = np.concatenate([pin_labels, np.zeros(len(vertices), np.int64)])
-    (edges, edge_labels), (pinned, pinned_labels) = _mesh_edges_and_vertices(
-        tets, lines, line_labels, pins, pin_labels, len(points), source
-    )
+    pinned, pinned_labels = _mesh_vertices(tets, pins, pin_labels, n, source)
     return points, tets, region, faces, edges, labels, pinned, edge_labels, pinned_labels
 
 
@@ -892,9 +846,19 @@ def _medit_required_vertices(path: Path) -> np.ndarray | None:
         head = data[end : end + 32].split(maxsplit=1)
         count = int(head[0]) if head and head[0].isdigit() else 0
         ids = data[end : end + 32 + 24 * count].split()[1 : count + 1]
-    if not head or not head[0].isdigit() or len(ids) != count or not all(map(bytes.isdigit, ids)):
+    try:  # one C-level conversion of the byte strings, not a Python loop over the ids
+        values = np.array(ids, dtype=bytes).astype(np.int64) if ids else np.zeros(0, np.int64)
+    except ValueError:
+        values = None
+    if (
+        not head
+        or not head[0].isdigit()
+        or len(ids) != count
+        or values is None
+        or (values < 1).any()
+    ):
         raise MeshInputError(f"{path}: unreadable RequiredVertices section")
-    return np.array(ids, np.int64) - 1
+    return values - 1
 
 
 def _append_required_vertices(path: Path, vertices: np.ndarray) -> None:

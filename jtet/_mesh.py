@@ -201,8 +201,7 @@ class TetMesh:
         object.__setattr__(self, "points", _readonly(points))
         object.__setattr__(self, "tets", _readonly(tets))
         object.__setattr__(self, "region", _readonly(region))
-        for what in PROTECTED:
-            name, label_name, _ = PROTECTED[what]
+        for what, (name, label_name, _) in PROTECTED.items():
             rows, labels = self._labelled(
                 getattr(self, name), getattr(self, label_name), what, len(points)
             )
@@ -240,8 +239,7 @@ class TetMesh:
                     f"region must have one label per tet ({len(tets)}), got {region.shape}"
                 )
         fields = {"points": points, "tets": tets, "region": region}
-        for what in PROTECTED:
-            name, label_name, _ = PROTECTED[what]
+        for what, (name, label_name, _) in PROTECTED.items():
             rows, labels = getattr(self, name), getattr(self, label_name)
             if name in changes:  # new entities: new labels, 0 unless given
                 rows, labels = self._labelled(
@@ -459,8 +457,9 @@ class TetMesh:
     def _part(self, sel: np.ndarray) -> tuple[TetMesh, np.ndarray, np.ndarray]:
         """The tets where ``sel`` (m,) is True as a mesh of their own (same feature
         angle), with the protected faces, edges and vertices that are faces, edges and
-        vertices of those tets. Returns (submesh, verts, faces_in): ``verts`` (v,) maps the submesh's vertex
-        ids to this mesh's (sorted), ``faces_in`` (k,) marks the protected faces taken."""
+        vertices of those tets. Returns (submesh, verts, faces_in): ``verts`` (v,) maps
+        the submesh's vertex ids to this mesh's (sorted), ``faces_in`` (k,) marks the
+        protected faces taken."""
         from ._topology import TET_EDGES, TET_FACES, match_rows
 
         tets = self.tets[sel]
