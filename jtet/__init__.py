@@ -16,6 +16,7 @@ from ._predicates import orient3d as orient3d
 from ._predicates import orient3d_tets as orient3d_tets
 from ._predicates import segment_crosses_triangle as segment_crosses_triangle
 from ._quality import MEASURES as MEASURES
+from ._report import plot_stats as plot_stats
 from ._stats import MeshStats as MeshStats
 from ._stats import format_table as format_table
 from ._stats import mesh_stats as mesh_stats

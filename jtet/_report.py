@@ -50,40 +50,73 @@ def write_report(result, path: str | os.PathLike) -> None:
 
 
 def plot_histograms(result, path: str | os.PathLike, measure: str | None = None) -> None:
-    """Before/after histograms of dihedral angles and of the optimized quality (PNG/PDF/SVG)."""
+    """Before/after histograms of dihedral angles and of the optimized quality (PNG/PDF/SVG)
+    of an ``ImproveResult``."""
+    measure = measure or (result.options.quality if result.options else "min_sine")
+    plot_stats([result.stats_before, result.stats_after], path, ("before", "after"), measure)
+
+
+# before / after keep the colours of the improve plot; further meshes take matplotlib's
+_COLOURS = ("tab:red", "tab:blue", "tab:green", "tab:orange", "tab:purple", "tab:brown")
+
+
+def plot_stats(
+    stats, path: str | os.PathLike, labels=None, measure: str = "biased_min_sine"
+) -> None:
+    """Histograms of dihedral angles and of ``measure`` for several meshes, overlaid
+    (PNG/PDF/SVG, chosen by the suffix of ``path``; written atomically).
+
+    ``stats``: a list of ``MeshStats`` (``jtet.stats(mesh)``), e.g. one mesh's, the
+    before / after of a run, or the outputs of several tools on one input; ``labels``
+    name them in the legends (default "mesh 1", "mesh 2", ...). Counts are on a log
+    scale: the few worst tets are what matters, and they would not show on a linear one.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    measure = measure or (result.options.quality if result.options else "min_sine")
-    before, after = result.stats_before, result.stats_after
+    stats = list(stats)
+    if not stats:
+        raise ValueError("plot_stats needs at least one MeshStats")
+    labels = list(labels or [])[: len(stats)]
+    labels += [f"mesh {i + 1}" for i in range(len(labels), len(stats))]
+    missing = [lb for s, lb in zip(stats, labels, strict=True) if measure not in s.quality_hist]
+    if missing:
+        raise ValueError(f"the statistics of {', '.join(missing)} hold no {measure!r}")
+    colours = [_COLOURS[i % len(_COLOURS)] for i in range(len(stats))]
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
-    edges = np.linspace(0.0, 180.0, len(before.dihedral_hist) + 1)
-    for s, label, color in ((before, "before", "tab:red"), (after, "after", "tab:blue")):
-        ax1.stairs(np.maximum(s.dihedral_hist, 0.5), edges, label=label, color=color, fill=False)
+    edges = np.linspace(0.0, 180.0, len(stats[0].dihedral_hist) + 1)
+    for s, label, colour in zip(stats, labels, colours, strict=True):
+        legend = f"{label}: {s.min_dihedral:.1f}-{s.max_dihedral:.1f}"
+        ax1.stairs(np.maximum(s.dihedral_hist, 0.5), edges, label=legend, color=colour, fill=False)
     ax1.set_yscale("log")
     ax1.set_ylim(bottom=0.8)  # empty bins are drawn at 0.5 and hidden: log(0) is undefined
     ax1.set_xlim(0, 180)
     ax1.set_xlabel("dihedral angle (degrees)")
     ax1.set_ylabel("number of angles (log)")
     ax1.set_title(
-        f"dihedral angles: {before.min_dihedral:.1f}-{before.max_dihedral:.1f} -> "
-        f"{after.min_dihedral:.1f}-{after.max_dihedral:.1f}"
+        "dihedral angles: "
+        + " -> ".join(f"{s.min_dihedral:.1f}-{s.max_dihedral:.1f}" for s in stats)
+        if len(stats) <= 2
+        else "dihedral angles (smallest-largest)"
     )
     ax1.legend()
-    qedges = np.linspace(-1.0, 1.0, len(before.quality_hist[measure]) + 1)
-    for s, label, color in ((before, "before", "tab:red"), (after, "after", "tab:blue")):
+    qedges = np.linspace(-1.0, 1.0, len(stats[0].quality_hist[measure]) + 1)
+    for s, label, colour in zip(stats, labels, colours, strict=True):
         h = np.maximum(s.quality_hist[measure], 0.5)
-        ax2.stairs(h, qedges, label=label, color=color, fill=False)
+        legend = f"{label}: worst {s.quality_min[measure]:.3f}"
+        ax2.stairs(h, qedges, label=legend, color=colour, fill=False)
     ax2.set_yscale("log")
     ax2.set_ylim(bottom=0.8)
-    lo = min(0.0, before.quality_min[measure])
+    lo = min(0.0, *(s.quality_min[measure] for s in stats))
     ax2.set_xlim(max(-1.0, lo), 1.0)
     ax2.set_xlabel(f"{measure} (1 = regular tet)")
     ax2.set_ylabel("number of tets (log)")
     ax2.set_title(
-        f"{measure}: worst {before.quality_min[measure]:.3f} -> {after.quality_min[measure]:.3f}"
+        f"{measure}: worst " + " -> ".join(f"{s.quality_min[measure]:.3f}" for s in stats)
+        if len(stats) <= 2
+        else f"{measure} (worst)"
     )
     ax2.legend()
     path = Path(path)

@@ -127,23 +127,32 @@ def _rows(s: MeshStats) -> list[tuple[str, str]]:
 
 
 def format_table(
-    before: MeshStats,
-    after: MeshStats | None = None,
-    *,
+    *stats: MeshStats | None,
     time_s: float | None = None,
-    labels: tuple[str, str] = ("before", "after"),
+    labels: tuple[str, ...] | None = None,
 ) -> str:
-    """A plain-text table of ``before`` (and ``after``, side by side) statistics.
+    """A plain-text table of statistics side by side, one column per ``MeshStats``.
 
-    ``time_s``, when given, adds a row with the time the improvement took (seconds).
-    Rows present in only one of the two stats (different measures) show "-".
+    ``format_table(before, after)`` is the before/after table of ``improve`` (default
+    labels "before", "after"); ``format_table(a, b, c, labels=("gmsh", "tetgen", "jtet"))``
+    compares any number of meshes (default labels "mesh 1", "mesh 2", ...). ``None``
+    entries are skipped (``format_table(before, None)`` is one column).
+    ``time_s``, when given, adds a row with the time the improvement took (seconds), in
+    the last column. Rows present in only some columns (different measures) show "-".
     """
-    cols = [dict(_rows(before))] + ([dict(_rows(after))] if after is not None else [])
+    stats = tuple(s for s in stats if s is not None)
+    if not stats:
+        raise ValueError("format_table needs at least one MeshStats")
+    if labels is None:
+        labels = ("before", "after") if len(stats) <= 2 else ()
+    labels = tuple(labels)[: len(stats)]
+    labels += tuple(f"mesh {i + 1}" for i in range(len(labels), len(stats)))
+    cols = [dict(_rows(s)) for s in stats]
     keys = list(dict.fromkeys(k for c in cols for k in c))
     body = [[k] + [c.get(k, "-") for c in cols] for k in keys]
     if time_s is not None:
         body.append(["time (s)"] + [""] * (len(cols) - 1) + [f"{time_s:.3f}"])
-    head = ["", *labels[: len(cols)]]
+    head = ["", *labels]
     widths = [max(len(r[i]) for r in [head, *body]) for i in range(len(head))]
 
     def line(r):

@@ -234,16 +234,44 @@ def cmd_stats(args) -> int:
     from ._io import load
     from ._stats import format_table, mesh_stats
 
-    mesh = load(args.mesh)
-    s = mesh_stats(mesh)
+    # every file is read before anything is printed: a bad one is the only output
+    meshes = [load(path) for path in args.mesh]
+    stats = [mesh_stats(mesh) for mesh in meshes]
+    reports = [mesh.is_valid() for mesh in meshes]
+    labels = _column_labels(args.mesh)
+    if args.plot:
+        from ._report import plot_stats
+
+        plot_stats(stats, args.plot, labels, args.quality)
     if args.json:
-        print(json.dumps(s.as_dict()))
+        if len(meshes) == 1:
+            print(json.dumps(stats[0].as_dict()))
+        else:
+            rows = [
+                {"file": path, "valid": report.ok, **s.as_dict()}
+                for path, s, report in zip(args.mesh, stats, reports, strict=True)
+            ]
+            print(json.dumps(rows))
+        return 0
+    for path, mesh in zip(args.mesh, meshes, strict=True):
+        print(f"{path}: {mesh}")
+    if len(meshes) == 1:
+        print(format_table(stats[0], labels=("value",)))
+        print("valid" if reports[0].ok else f"problems:\n{reports[0]}")
     else:
-        print(f"{args.mesh}: {mesh}")
-        print(format_table(s, labels=("value", "")))
-        report = mesh.is_valid()
-        print("valid" if report.ok else f"problems:\n{report}")
+        print(format_table(*stats, labels=labels))
+        for path, report in zip(args.mesh, reports, strict=True):
+            print(f"{path}: valid" if report.ok else f"{path}: problems:\n{report}")
+    if args.plot:
+        print(f"wrote {args.plot}")
     return 0
+
+
+def _column_labels(paths: list[str]) -> list[str]:
+    """Short names of the files for table columns and legends: the file names, or the
+    paths as given when two files share a name (``a/out.vtu``, ``b/out.vtu``)."""
+    names = [Path(path).name for path in paths]
+    return names if len(set(names)) == len(names) else list(paths)
 
 
 def cmd_demo(args) -> int:
@@ -308,9 +336,27 @@ def build_parser() -> argparse.ArgumentParser:
     pi.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
     pi.add_argument("-q", "--quiet", action="store_true")
     pi.set_defaults(func=cmd_improve)
-    ps = sub.add_parser("stats", help="print quality statistics and validity of a mesh")
-    ps.add_argument("mesh")
-    ps.add_argument("--json", action="store_true", help="machine-readable output")
+    ps = sub.add_parser(
+        "stats",
+        help="print quality statistics and validity of a mesh, or of several side by side",
+    )
+    ps.add_argument(
+        "mesh", nargs="+", help="mesh file(s); several are compared in one table and plot"
+    )
+    ps.add_argument(
+        "--json",
+        action="store_true",
+        help="machine-readable output (several meshes: a list, with file and valid)",
+    )
+    ps.add_argument(
+        "--plot", metavar="H.png", help="write histograms of dihedral angles and quality"
+    )
+    ps.add_argument(
+        "--quality",
+        choices=sorted(MEASURES),
+        default=DEFAULTS.quality,
+        help="quality measure of the --plot histogram",
+    )
     ps.set_defaults(func=cmd_stats)
     pd = sub.add_parser("demo", help="improve the embedded demo mesh and write its outputs")
     pd.add_argument(

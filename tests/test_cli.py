@@ -307,6 +307,77 @@ def test_stats_missing_file_exits_2(tmp_path, capsys):
     assert err.startswith("jtet: error:") and "nope.vtu" in err
 
 
+def _table_rows(out: str) -> dict[str, list[str]]:
+    """Rows of a ``format_table`` in ``out``: name -> the columns' values."""
+    rows = {}
+    for ln in out.splitlines():
+        if "  " in ln and not ln.startswith("-"):
+            name, *values = [part.strip() for part in ln.split("  ") if part.strip()]
+            rows[name] = values
+    return rows
+
+
+def test_stats_compares_meshes_side_by_side(small, improved, tmp_path, capsys):
+    plot = tmp_path / "cmp.png"
+    assert main(["stats", str(small), str(improved["out"]), "--plot", str(plot)]) == 0
+    out = capsys.readouterr().out
+    before, after = jtet.stats(jtet.load(small)), jtet.stats(jtet.load(improved["out"]))
+    lines = out.splitlines()
+    assert lines[0].startswith(f"{small}: TetMesh(")
+    assert lines[1].startswith(f"{improved['out']}: TetMesh(")
+    # the columns are named by the files, in the order given
+    assert lines[2].split() == ["two_regions.vtu", "out.vtu"]
+    rows = _table_rows(out)
+    assert rows["tets"] == [str(before.n_tets), str(after.n_tets)]
+    assert rows["min dihedral (deg)"] == [f"{before.min_dihedral:.3f}", f"{after.min_dihedral:.3f}"]
+    assert f"{small}: valid" in lines and f"{improved['out']}: valid" in lines
+    assert plot.read_bytes().startswith(PNG_MAGIC)
+    assert lines[-1] == f"wrote {plot}"
+
+
+def test_stats_json_of_several_meshes(small, improved, capsys):
+    assert main(["stats", str(small), str(improved["out"]), "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [r["file"] for r in rows] == [str(small), str(improved["out"])]
+    for r, path in zip(rows, (small, improved["out"]), strict=True):
+        assert r.pop("valid") is True
+        assert r.pop("file") == str(path)
+        assert r == jtet.stats(jtet.load(path)).as_dict()
+
+
+def test_stats_columns_of_files_with_one_name(small, tmp_path, capsys):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    a, b = tmp_path / "a" / "m.vtu", tmp_path / "b" / "m.vtu"
+    for path in (a, b):
+        path.write_bytes(small.read_bytes())
+    assert main(["stats", str(a), str(b)]) == 0
+    header = capsys.readouterr().out.splitlines()[2]
+    assert header.split() == [str(a), str(b)]
+
+
+def test_stats_one_bad_file_of_several(small, tmp_path, capsys):
+    bad = tmp_path / "bad.vtu"
+    bad.write_text("not a mesh")
+    plot = tmp_path / "cmp.png"
+    assert main(["stats", str(small), str(bad), "--plot", str(plot)]) == 2
+    captured = capsys.readouterr()
+    # the bad file is named, and nothing else is printed or written
+    assert captured.out == ""
+    assert captured.err.startswith("jtet: error:") and "bad.vtu" in captured.err
+    assert not plot.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["bad.vtu"]
+
+
+def test_stats_plot_of_one_mesh(small, tmp_path, capsys):
+    plot = tmp_path / "one.svg"
+    assert main(["stats", str(small), "--plot", str(plot), "--quality", "radius_ratio"]) == 0
+    text = plot.read_text()
+    # the legend names the file and the worst value of the chosen measure
+    worst = jtet.stats(jtet.load(small)).quality_min["radius_ratio"]
+    assert "radius_ratio" in text and f"worst {worst:.3f}" in text
+    assert capsys.readouterr().out.splitlines()[-2] == "valid"
+
+
 # --- jtet demo ------------------------------------------------------------------------------
 
 DEMO_FILES = ("demo_improved.vtu", "demo_report.json", "demo_histograms.png")

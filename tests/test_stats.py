@@ -126,3 +126,29 @@ def test_as_dict_and_table():
     assert "1.500" in lines[-1]
     single = format_table(before)
     assert "after" not in single and "time" not in single
+
+
+def test_table_of_several_meshes():
+    meshes = [grid_mesh(1), grid_mesh(2), delaunay_mesh(60, seed=3)]
+    stats = [mesh_stats(m) for m in meshes]
+    lines = format_table(*stats).splitlines()
+    assert lines[0].split() == ["mesh", "1", "mesh", "2", "mesh", "3"]
+    tets_row = next(line for line in lines if line.startswith("tets "))
+    assert tets_row.split()[1:] == [str(m.n_tets) for m in meshes]
+    named = format_table(*stats, labels=("gmsh", "tetgen", "jtet")).splitlines()
+    assert named[0].split() == ["gmsh", "tetgen", "jtet"]
+    # a None column is left out (a run without an "after")
+    assert format_table(stats[0], None) == format_table(stats[0])
+    with pytest.raises(ValueError, match="at least one"):
+        format_table()
+
+
+def test_plot_of_a_measure_the_stats_lack(tmp_path):
+    from jtet._report import plot_stats
+
+    s = mesh_stats(grid_mesh(1), measures=["min_sine"])
+    with pytest.raises(ValueError, match="radius_ratio"):
+        plot_stats([s], tmp_path / "h.png", ["grid"], "radius_ratio")
+    assert list(tmp_path.iterdir()) == []
+    plot_stats([s, s, s], tmp_path / "h.png", measure="min_sine")
+    assert (tmp_path / "h.png").read_bytes()[:4] == b"\x89PNG"
