@@ -994,6 +994,22 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict) -> None:
             _meshio_module(fmt).write(str(tmp), m)
     if fmt == "medit" and len(mesh.protected_vertices) and tmp.suffix.lower() == ".mesh":
         _append_required_vertices(tmp, mesh.protected_vertices)
+    if fmt == "tetgen" and len(mesh.protected_faces):
+        _write_tetgen_faces(tmp.with_suffix(".face"), mesh)
+
+
+def _write_tetgen_faces(path: Path, mesh: TetMesh) -> None:
+    """The protected faces of ``mesh`` as a TetGen ``.face`` file with their labels as
+    boundary markers (what TetGen writes for the boundary and the constrained facets of
+    its meshes, and what ``load`` reads back), numbered from 0 like meshio's ``.node``."""
+    faces = np.asarray(mesh.protected_faces, np.int64)
+    table = np.column_stack(
+        [np.arange(len(faces)), faces, np.asarray(mesh.protected_face_labels, np.int64)]
+    )
+    with open(path, "w") as f:
+        f.write("# faces of the mesh that stay (jtet's protected faces): id, 3 nodes, label\n")
+        f.write(f"{len(faces)} 1\n")
+        np.savetxt(f, table, fmt="%d")
 
 
 def new_temp_file(parent: Path, prefix: str, suffix: str) -> Path:
@@ -1043,8 +1059,10 @@ def save(
     entities. ``.mesh`` / ``.meshb`` (Medit) store the region as references, the protected
     faces and edges as ``Triangles`` and ``Edges``, the vertices as ``RequiredVertices``
     (``.mesh`` only). ``.node`` / ``.ele`` (TetGen, both files are written; region ->
-    element attribute) store only the region. What a format cannot store is dropped with
-    a warning.
+    element attribute) store the region, and the protected faces with their labels as
+    boundary markers in a ``.face`` file beside them (an old ``.face`` of that name is
+    replaced or, for a mesh without protected faces, removed). What a format cannot
+    store is dropped with a warning.
 
     The file is written to a temporary file in the same directory and moved into place, so
     ``path`` is either the complete new file or left untouched.
@@ -1068,8 +1086,6 @@ def save(
         dropped = list(cell_data)
         if len(dropped) > 4:
             dropped = [f"{len(dropped)} cell arrays ({', '.join(dropped[:3])}, ...)"]
-        if fmt == "tetgen" and len(mesh.protected_faces):
-            dropped.append("protected faces")
         if fmt == "tetgen" and len(mesh.protected_edges):
             dropped.append("protected edges")
         if len(mesh.protected_vertices) and (fmt == "tetgen" or ext == ".meshb"):
@@ -1078,7 +1094,7 @@ def save(
             stored = {
                 ".mesh": "region labels and protected faces, edges and vertices",
                 ".meshb": "region labels and protected faces and edges",
-            }.get(ext, "region labels")
+            }.get(ext, "region labels and protected faces")
             warnings.warn(
                 f"{p}: the {_FORMAT_NAMES[fmt]} format stores only the {stored}; "
                 f"not saved: {', '.join(dropped)}",
@@ -1108,12 +1124,18 @@ def save(
                     f"{_FORMAT_NAMES[fmt]} format"
                 )
     targets = [p]
+    stale = None  # a TetGen .face file of the mesh being replaced, which holds no faces
     if fmt == "tetgen":
         targets = [p.with_suffix(".node"), p.with_suffix(".ele")]
+        if len(mesh.protected_faces):
+            targets.append(p.with_suffix(".face"))
+        elif p.with_suffix(".face").exists():
+            # left in place, ``load`` would read its faces as the new mesh's
+            stale = p.with_suffix(".face")
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise MeshFileError(f"{p}: {parent} is not an existing directory")
-    for t in targets:
+    for t in targets + ([stale] if stale else []):
         if t.is_dir():
             raise MeshFileError(f"{t}: is a directory")
         if t.exists() and not overwrite:
@@ -1126,8 +1148,9 @@ def save(
         except OSError as e:
             raise MeshFileError(f"{p}: cannot create a file in {parent} ({_reason(e)})") from None
         if fmt == "tetgen":
-            # meshio writes the .ele next to the .node, with the same stem.
-            temps.append(temps[0].with_suffix(".ele"))
+            # meshio writes the .ele next to the .node, with the same stem, and
+            # ``_write_tetgen_faces`` the .face
+            temps += [temps[0].with_suffix(s.suffix) for s in targets[1:]]
         try:
             _write(mesh, temps[0], fmt, cell_data)
             for tmp, target in zip(temps, targets, strict=True):
@@ -1135,6 +1158,15 @@ def save(
                     raise MeshFileError(f"{target}: the writer produced no file")
             for tmp, target in zip(temps, targets, strict=True):
                 move_into_place(tmp, target)
+            if stale is not None:
+                try:
+                    stale.unlink()
+                except OSError as e:
+                    warnings.warn(
+                        f"{stale}: could not remove the old face file ({_reason(e)}); "
+                        "delete it, or loading the new mesh reads its faces",
+                        stacklevel=2,
+                    )
         except MeshFileError:
             raise
         except Exception as e:

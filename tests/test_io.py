@@ -61,7 +61,8 @@ def test_round_trip(tmp_path, labelled, ext):
     np.testing.assert_array_equal(back.region, labelled.region)
     assert back.points.dtype == np.float64 and back.tets.dtype == np.int64
     assert (back.volumes > 0).all()
-    expected = {"mesh.node", "mesh.ele"} if ext in ("node", "ele") else {path.name}
+    tetgen = {"mesh.node", "mesh.ele"} | ({"mesh.face"} if len(labelled.protected_faces) else set())
+    expected = tetgen if ext in ("node", "ele") else {path.name}
     assert {p.name for p in tmp_path.iterdir()} == expected  # no temp files left behind
     assert out.name in expected
 
@@ -103,7 +104,8 @@ def test_protected_entities_round_trip(tmp_path, labelled, ext):
     """Protected faces, edges and vertices with their labels come back from every format
     that stores them: Gmsh triangles, lines and points tagged with their labels
     (physical groups); Medit triangles and edges with references, RequiredVertices
-    without labels (and not in the binary .meshb); VTK field data. TetGen stores none.
+    without labels (and not in the binary .meshb); VTK field data; TetGen's .face file
+    with the face labels as boundary markers (no edges or vertices).
     A warning names what a format leaves out."""
     mesh = labelled.replace(
         protected_faces=labelled.protected_faces,
@@ -122,7 +124,7 @@ def test_protected_entities_round_trip(tmp_path, labelled, ext):
     back = _io.load(path)
     names = ("protected_faces", "protected_face_labels", "protected_edges",
              "protected_edge_labels", "protected_vertices", "protected_vertex_labels")  # fmt: skip
-    stored = {"node": (), "meshb": names[:4], "mesh": names[:5]}.get(ext, names)
+    stored = {"node": names[:2], "meshb": names[:4], "mesh": names[:5]}.get(ext, names)
     for name in names:
         if name in stored:
             np.testing.assert_array_equal(getattr(back, name), getattr(mesh, name), err_msg=name)
@@ -136,7 +138,7 @@ def test_protected_entities_round_trip(tmp_path, labelled, ext):
     assert back.protected_vertices.tolist() == ([3, 7, 12] if ext not in ("node", "meshb") else [])
 
 
-@pytest.mark.parametrize("ext", ["msh", "mesh", "vtu"])
+@pytest.mark.parametrize("ext", ["msh", "mesh", "vtu", "node"])
 def test_labelled_protected_faces_round_trip(tmp_path, labelled, ext):
     # Gmsh physical surfaces / Medit triangle references / VTK field data: a Gmsh ->
     # jtet -> solver chain keeps its boundary-condition groups
@@ -150,6 +152,31 @@ def test_labelled_protected_faces_round_trip(tmp_path, labelled, ext):
     np.testing.assert_array_equal(back.protected_faces, mesh.protected_faces)
     np.testing.assert_array_equal(back.protected_face_labels, labels)
     np.testing.assert_array_equal(back.region, mesh.region)
+
+
+def test_tetgen_face_file_follows_the_mesh(tmp_path, labelled):
+    """The .face file beside a TetGen output is the mesh's: written with its protected
+    faces, refused like the other files without overwrite, removed when the new mesh
+    has none (else the next load would read the old mesh's faces)."""
+    path = tmp_path / "m.node"
+    faces = labelled.replace(protected_edges=None)
+    _io.save(faces, path)
+    text = (tmp_path / "m.face").read_text().splitlines()
+    assert text[1] == f"{len(faces.protected_faces)} 1"
+    row = [int(v) for v in text[2].split()]
+    assert row == [0, *faces.protected_faces[0], faces.protected_face_labels[0]]
+    bare = labelled.replace(protected_faces=None, protected_edges=None)
+    _io.save(bare, tmp_path / "n.node")
+    assert _listing(tmp_path) == ["m.ele", "m.face", "m.node", "n.ele", "n.node"]
+    (tmp_path / "k.face").write_bytes((tmp_path / "m.face").read_bytes())
+    with pytest.raises(MeshFileError, match=r"k\.face: the file exists"):
+        _io.save(bare, tmp_path / "k.node", overwrite=False)
+    assert "k.node" not in _listing(tmp_path)
+    _io.save(bare, tmp_path / "k.node")
+    assert "k.face" not in _listing(tmp_path)
+    assert len(_io.load(tmp_path / "k.node").protected_faces) == 0
+    _io.save(bare, path)  # replaces m.node / m.ele and removes m.face
+    assert _listing(tmp_path) == ["k.ele", "k.node", "m.ele", "m.node", "n.ele", "n.node"]
 
 
 @pytest.mark.parametrize("ext", ["mesh", "node"])
