@@ -12,6 +12,7 @@ from ._io import load as load
 from ._io import save as save
 from ._mesh import TetMesh as TetMesh
 from ._options import Options as Options
+from ._options import load_options as load_options
 from ._predicates import orient3d as orient3d
 from ._predicates import orient3d_tets as orient3d_tets
 from ._predicates import segment_crosses_triangle as segment_crosses_triangle

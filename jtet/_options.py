@@ -191,3 +191,93 @@ class Options:
         d = dataclasses.asdict(self)
         d["ops"] = list(self.ops)
         return d
+
+
+def load_options(path) -> Options:
+    """``Options`` from a JSON or YAML file (``.json``, ``.yaml``, ``.yml``).
+
+    The file holds a mapping of ``Options`` fields (fields it leaves out keep their
+    defaults), or is one of:
+
+    - a jtet report (``jtet improve --report``): its ``options``, to run again exactly
+      what made it;
+    - a config file of the ``configs/optimizer`` group: its ``defaults`` list names other
+      files of the same directory (``default`` is ``default.yaml``), merged in order,
+      with the file's own keys where ``_self_`` stands (last when it is not listed),
+      as Hydra composes them.
+
+    Raises:
+        MeshFileError: the file cannot be read or parsed.
+        JtetError: it is not a mapping, names unknown fields, or holds invalid values.
+    """
+    from pathlib import Path
+
+    data = _options_mapping(Path(path), ())
+    fields = {f.name for f in dataclasses.fields(Options)}
+    unknown = sorted(set(data) - fields)
+    if unknown:
+        raise JtetError(f"{path}: unknown option(s) {unknown}; options are {sorted(fields)}")
+    try:
+        return Options(**data)
+    except JtetError as e:
+        raise JtetError(f"{path}: {e}") from None
+
+
+def _options_mapping(path, seen: tuple) -> dict:
+    """The option values of the file ``path`` (see ``load_options``), its ``defaults``
+    resolved; ``seen``: the files that include it (a cycle is an error)."""
+    import json
+
+    from ._errors import MeshFileError
+
+    if path.resolve() in seen:
+        raise JtetError(f"{path}: the defaults lists include each other")
+    suffix = path.suffix.lower()
+    if suffix not in (".json", ".yaml", ".yml"):
+        raise MeshFileError(f"{path}: options files are .json, .yaml or .yml")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise MeshFileError(
+            f"{path}: cannot read options ({getattr(e, 'strerror', e) or e})"
+        ) from None
+    try:
+        if suffix == ".json":
+            data = json.loads(text)
+        else:
+            import yaml
+
+            data = yaml.safe_load(text)
+    except Exception as e:  # json / yaml syntax errors: one line naming the file
+        reason = " ".join(str(e).split())
+        raise MeshFileError(f"{path}: not a readable options file ({reason})") from None
+    if data is None:  # an empty YAML file: the defaults
+        data = {}
+    if not isinstance(data, dict):
+        raise JtetError(f"{path}: expected a mapping of option names to values")
+    fields = {f.name for f in dataclasses.fields(Options)}
+    if isinstance(data.get("options"), dict) and not set(data) & fields:
+        return dict(data["options"])  # a report
+    data = dict(data)
+    defaults = data.pop("defaults", None)
+    if defaults is None:
+        return data
+    if not isinstance(defaults, list):
+        raise JtetError(f"{path}: 'defaults' must be a list of file names")
+    merged, placed = {}, False
+    for entry in defaults:
+        if entry == "_self_":
+            merged.update(data)
+            placed = True
+        elif isinstance(entry, str) and entry and "/" not in entry and ":" not in entry:
+            merged.update(
+                _options_mapping(path.with_name(f"{entry}.yaml"), (*seen, path.resolve()))
+            )
+        else:
+            raise JtetError(
+                f"{path}: defaults entry {entry!r}: only names of files beside it and "
+                "_self_ are read"
+            )
+    if not placed:
+        merged.update(data)
+    return merged

@@ -34,6 +34,13 @@ def _ops(text: str) -> tuple[str, ...]:
 
 def _add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
+        "--options",
+        metavar="FILE",
+        help="options from a JSON / YAML file: a mapping of jtet.Options fields, a "
+        "--report file (runs again with its options) or a configs/optimizer file; the "
+        "flags given here override it",
+    )
+    p.add_argument(
         "--ops",
         type=_ops,
         default=DEFAULTS.ops,
@@ -365,6 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_options(pd)
     pd.add_argument("-q", "--quiet", action="store_true")
     pd.set_defaults(func=cmd_demo)
+    p.subcommands = {"improve": pi, "stats": ps, "demo": pd}
     return p
 
 
@@ -374,6 +382,17 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     if category is not UserWarning:  # e.g. a library's RuntimeWarning: say which kind
         text = f"{text} ({category.__name__})"
     print(f"jtet: warning: {text}", file=sys.stderr if file is None else file)
+
+
+def _with_options_file(parser: argparse.ArgumentParser, args, argv):
+    """``args`` parsed again with the options of ``args.options`` (a file) as the
+    defaults of the subcommand, so that the flags on the command line override them."""
+    from ._options import load_options
+
+    values = load_options(args.options).as_dict()
+    values.pop("progress")  # the command line shows its own progress (-q: none)
+    parser.subcommands[args.command].set_defaults(**values)
+    return parser.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -391,6 +410,8 @@ def main(argv: list[str] | None = None) -> int:
             warnings.showwarning = _show_warning
             if pressed():  # while jtet was imported: do nothing at all
                 raise KeyboardInterrupt
+            if getattr(args, "options", None):
+                args = _with_options_file(parser, args, argv)
             return args.func(args)
     except JtetError as e:
         print(f"jtet: error: {e}", file=sys.stderr)

@@ -8,6 +8,7 @@ import contextlib
 import io
 import json
 import os
+import re
 
 import numpy as np
 import pytest
@@ -476,6 +477,57 @@ def test_console_command_ends_with_complete_outputs_and_its_code(small, tmp_path
     bad = subprocess.run([*cmd, "stats", str(tmp_path / "missing.vtu")], capture_output=True,
                          text=True, timeout=600)  # fmt: skip
     assert bad.returncode == 2 and bad.stderr.startswith("jtet: error:")
+
+
+def test_options_file_and_flags_over_it(small, tmp_path, capsys):
+    first, again, report = tmp_path / "a.vtu", tmp_path / "b.vtu", tmp_path / "r.json"
+    opts = tmp_path / "o.yaml"
+    opts.write_text(
+        "# a sweep's settings\nops: [edge, smooth]\nmax_ring: 5\nmax_passes: 1\nseed: 3\n"
+    )
+    # a flag given on the command line wins over the file
+    assert (
+        _improve(small, first, "--options", opts, "--max-ring", "6", "--report", report, "-q") == 0
+    )
+    used = json.loads(report.read_text())["options"]
+    assert used["ops"] == ["edge", "smooth"] and used["max_passes"] == 1 and used["seed"] == 3
+    assert used["max_ring"] == 6
+    assert used["perturb"] == jtet.Options().perturb  # left out of the file: the default
+    # a report runs again with exactly its options, to the same mesh
+    again_report = tmp_path / "r2.json"
+    assert _improve(small, again, "--options", report, "--report", again_report, "-q") == 0
+    assert json.loads(again_report.read_text())["options"] == used
+    a, b = jtet.load(first), jtet.load(again)
+    np.testing.assert_array_equal(a.tets, b.tets)
+    np.testing.assert_array_equal(a.points, b.points)
+    capsys.readouterr()
+
+
+@pytest.mark.parametrize(
+    "name, text, reason",
+    [
+        ("o.yaml", "max_rings: 5\n", r"o\.yaml: unknown option\(s\) \['max_rings'\]"),
+        ("o.yaml", "max_ring: 99\n", r"o\.yaml: max_ring must be in 3\.\.16"),
+        ("o.yaml", "max_ring: [5\n", r"o\.yaml: not a readable options file"),
+        ("o.json", '{"seed": 1,}', r"o\.json: not a readable options file"),
+        ("o.yaml", "- edge\n", r"o\.yaml: expected a mapping"),
+        ("o.txt", "seed: 1\n", r"o\.txt: options files are \.json, \.yaml or \.yml"),
+        ("o.yaml", "defaults: [o]\n", r"o\.yaml: the defaults lists include each other"),
+        ("o.yaml", "defaults: [{override /x: y}]\n", r"only names of files beside it"),
+        ("o.yaml", "defaults: [missing]\n", r"missing\.yaml: cannot read options"),
+        (None, "", r"nope\.yaml: cannot read options"),
+    ],
+)
+def test_bad_options_file_exits_2(small, tmp_path, capsys, name, text, reason):
+    path = tmp_path / (name or "nope.yaml")
+    if name:
+        path.write_text(text)
+    out = tmp_path / "out.vtu"
+    assert _improve(small, out, "--options", path) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jtet: error:") and len(err.strip().splitlines()) == 1, err
+    assert re.search(reason, err), err
+    assert not out.exists()
 
 
 def test_every_option_has_a_flag(capsys):

@@ -80,6 +80,16 @@ def test_schema_is_jtet_options():
     assert config_schema.to_options(schema_defaults) == defaults
 
 
+@pytest.mark.parametrize("group", ["optimizer", "quality", "smoothing"])
+def test_options_files_read_as_hydra_composes_them(group):
+    """``jtet.load_options`` on one file of the option groups (what ``jtet improve
+    --options`` reads) gives the options Hydra composes with that group choice."""
+    for name in _options(group):
+        cfg = _compose([f"{group}={name}"])
+        composed = config_schema.to_options(cfg.optimizer)
+        assert jtet.load_options(CONFIGS / group / f"{name}.yaml") == composed, name
+
+
 def test_default_config_is_jtet_defaults():
     """configs/config.yaml with no override reproduces jtet's own defaults."""
     cfg = _compose()
