@@ -1012,6 +1012,22 @@ def _write_tetgen_faces(path: Path, mesh: TetMesh) -> None:
         np.savetxt(f, table, fmt="%d")
 
 
+def output_format(path) -> str:
+    """The format ``save`` writes to ``path`` ("vtu", "gmsh", ...), from its extension.
+
+    Raises:
+        MeshFileError: an extension jtet does not write.
+    """
+    p = Path(path)
+    ext = p.suffix.lower()
+    fmt = _READ_FORMATS.get(ext)
+    if fmt is None:
+        raise MeshFileError(
+            f"{p}: unknown mesh file extension {ext or '(none)'!r}; jtet writes {_KNOWN_EXTENSIONS}"
+        )
+    return fmt
+
+
 def new_temp_file(parent: Path, prefix: str, suffix: str) -> Path:
     """Create an empty file with a fresh random name in ``parent`` and return its path.
 
@@ -1076,11 +1092,7 @@ def save(
     """
     p = Path(path)
     ext = p.suffix.lower()
-    fmt = _READ_FORMATS.get(ext)
-    if fmt is None:
-        raise MeshFileError(
-            f"{p}: unknown mesh file extension {ext or '(none)'!r}; jtet writes {_KNOWN_EXTENSIONS}"
-        )
+    fmt = output_format(p)
     cell_data = _check_cell_data(mesh, cell_data)
     if fmt in ("medit", "tetgen"):
         dropped = list(cell_data)

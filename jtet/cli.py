@@ -158,11 +158,13 @@ def _options_from(args) -> Options:
 
 
 class _Progress:
-    """A one-line progress bar on stderr (plain lines when stderr is not a terminal)."""
+    """A one-line progress bar on stderr (plain lines when stderr is not a terminal);
+    ``prefix`` tells which file of a batch it is."""
 
-    def __init__(self, max_passes: int, quiet: bool):
+    def __init__(self, max_passes: int, quiet: bool, prefix: str = ""):
         self.max_passes = max(max_passes, 1)
         self.quiet = quiet
+        self.prefix = prefix
         self.tty = sys.stderr.isatty()
         self.t0 = time.perf_counter()
 
@@ -176,7 +178,7 @@ class _Progress:
         else:
             what = f"pass {e['pass'] + 1} {e['op']:6s} {e['successes']:6d}/{e['attempts']:<7d}"
         msg = (
-            f"[{bar}] {what} min/max dihedral {e['min_dihedral']:6.2f}/{e['max_dihedral']:6.2f}  "
+            f"{self.prefix}[{bar}] {what} min/max dihedral {e['min_dihedral']:6.2f}/{e['max_dihedral']:6.2f}  "
             f"{time.perf_counter() - self.t0:6.1f}s"
         )
         if self.tty:
@@ -196,19 +198,34 @@ def _same_file(a: Path, b: Path) -> bool:
         return False
 
 
-def _run_improve(mesh, out: Path, args, source: str) -> int:
+def _improve_and_save(mesh, out: Path, args, prefix: str = ""):
+    """Improve ``mesh`` with the options of ``args`` and write the result to ``out``;
+    returns (the ``ImproveResult``, exit code: 0, 3 (invariant violation: nothing
+    written) or 130 (interrupted: the best mesh so far written))."""
     from ._driver import improve
     from ._io import save
-    from ._report import plot_histograms, quality_cell_data, write_report
+    from ._report import quality_cell_data
 
     opts = _options_from(args)
-    progress = _Progress(opts.max_passes, args.quiet)
+    progress = _Progress(opts.max_passes, args.quiet, prefix)
     result = improve(mesh, opts, callback=progress)
     progress.done()
     if result.status.startswith("invariant violation"):
         print(f"jtet: error: {result.status}; {out} not written", file=sys.stderr)
-        return 3
+        return result, 3
     save(result.mesh, out, cell_data=quality_cell_data(result.mesh))
+    if result.status == "interrupted":
+        print(f"jtet: interrupted; wrote the best mesh so far to {out}", file=sys.stderr)
+        return result, 130
+    return result, 0
+
+
+def _run_improve(mesh, out: Path, args, source: str) -> int:
+    from ._report import plot_histograms, write_report
+
+    result, code = _improve_and_save(mesh, out, args)
+    if code == 3:
+        return 3
     if args.report:
         write_report(result, args.report)
     if args.plot:
@@ -219,20 +236,127 @@ def _run_improve(mesh, out: Path, args, source: str) -> int:
         for extra in (args.report, args.plot):
             if extra:
                 print(f"wrote {extra}")
-    if result.status == "interrupted":
-        print(f"jtet: interrupted; wrote the best mesh so far to {out}", file=sys.stderr)
-        return 130
-    return 0
+    return code
+
+
+def _is_input(src: Path, out: Path) -> bool:
+    return src.resolve() == out.resolve() or _same_file(src, out)
 
 
 def cmd_improve(args) -> int:
     from ._io import load
 
-    src, out = Path(args.input), Path(args.output)
-    if (src.resolve() == out.resolve() or _same_file(src, out)) and not args.overwrite:
+    if args.out_dir is not None:
+        return _improve_batch(args)
+    if args.out_ext is not None:
+        raise JtetError("--out-ext names the outputs of --out-dir")
+    if len(args.paths) != 2:
+        raise JtetError(
+            f"jtet improve takes IN OUT, or several inputs with --out-dir DIR "
+            f"({len(args.paths)} path(s) given)"
+        )
+    src, out = (Path(p) for p in args.paths)
+    if _is_input(src, out) and not args.overwrite:
         raise JtetError(f"{out} is the input file; pass --overwrite to replace it")
     mesh = load(src)
     return _run_improve(mesh, out, args, str(src))
+
+
+def _batch_outputs(args) -> list[tuple[Path, Path]]:
+    """(input, output) of every file of ``jtet improve IN... --out-dir DIR``, checked
+    before any run: a known output format, no two inputs to one output, no input
+    overwritten without --overwrite."""
+    from ._io import output_format
+
+    if args.plot:
+        raise JtetError(
+            "--plot writes one figure; with --out-dir, compare the inputs and outputs "
+            "with jtet stats IN OUT --plot H.png"
+        )
+    outdir = Path(args.out_dir)
+    if not outdir.is_dir():
+        raise JtetError(f"--out-dir {outdir}: not an existing directory")
+    ext = args.out_ext
+    if ext is not None and not ext.startswith("."):
+        ext = "." + ext
+    pairs = []
+    for path in args.paths:
+        src = Path(path)
+        out = outdir / (src.stem + (ext or src.suffix))
+        output_format(out)
+        if _is_input(src, out) and not args.overwrite:
+            raise JtetError(f"{out} is the input file {src}; pass --overwrite to replace it")
+        pairs.append((src, out))
+    seen = {}
+    for src, out in pairs:
+        key = out.resolve()
+        if key in seen:
+            raise JtetError(f"{seen[key]} and {src} would both be written to {out}")
+        seen[key] = src
+    return pairs
+
+
+def _improve_batch(args) -> int:
+    """``jtet improve IN... --out-dir DIR``: every input improved in this one process
+    (jtet's import and kernels are loaded once, not once per file), the output written
+    as DIR/<input name> (``--out-ext``: another format). An input that cannot be read
+    or written is reported and skipped; Ctrl-C stops the batch after writing the
+    current file's best mesh. Exit code: the worst of the files' (130 > 3 > 2 > 0)."""
+    from ._io import load
+    from ._report import write_text_atomic
+
+    pairs = _batch_outputs(args)
+    rows, reports, codes = [], [], [0]
+    for i, (src, out) in enumerate(pairs):
+        try:
+            mesh = load(src)
+            result, code = _improve_and_save(mesh, out, args, f"[{i + 1}/{len(pairs)}] ")
+        except JtetError as e:
+            print(f"jtet: error: {e}", file=sys.stderr)
+            rows.append([str(src), "-", "-", "-", "error", "-"])
+            reports.append({"input": str(src), "output": None, "error": str(e)})
+            codes.append(2)
+            continue
+        codes.append(code)
+        before, after = result.stats_before, result.stats_after
+        written = code != 3
+        rows.append(
+            [
+                str(src),
+                f"{before.n_tets} -> {after.n_tets}",
+                f"{before.min_dihedral:.2f} -> {after.min_dihedral:.2f}",
+                f"{before.max_dihedral:.2f} -> {after.max_dihedral:.2f}",
+                result.status if written else "not written",
+                f"{result.seconds:.1f}",
+            ]
+        )
+        reports.append({"input": str(src), "output": str(out) if written else None,
+                        **result.as_dict()})  # fmt: skip
+        if not args.quiet:
+            print(f"jtet: {src} -> {out}  ({result.status}, {result.seconds:.1f} s)", flush=True)
+        if code == 130:
+            break
+    if args.report:
+        import json
+
+        write_text_atomic(args.report, json.dumps(reports, indent=1))
+    if not args.quiet:
+        head = ["input", "tets", "min dihedral", "max dihedral", "status", "s"]
+        print(_plain_table(head, rows))
+        if args.report:
+            print(f"wrote {args.report}")
+    return 130 if 130 in codes else 3 if 3 in codes else max(codes)
+
+
+def _plain_table(head: list[str], rows: list[list[str]]) -> str:
+    """Columns padded to their widest cell, the first left-aligned, a rule under ``head``."""
+    widths = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
+
+    def line(r):
+        cells = [r[0].ljust(widths[0])] + [c.rjust(w) for c, w in zip(r[1:], widths[1:])]
+        return "  ".join(cells).rstrip()
+
+    return "\n".join([line(head), "  ".join("-" * w for w in widths), *map(line, rows)])
 
 
 def cmd_stats(args) -> int:
@@ -331,9 +455,24 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = p.add_subparsers(dest="command", required=True)
     pi = sub.add_parser("improve", help="improve a mesh file and write the result")
-    pi.add_argument("input", help="input mesh (.vtu .vtk .msh .mesh .node/.ele)")
     pi.add_argument(
-        "output", help="output mesh (format from the extension); carries per-tet quality arrays"
+        "paths",
+        nargs="+",
+        metavar="IN [OUT]",
+        help="input mesh (.vtu .vtk .msh .mesh .meshb .node/.ele) and output mesh (format "
+        "from the extension; carries per-tet quality arrays); with --out-dir, only inputs",
+    )
+    pi.add_argument(
+        "--out-dir",
+        metavar="DIR",
+        help="improve every input in one process and write each to DIR under its own name "
+        "(a table of all of them at the end; --report: one JSON list)",
+    )
+    pi.add_argument(
+        "--out-ext",
+        metavar="EXT",
+        help="with --out-dir: write the outputs in this format (.vtu, .msh, ...; default: "
+        "each input's own)",
     )
     _add_options(pi)
     pi.add_argument(

@@ -530,6 +530,80 @@ def test_bad_options_file_exits_2(small, tmp_path, capsys, name, text, reason):
     assert not out.exists()
 
 
+QUICK = ("--ops", "edge", "--max-passes", "1", "--perturb", "0")
+
+
+def test_batch_improves_every_input_as_one_run_would(small, tmp_path, capsys):
+    """``--out-dir``: each output is the file a single ``jtet improve IN OUT`` writes
+    (same mesh), the report is a list, a table sums the batch up."""
+    other = tmp_path / "in" / "second.msh"
+    other.parent.mkdir()
+    jtet.save(jtet.demo_mesh("two_regions").replace(region=[7] * 1928), other)
+    outdir, report = tmp_path / "out", tmp_path / "all.json"
+    outdir.mkdir()
+    code = _improve(
+        small, other, "--out-dir", outdir, "--out-ext", "vtu", "--report", report, *QUICK
+    )
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    assert sorted(p.name for p in outdir.iterdir()) == ["second.vtu", "two_regions.vtu"]
+    rows = json.loads(report.read_text())
+    assert [r["input"] for r in rows] == [str(small), str(other)]
+    for src, row in zip((small, other), rows, strict=True):
+        single = tmp_path / f"single_{src.stem}.vtu"
+        assert _improve(src, single, *QUICK, "-q") == 0
+        a, b = jtet.load(row["output"]), jtet.load(single)
+        np.testing.assert_array_equal(a.points, b.points)
+        np.testing.assert_array_equal(a.tets, b.tets)
+        np.testing.assert_array_equal(a.region, b.region)
+        assert row["status"] == "max passes" and row["stats_after"]["n_tets"] == a.n_tets
+    assert "[1/2] [" in cap.err and "[2/2] [" in cap.err  # which file the progress is of
+    table = cap.out.splitlines()
+    head = next(i for i, ln in enumerate(table) if ln.startswith("input"))
+    assert table[head + 2].startswith(str(small)) and table[head + 3].startswith(str(other))
+    assert table[-1] == f"wrote {report}"
+
+
+def test_batch_goes_on_after_a_bad_input(small, tmp_path, capsys):
+    bad = tmp_path / "bad.vtu"
+    bad.write_text("not a mesh")
+    outdir, report = tmp_path / "out", tmp_path / "all.json"
+    outdir.mkdir()
+    assert _improve(bad, small, "--out-dir", outdir, "--report", report, *QUICK, "-q") == 2
+    err = capsys.readouterr().err
+    assert "jtet: error:" in err and "bad.vtu" in err
+    assert [p.name for p in outdir.iterdir()] == ["two_regions.vtu"]
+    rows = json.loads(report.read_text())
+    assert rows[0]["output"] is None and "bad.vtu" in rows[0]["error"]
+    assert rows[1]["output"] == str(outdir / "two_regions.vtu")
+
+
+@pytest.mark.parametrize(
+    "extra, reason",
+    [
+        (["--out-dir", "{d}/out", "--plot", "{d}/h.png"], "--plot writes one figure"),
+        (["--out-ext", "msh"], "--out-ext names the outputs of --out-dir"),
+        (["{d}/x.vtu"], r"takes IN OUT, or several inputs with --out-dir DIR \(3 path"),
+        (["--out-dir", "{d}/missing"], "not an existing directory"),
+        (["--out-dir", "{d}/out", "--out-ext", "stl"], "unknown mesh file extension '.stl'"),
+        (["--out-dir", "{d}/in"], "is the input file"),
+        (["--out-dir", "{d}/out", "--out-ext", "vtu"], "would both be written to"),
+    ],
+)
+def test_batch_refused_before_any_run(small, tmp_path, capsys, extra, reason):
+    (tmp_path / "in").mkdir()
+    (tmp_path / "out").mkdir()
+    a, b = tmp_path / "in" / "m.vtu", tmp_path / "in" / "m.msh"
+    jtet.save(jtet.load(small), a)
+    jtet.save(jtet.load(small), b)
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    args = [str(x).format(d=tmp_path) for x in extra]
+    assert main(["improve", str(a), str(b), *args, *QUICK]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("jtet: error:") and re.search(reason, err), err
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+
+
 def test_every_option_has_a_flag(capsys):
     # the CLI shares jtet.Options with the API: each field is settable from the shell
     # (progress is the progress bar, switched off by --quiet)
