@@ -91,8 +91,8 @@ def recreating_owners(new_tets, new_owner, forbidden, n_cand) -> np.ndarray:
 
 def nonconforming_owners(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarray:
     """(n_cand,) bool: candidates one of whose new faces would lie in more than two tets
-    of the new mesh, or in two tets on the same side (same orientation), or on a kept
-    tet's boundary face.
+    of the new mesh, or in two tets on the same side (same orientation), or is a
+    boundary face of ``mesh`` that two tets of the new mesh would share.
 
     The new mesh is ``mesh`` without the tets where ``remove`` (m,) plus ``new_tets``
     (N, 4) owned by candidates ``new_owner`` (N,). Needed around inverted / degenerate
@@ -127,10 +127,6 @@ def nonconforming_owners(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarra
     kt, ka = T.face_tets[fid[on_old]].reshape(-1), T.face_apex[fid[on_old]].reshape(-1)
     kept = kt >= 0
     kept[kept] = ~remove[kt[kept]]
-    # a boundary face of a kept tet that a new tet has too: the boundary would fold onto
-    # itself there, enclosing a boundary vertex (a flip of bent boundary faces under a
-    # feature angle; its count and orientations are those of an interior face)
-    folded = on_old[T.boundary_face[fid[on_old]] & kept.reshape(-1, 2)[:, 0]]
     owner_face = np.repeat(on_old, 2)[kept]
     kt, ka = kt[kept], ka[kept]
     local = local_index(mesh.tets, kt, ka)
@@ -138,7 +134,15 @@ def nonconforming_owners(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarra
     count += np.bincount(owner_face, minlength=len(count))
     odd += np.bincount(owner_face, k_par, minlength=len(count)).astype(np.int64)
     bad_face = (count > 2) | ((count == 2) & (odd != 1))
-    bad_face[folded] = True
+    # A boundary face that stays in the mesh stays a boundary face. In two tets, the
+    # boundary would fold onto itself there, enclosing a boundary vertex: a flip of bent
+    # boundary faces under a feature angle that gives a kept tet's boundary face a second
+    # tet, or two flips of one pass whose new tets share a boundary face that one of
+    # them re-creates (fuzz: a dimple of three boundary faces filled, its apex gone from
+    # the boundary). Count and orientations are those of an interior face.
+    on_boundary = np.zeros(len(count), bool)
+    on_boundary[on_old] = T.boundary_face[fid[on_old]]
+    bad_face |= on_boundary & (count >= 2)
     reject = np.zeros(n_cand, bool)
     if bad_face.any():  # rare: inverted or degenerate tets around
         bad = np.isin(keys, face_key[bad_face])

@@ -275,6 +275,33 @@ def test_boundary_flip_does_not_fold_the_boundary_onto_itself():
     InvariantChecker(mesh).check(out, 0, "edge")
 
 
+# --- two boundary flips of one pass folded the boundary together (fuzz, seed 3002:
+# clustered points, 2 moved, feature angle 60). Vertex 4 was the apex of a dimple of
+# three boundary faces (4, 12, 20), (4, 12, 21), (4, 20, 21). One flip (edge 0-4 side)
+# re-created the boundary face (4, 12, 20) in a new tet, and the removal of boundary
+# edge 4-21 made a second new tet on it: each flip alone is refused (a kept tet's
+# boundary face), together the face had two new tets, a valid interior face, and vertex
+# 4 left the boundary. A boundary face that stays in the mesh must stay in one tet.
+def test_two_flips_of_a_pass_do_not_fold_the_boundary_together():
+    from strategies import MeshSpec, build_mesh
+
+    from jtet._invariants import _surface_signature
+
+    spec = MeshSpec(kind="clustered", n_points=20, seed=2, scale=0.0, n_moved=2, move=0.3,
+                    regions="none", n_regions=2)  # fmt: skip
+    mesh = build_mesh(spec)._with_feature_angle(60.0)
+    assert _bad(mesh) > 0
+    out, stats, _ = edge_removal_pass(mesh, measure="biased_min_sine", max_ring=3)
+    assert stats.by_kind["boundary"] > 0 and stats.successes > 0
+    np.testing.assert_array_equal(
+        _surface_signature(out, "boundary")[2], _surface_signature(mesh, "boundary")[2]
+    )
+    InvariantChecker(mesh).check(out, 0, "edge")
+    result = jtet.improve(mesh, ops=("edge", "face", "smooth"), max_ring=3, max_faces=4,
+                          feature_angle=60.0, max_passes=1, patience=1, perturb=0, check=True)  # fmt: skip
+    assert not result.status.startswith("invariant"), result.status
+
+
 def test_checker_catches_a_moved_or_dropped_protected_vertex():
     mesh = jtet.demo_mesh()
     pinned = np.flatnonzero(mesh.topology.vertex_kind == 0)[:5]
