@@ -162,3 +162,64 @@ def format_table(
 
     sep = "  ".join("-" * w for w in widths)
     return "\n".join([line(head), sep, *(line(r) for r in body)])
+
+
+def worst_tets(mesh, n: int = 10, measure: str = "biased_min_sine", *, per_tet=None) -> list[dict]:
+    """The ``n`` tets of lowest ``measure``, worst first (ties in tet order), to find them:
+
+    ``tet`` (index; the cell id in ParaView of a ``.vtu`` jtet wrote), ``quality``,
+    ``min_dihedral`` / ``max_dihedral`` (degrees), ``region``, ``centroid`` ([x, y, z]) and
+    ``fixed_vertices``: how many of its four vertices lie on the boundary, an interface
+    or a protected entity (with ``boundary="fixed"`` they never move, so such a tet can
+    only change by flips; None when the mesh is too broken for a topology).
+    ``per_tet``: ``tet_all_measures(mesh.points, mesh.tets)`` if the caller has it.
+    """
+    from ._errors import JtetError
+    from ._topology import FREE
+
+    get_measure(measure)
+    if per_tet is None:
+        per_tet = tet_all_measures(mesh.points, mesh.tets)
+    _, lo, hi, qualities = per_tet
+    q = qualities[measure]
+    order = np.argsort(q, kind="stable")[: max(int(n), 0)]
+    try:
+        fixed = (mesh.topology.vertex_kind[mesh.tets[order]] != FREE).sum(axis=1).tolist()
+    except JtetError:  # non-conforming: no topology, the rest still says where
+        fixed = [None] * len(order)
+    centroids = mesh.points[mesh.tets[order]].mean(axis=1)
+    return [
+        {
+            "tet": int(t),
+            "quality": float(q[t]),
+            "min_dihedral": float(lo[t]),
+            "max_dihedral": float(hi[t]),
+            "region": int(mesh.region[t]),
+            "centroid": [float(c) for c in centroid],
+            "fixed_vertices": f,
+        }
+        for t, centroid, f in zip(order, centroids, fixed, strict=True)
+    ]
+
+
+def format_worst(rows: list[dict], measure: str) -> str:
+    """A plain-text table of ``worst_tets`` rows."""
+    head = ["tet", measure, "min dih", "max dih", "region", "fixed verts", "centroid"]
+    body = [
+        [
+            str(r["tet"]),
+            _fmt_q(r["quality"]),
+            f"{r['min_dihedral']:.2f}",
+            f"{r['max_dihedral']:.2f}",
+            str(r["region"]),
+            "-" if r["fixed_vertices"] is None else str(r["fixed_vertices"]),
+            " ".join(f"{c:.6g}" for c in r["centroid"]),
+        ]
+        for r in rows
+    ]
+    widths = [max(len(r[i]) for r in [head, *body]) for i in range(len(head))]
+
+    def line(r):
+        return "  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)).rstrip()
+
+    return "\n".join([line(head), "  ".join("-" * w for w in widths), *map(line, body)])

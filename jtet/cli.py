@@ -363,24 +363,33 @@ def cmd_stats(args) -> int:
     import json
 
     from ._io import load
-    from ._stats import format_table, mesh_stats
+    from ._quality import tet_all_measures
+    from ._stats import format_table, format_worst, mesh_stats, worst_tets
 
+    if args.worst < 0:
+        raise JtetError(f"--worst must be >= 0, got {args.worst}")
     # every file is read before anything is printed: a bad one is the only output
     meshes = [load(path) for path in args.mesh]
-    stats = [mesh_stats(mesh) for mesh in meshes]
+    per_tet = [tet_all_measures(mesh.points, mesh.tets) for mesh in meshes]
+    stats = [mesh_stats(mesh, per_tet=pt) for mesh, pt in zip(meshes, per_tet, strict=True)]
     reports = [mesh.is_valid() for mesh in meshes]
+    worst = [
+        worst_tets(mesh, args.worst, args.quality, per_tet=pt) if args.worst else None
+        for mesh, pt in zip(meshes, per_tet, strict=True)
+    ]
     labels = _column_labels(args.mesh)
     if args.plot:
         from ._report import plot_stats
 
         plot_stats(stats, args.plot, labels, args.quality)
     if args.json:
+        extra = [{"worst": w} if w is not None else {} for w in worst]
         if len(meshes) == 1:
-            print(json.dumps(stats[0].as_dict()))
+            print(json.dumps({**stats[0].as_dict(), **extra[0]}))
         else:
             rows = [
-                {"file": path, "valid": report.ok, **s.as_dict()}
-                for path, s, report in zip(args.mesh, stats, reports, strict=True)
+                {"file": path, "valid": report.ok, **s.as_dict(), **more}
+                for path, s, report, more in zip(args.mesh, stats, reports, extra, strict=True)
             ]
             print(json.dumps(rows))
         return 0
@@ -393,6 +402,10 @@ def cmd_stats(args) -> int:
         print(format_table(*stats, labels=labels))
         for path, report in zip(args.mesh, reports, strict=True):
             print(f"{path}: valid" if report.ok else f"{path}: problems:\n{report}")
+    for path, rows in zip(args.mesh, worst, strict=True):
+        if rows is not None:
+            print(f"\n{path}: the {len(rows)} worst tets by {args.quality}")
+            print(format_worst(rows, args.quality))
     if args.plot:
         print(f"wrote {args.plot}")
     return 0
@@ -501,7 +514,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--quality",
         choices=sorted(MEASURES),
         default=DEFAULTS.quality,
-        help="quality measure of the --plot histogram",
+        help="quality measure of the --plot histogram and of --worst",
+    )
+    ps.add_argument(
+        "--worst",
+        type=int,
+        default=0,
+        metavar="N",
+        help="list the N worst tets: index (ParaView cell id of a .vtu), quality, dihedral "
+        "angles, region, vertices fixed on the boundary, centroid",
     )
     ps.set_defaults(func=cmd_stats)
     pd = sub.add_parser("demo", help="improve the embedded demo mesh and write its outputs")

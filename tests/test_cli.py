@@ -379,6 +379,24 @@ def test_stats_plot_of_one_mesh(small, tmp_path, capsys):
     assert capsys.readouterr().out.splitlines()[-2] == "valid"
 
 
+def test_stats_worst_tets(small, capsys):
+    from jtet._stats import worst_tets
+
+    assert main(["stats", str(small), "--worst", "3", "--quality", "min_sine"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    at = lines.index(f"{small}: the 3 worst tets by min_sine")
+    expected = worst_tets(jtet.load(small), 3, "min_sine")
+    body = lines[at + 3 : at + 6]
+    assert [int(ln.split()[0]) for ln in body] == [r["tet"] for r in expected]
+    assert body[0].split()[2] == f"{expected[0]['min_dihedral']:.2f}"
+    assert main(["stats", str(small), "--worst", "2", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d.pop("worst") == worst_tets(jtet.load(small), 2)
+    assert d == jtet.stats(jtet.load(small)).as_dict()
+    assert main(["stats", str(small), "--worst", "-1"]) == 2
+    assert "--worst must be >= 0" in capsys.readouterr().err
+
+
 # --- jtet demo ------------------------------------------------------------------------------
 
 DEMO_FILES = ("demo_improved.vtu", "demo_report.json", "demo_histograms.png")

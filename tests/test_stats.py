@@ -152,3 +152,38 @@ def test_plot_of_a_measure_the_stats_lack(tmp_path):
     assert list(tmp_path.iterdir()) == []
     plot_stats([s, s, s], tmp_path / "h.png", measure="min_sine")
     assert (tmp_path / "h.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_worst_tets_against_numpy():
+    from jtet._quality import tet_dihedrals
+    from jtet._stats import worst_tets
+
+    mesh = delaunay_mesh(300, seed=11)
+    rows = worst_tets(mesh, 7, "min_sine")
+    q = mesh.quality("min_sine")
+    # the 7 lowest qualities, worst first (a stable sort keeps ties in tet order)
+    assert [r["tet"] for r in rows] == np.argsort(q, kind="stable")[:7].tolist()
+    _, lo, hi = tet_dihedrals(mesh.points, mesh.tets)
+    # a vertex on a face of one tet is on the boundary: it never moves (boundary fixed)
+    faces = np.sort(mesh.tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), 1)
+    uniq, count = np.unique(faces, axis=0, return_counts=True)
+    on_boundary = np.zeros(mesh.n_points, bool)
+    on_boundary[uniq[count == 1].reshape(-1)] = True
+    for r in rows:
+        t = r["tet"]
+        assert r["quality"] == q[t] and r["min_dihedral"] == lo[t] and r["max_dihedral"] == hi[t]
+        np.testing.assert_allclose(r["centroid"], mesh.points[mesh.tets[t]].mean(axis=0))
+        assert r["fixed_vertices"] == int(on_boundary[mesh.tets[t]].sum())
+        assert r["region"] == mesh.region[t]
+    assert len(worst_tets(mesh, 10**6)) == mesh.n_tets and worst_tets(mesh, 0) == []
+    json.dumps(rows)  # plain Python values
+
+
+def test_worst_tets_of_a_mesh_without_topology():
+    from jtet._stats import worst_tets
+
+    # a face in three tets: no topology, but the worst tets are still listed
+    pts = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, -1], [1, 1, 1]])
+    mesh = jtet.TetMesh(pts, [[0, 1, 2, 3], [0, 2, 1, 4], [0, 1, 2, 5]])
+    rows = worst_tets(mesh, 2)
+    assert len(rows) == 2 and all(r["fixed_vertices"] is None for r in rows)
