@@ -32,6 +32,10 @@ def _ops(text: str) -> tuple[str, ...]:
     return ops
 
 
+def _add_quality(p: argparse.ArgumentParser, help: str) -> None:
+    p.add_argument("--quality", choices=sorted(MEASURES), default=DEFAULTS.quality, help=help)
+
+
 def _add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--options",
@@ -46,12 +50,7 @@ def _add_options(p: argparse.ArgumentParser) -> None:
         default=DEFAULTS.ops,
         help="comma-separated operations (default: edge,face,smooth)",
     )
-    p.add_argument(
-        "--quality",
-        choices=sorted(MEASURES),
-        default=DEFAULTS.quality,
-        help="quality measure to maximize",
-    )
+    _add_quality(p, "quality measure to maximize")
     p.add_argument(
         "--max-ring",
         type=int,
@@ -510,12 +509,7 @@ def build_parser() -> argparse.ArgumentParser:
     ps.add_argument(
         "--plot", metavar="H.png", help="write histograms of dihedral angles and quality"
     )
-    ps.add_argument(
-        "--quality",
-        choices=sorted(MEASURES),
-        default=DEFAULTS.quality,
-        help="quality measure of the --plot histogram and of --worst",
-    )
+    _add_quality(ps, "quality measure of the --plot histogram and of --worst")
     ps.add_argument(
         "--worst",
         type=int,
