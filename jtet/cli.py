@@ -361,53 +361,64 @@ def _plain_table(head: list[str], rows: list[list[str]]) -> str:
 def cmd_stats(args) -> int:
     import json
 
-    from ._io import load
-    from ._quality import tet_all_measures
-    from ._stats import format_table, format_worst, mesh_stats, worst_tets
-
     if args.worst < 0:
         raise JtetError(f"--worst must be >= 0, got {args.worst}")
-    # every file is read before anything is printed: a bad one is the only output
-    meshes = [load(path) for path in args.mesh]
-    per_tet = [tet_all_measures(mesh.points, mesh.tets) for mesh in meshes]
-    stats = [mesh_stats(mesh, per_tet=pt) for mesh, pt in zip(meshes, per_tet, strict=True)]
-    reports = [mesh.is_valid() for mesh in meshes]
-    worst = [
-        worst_tets(mesh, args.worst, args.quality, per_tet=pt) if args.worst else None
-        for mesh, pt in zip(meshes, per_tet, strict=True)
-    ]
+    # every file is read before anything is printed: a bad one is the only output; one
+    # mesh at a time is held, only its (small) results are kept
+    files = [_mesh_summary(path, args.worst, args.quality) for path in args.mesh]
+    stats = [f["stats"] for f in files]
     labels = _column_labels(args.mesh)
     if args.plot:
         from ._report import plot_stats
 
         plot_stats(stats, args.plot, labels, args.quality)
     if args.json:
-        extra = [{"worst": w} if w is not None else {} for w in worst]
-        if len(meshes) == 1:
-            print(json.dumps({**stats[0].as_dict(), **extra[0]}))
-        else:
-            rows = [
-                {"file": path, "valid": report.ok, **s.as_dict(), **more}
-                for path, s, report, more in zip(args.mesh, stats, reports, extra, strict=True)
-            ]
-            print(json.dumps(rows))
+        rows = [
+            {"file": path, "valid": f["validity"].ok, **f["stats"].as_dict()}
+            | ({"worst": f["worst"]} if args.worst else {})
+            for path, f in zip(args.mesh, files, strict=True)
+        ]
+        if len(files) == 1:  # one mesh: its statistics, as before there were several
+            del rows[0]["file"], rows[0]["valid"]
+        print(json.dumps(rows[0] if len(files) == 1 else rows))
         return 0
-    for path, mesh in zip(args.mesh, meshes, strict=True):
-        print(f"{path}: {mesh}")
-    if len(meshes) == 1:
+    from ._stats import format_table, format_worst
+
+    for path, f in zip(args.mesh, files, strict=True):
+        print(f"{path}: {f['mesh']}")
+    if len(files) == 1:
+        report = files[0]["validity"]
         print(format_table(stats[0], labels=("value",)))
-        print("valid" if reports[0].ok else f"problems:\n{reports[0]}")
+        print("valid" if report.ok else f"problems:\n{report}")
     else:
         print(format_table(*stats, labels=labels))
-        for path, report in zip(args.mesh, reports, strict=True):
+        for path, f in zip(args.mesh, files, strict=True):
+            report = f["validity"]
             print(f"{path}: valid" if report.ok else f"{path}: problems:\n{report}")
-    for path, rows in zip(args.mesh, worst, strict=True):
-        if rows is not None:
-            print(f"\n{path}: the {len(rows)} worst tets by {args.quality}")
-            print(format_worst(rows, args.quality))
+    if args.worst:
+        for path, f in zip(args.mesh, files, strict=True):
+            print(f"\n{path}: the {len(f['worst'])} worst tets by {args.quality}")
+            print(format_worst(f["worst"], args.quality))
     if args.plot:
         print(f"wrote {args.plot}")
     return 0
+
+
+def _mesh_summary(path: str, n_worst: int, measure: str) -> dict:
+    """What ``jtet stats`` prints of one file: the mesh's one-line description, its
+    statistics, validity report and ``n_worst`` worst tets by ``measure``."""
+    from ._io import load
+    from ._quality import tet_all_measures
+    from ._stats import mesh_stats, worst_tets
+
+    mesh = load(path)
+    per_tet = tet_all_measures(mesh.points, mesh.tets)
+    return {
+        "mesh": repr(mesh),
+        "stats": mesh_stats(mesh, per_tet=per_tet),
+        "validity": mesh.is_valid(),
+        "worst": worst_tets(mesh, n_worst, measure, per_tet=per_tet) if n_worst else None,
+    }
 
 
 def _column_labels(paths: list[str]) -> list[str]:
