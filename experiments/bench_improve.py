@@ -287,7 +287,9 @@ def cli_wall_time(names: list[str], repeat: int) -> None:
     """Wall time of the ``jtet improve IN OUT`` command as a user runs it (a new process:
     interpreter start, imports, reading, the run with its kernels loaded from the warm
     cache, the summary, writing the output, exit), after one untimed run per mesh that
-    fills the cache; min and median of ``repeat`` runs."""
+    fills the cache; min and median of ``repeat`` runs. Then the batch command
+    ``jtet improve IN1 IN2 ... --out-dir DIR`` on all the meshes against the sum of the
+    separate commands' medians, and whether the outputs are the same files."""
     import shutil
 
     command = shutil.which("jtet")
@@ -295,10 +297,15 @@ def cli_wall_time(names: list[str], repeat: int) -> None:
         sys.exit("--cli: the jtet command is not installed (pip install -e .)")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for name in names:
-            path = Path(tmp) / "in.vtu"
+        tmp = Path(tmp)
+        (tmp / "single").mkdir()
+        (tmp / "batch").mkdir()
+        inputs = []
+        for i, name in enumerate(names):
+            path = tmp / f"{i}_{name.replace(':', '_')}.vtu"
             jtet.save(load_mesh(name), path)
-            args = [command, "improve", str(path), str(Path(tmp) / "out.vtu"), "--quiet"]
+            inputs.append(path)
+            args = [command, "improve", str(path), str(tmp / "single" / path.name), "--quiet"]
             subprocess.run(args, check=True, capture_output=True)  # fills the cache
             walls = []
             for _ in range(repeat):
@@ -306,10 +313,27 @@ def cli_wall_time(names: list[str], repeat: int) -> None:
                 subprocess.run(args, check=True, capture_output=True)
                 walls.append(time.perf_counter() - t)
             rows.append((name, jtet.load(path).n_tets, min(walls), float(np.median(walls))))
+        batch = [command, "improve", *map(str, inputs), "--out-dir", str(tmp / "batch"), "-q"]
+        walls = []
+        for _ in range(repeat):
+            t = time.perf_counter()
+            subprocess.run(batch, check=True, capture_output=True)
+            walls.append(time.perf_counter() - t)
+        same = all(
+            (tmp / "single" / p.name).read_bytes() == (tmp / "batch" / p.name).read_bytes()
+            for p in inputs
+        )
     print(f"\njtet improve IN OUT (new process, warm cache), {repeat} runs\n")
     print("| mesh | tets | min s | median s |\n|---|---|---|---|")
     for name, m, lo, med in rows:
         print(f"| {name} | {m:,} | {lo:.2f} | {med:.2f} |")
+    separate = sum(r[3] for r in rows)
+    print(f"\n{len(rows)} meshes, one command each (sum of medians): {separate:.2f} s")
+    print(
+        f"one batch command (--out-dir), min / median of {repeat}: {min(walls):.2f} / "
+        f"{np.median(walls):.2f} s, {separate / np.median(walls):.2f}x; "
+        f"outputs {'identical' if same else 'DIFFERENT'}"
+    )
 
 
 def compile_overhead(name: str, ops: str, repeat: int) -> None:
