@@ -85,7 +85,8 @@ def run_format(fmt: str, tries: int, seed: int, keep: Path) -> dict:
     warnings.simplefilter("ignore")
     src = work / f"src.{fmt}"
     jtet.save(_mesh(), src)
-    names = [f"src.{fmt}"] if fmt != "node" else ["src.node", "src.ele"]
+    # TetGen: the .node, the .ele and the .face of the protected faces
+    names = [f"src.{fmt}"] if fmt != "node" else ["src.node", "src.ele", "src.face"]
     originals = {n: (work / n).read_bytes() for n in names}
     counts = collections.Counter()
     others = collections.Counter()
