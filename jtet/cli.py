@@ -1,4 +1,4 @@
-"""The ``jtet`` command: ``jtet improve``, ``jtet stats``, ``jtet demo``.
+"""The ``jtet`` command: ``jtet improve``, ``jtet stats``, ``jtet convert``, ``jtet demo``.
 
 Exit codes: 0 success (also when ``--time-limit`` or the goals stopped the run: OUT holds
 the best mesh so far); 2 bad input or options (one line on stderr says why); 3 ``--check`` found
@@ -428,6 +428,25 @@ def _column_labels(paths: list[str]) -> list[str]:
     return names if len(set(names)) == len(names) else list(paths)
 
 
+def cmd_convert(args) -> int:
+    """``jtet convert IN OUT``: the mesh of IN in the format of OUT's extension, with what
+    jtet reads and writes of every format (regions, labelled protected faces, edges and
+    vertices: Gmsh physical groups, Medit references, TetGen markers, VTK arrays)."""
+    from ._io import load, output_format, save
+    from ._report import quality_cell_data
+
+    src, out = Path(args.input), Path(args.output)
+    output_format(out)  # an unknown extension fails before the input is read
+    if _is_input(src, out) and not args.overwrite:
+        raise JtetError(f"{out} is the input file; pass --overwrite to replace it")
+    mesh = load(src)
+    cell_data = quality_cell_data(mesh) if args.quality_arrays else None
+    save(mesh, out, cell_data=cell_data)
+    if not args.quiet:
+        print(f"jtet: {src} -> {out}  ({mesh})")
+    return 0
+
+
 def cmd_demo(args) -> int:
     from ._io import demo_mesh
 
@@ -530,6 +549,21 @@ def build_parser() -> argparse.ArgumentParser:
         "angles, region, vertices fixed on the boundary, centroid",
     )
     ps.set_defaults(func=cmd_stats)
+    pc = sub.add_parser(
+        "convert",
+        help="write a mesh in another format, with its regions and labelled surfaces, "
+        "curves and points",
+    )
+    pc.add_argument("input", help="input mesh (.vtu .vtk .msh .mesh .meshb .node/.ele)")
+    pc.add_argument("output", help="output mesh (format from the extension)")
+    pc.add_argument(
+        "--quality-arrays",
+        action="store_true",
+        help="add the per-tet quality and dihedral arrays (as jtet improve does)",
+    )
+    pc.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
+    pc.add_argument("-q", "--quiet", action="store_true")
+    pc.set_defaults(func=cmd_convert)
     pd = sub.add_parser("demo", help="improve the embedded demo mesh and write its outputs")
     pd.add_argument(
         "--out", default="jtet-demo-out", help="output directory (default: ./jtet-demo-out)"
@@ -537,7 +571,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_options(pd)
     pd.add_argument("-q", "--quiet", action="store_true")
     pd.set_defaults(func=cmd_demo)
-    p.subcommands = {"improve": pi, "stats": ps, "demo": pd}
+    p.subcommands = {"improve": pi, "stats": ps, "convert": pc, "demo": pd}
     return p
 
 

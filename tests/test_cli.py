@@ -397,6 +397,48 @@ def test_stats_worst_tets(small, capsys):
     assert "--worst must be >= 0" in capsys.readouterr().err
 
 
+# --- jtet convert -------------------------------------------------------------------------
+
+
+def test_convert_keeps_labels_through_formats(tmp_path, capsys):
+    """Gmsh -> Medit -> VTK: the mesh, its regions and its labelled protected faces,
+    edges and vertices arrive as they left (Medit keeps every one of them but the
+    vertices' labels, VTK all)."""
+    from helpers import delaunay_mesh
+
+    m = delaunay_mesh(60, seed=3)
+    mesh = m.replace(
+        region=np.digitize(m.points[m.tets].mean(axis=1)[:, 0], [0.5]) + 1,
+        protected_faces=m.tets[:5, :3],
+        protected_face_labels=[11, 11, 12, 12, 13],
+        protected_edges=m.tets[:4, [0, 3]],
+        protected_edge_labels=[21, 22, 23, 24],
+        protected_vertices=[3, 7],
+    )
+    src, mid, out = tmp_path / "a.msh", tmp_path / "b.mesh", tmp_path / "c.vtu"
+    jtet.save(mesh, src)
+    assert main(["convert", str(src), str(mid)]) == 0
+    assert main(["convert", str(mid), str(out), "--quality-arrays"]) == 0
+    assert capsys.readouterr().out.splitlines()[-1].startswith(f"jtet: {mid} -> {out}  (TetMesh(")
+    back = jtet.load(out)
+    for name in ("points", "tets", "region", "protected_faces", "protected_face_labels",
+                 "protected_edges", "protected_edge_labels", "protected_vertices"):  # fmt: skip
+        np.testing.assert_array_equal(getattr(back, name), getattr(mesh, name), err_msg=name)
+    assert set(CELL_ARRAYS) <= set(pv.read(out).cell_data)
+
+
+def test_convert_refusals(small, tmp_path, capsys):
+    out = tmp_path / "o.stl"
+    assert main(["convert", str(tmp_path / "missing.vtu"), str(out)]) == 2
+    # the output format is checked before the input is read
+    assert "unknown mesh file extension '.stl'" in capsys.readouterr().err
+    assert main(["convert", str(small), str(small)]) == 2
+    assert "is the input file" in capsys.readouterr().err
+    assert main(["convert", str(tmp_path / "missing.vtu"), str(tmp_path / "o.vtu")]) == 2
+    assert "missing.vtu" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
 # --- jtet demo ------------------------------------------------------------------------------
 
 DEMO_FILES = ("demo_improved.vtu", "demo_report.json", "demo_histograms.png")
@@ -439,7 +481,7 @@ def test_demo_out_option(tmp_path, capsys):
 @pytest.mark.parametrize(
     "argv, expect",
     [
-        ([], ["improve", "stats", "demo"]),
+        ([], ["improve", "stats", "convert", "demo"]),
         (["improve"], ["--overwrite", "--report", "--plot", "--good-quality", "--ops"]),
         (["stats"], ["--json"]),
         (["demo"], ["--out", "--ops", "--max-passes"]),
