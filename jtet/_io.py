@@ -450,6 +450,13 @@ def _vtk_file_arrays(path: Path, fmt: str, source: str):
 
     if not hasattr(os, "fork") or not sys.platform.startswith("linux"):
         return _vtk_arrays_here(path, fmt, source)
+    # VTK's modules are imported here, before the fork: each child inherits them instead
+    # of importing them again (~0.25 s a read, most of a small file's load), and the
+    # process needs them to write its output anyway
+    import pyvista  # noqa: F401
+    import vtkmodules.vtkIOLegacy  # noqa: F401
+    import vtkmodules.vtkIOXML  # noqa: F401
+
     read_end, write_end = os.pipe()
     with warnings.catch_warnings():
         # JAX warns at every fork once its threads run; this child runs no JAX
