@@ -140,9 +140,7 @@ def nonconforming_owners(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarra
     # tet, or two flips of one pass whose new tets share a boundary face that one of
     # them re-creates (fuzz: a dimple of three boundary faces filled, its apex gone from
     # the boundary). Count and orientations are those of an interior face.
-    on_boundary = np.zeros(len(count), bool)
-    on_boundary[on_old] = T.boundary_face[fid[on_old]]
-    bad_face |= on_boundary & (count >= 2)
+    bad_face[on_old] |= T.boundary_face[fid[on_old]] & (count[on_old] >= 2)
     reject = np.zeros(n_cand, bool)
     if bad_face.any():  # rare: inverted or degenerate tets around
         bad = np.isin(keys, face_key[bad_face])

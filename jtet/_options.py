@@ -193,6 +193,9 @@ class Options:
         return d
 
 
+_FIELDS = frozenset(f.name for f in dataclasses.fields(Options))
+
+
 def load_options(path) -> Options:
     """``Options`` from a JSON or YAML file (``.json``, ``.yaml``, ``.yml``).
 
@@ -213,10 +216,9 @@ def load_options(path) -> Options:
     from pathlib import Path
 
     data = _options_mapping(Path(path), ())
-    fields = {f.name for f in dataclasses.fields(Options)}
-    unknown = sorted(set(data) - fields)
+    unknown = sorted(set(data) - _FIELDS)
     if unknown:
-        raise JtetError(f"{path}: unknown option(s) {unknown}; options are {sorted(fields)}")
+        raise JtetError(f"{path}: unknown option(s) {unknown}; options are {sorted(_FIELDS)}")
     try:
         return Options(**data)
     except JtetError as e:
@@ -255,8 +257,7 @@ def _options_mapping(path, seen: tuple) -> dict:
         data = {}
     if not isinstance(data, dict):
         raise JtetError(f"{path}: expected a mapping of option names to values")
-    fields = {f.name for f in dataclasses.fields(Options)}
-    if isinstance(data.get("options"), dict) and not set(data) & fields:
+    if isinstance(data.get("options"), dict) and not set(data) & _FIELDS:
         return dict(data["options"])  # a report
     data = dict(data)
     defaults = data.pop("defaults", None)

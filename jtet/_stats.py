@@ -152,16 +152,22 @@ def format_table(
     body = [[k] + [c.get(k, "-") for c in cols] for k in keys]
     if time_s is not None:
         body.append(["time (s)"] + [""] * (len(cols) - 1) + [f"{time_s:.3f}"])
-    head = ["", *labels]
+    return text_table(["", *labels], body)
+
+
+def text_table(head: list[str], body: list[list[str]], left: int = 1) -> str:
+    """Rows of strings as plain-text columns padded to their widest cell, a rule under
+    ``head``; the first ``left`` columns are left-aligned, the others right-aligned."""
     widths = [max(len(r[i]) for r in [head, *body]) for i in range(len(head))]
 
     def line(r):
-        return "  ".join(
-            r[0].ljust(widths[0]) if i == 0 else r[i].rjust(widths[i]) for i in range(len(r))
-        ).rstrip()
+        cells = [
+            c.ljust(w) if i < left else c.rjust(w)
+            for i, (c, w) in enumerate(zip(r, widths, strict=True))
+        ]
+        return "  ".join(cells).rstrip()
 
-    sep = "  ".join("-" * w for w in widths)
-    return "\n".join([line(head), sep, *(line(r) for r in body)])
+    return "\n".join([line(head), "  ".join("-" * w for w in widths), *map(line, body)])
 
 
 def worst_tets(mesh, n: int = 10, measure: str = "biased_min_sine", *, per_tet=None) -> list[dict]:
@@ -217,9 +223,4 @@ def format_worst(rows: list[dict], measure: str) -> str:
         ]
         for r in rows
     ]
-    widths = [max(len(r[i]) for r in [head, *body]) for i in range(len(head))]
-
-    def line(r):
-        return "  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)).rstrip()
-
-    return "\n".join([line(head), "  ".join("-" * w for w in widths), *map(line, body)])
+    return text_table(head, body, left=0)

@@ -242,6 +242,11 @@ def _is_input(src: Path, out: Path) -> bool:
     return src.resolve() == out.resolve() or _same_file(src, out)
 
 
+def _refuse_input_as_output(src: Path, out: Path, overwrite: bool) -> None:
+    if _is_input(src, out) and not overwrite:
+        raise JtetError(f"{out} is the input file; pass --overwrite to replace it")
+
+
 def cmd_improve(args) -> int:
     from ._io import load
 
@@ -255,8 +260,7 @@ def cmd_improve(args) -> int:
             f"({len(args.paths)} path(s) given)"
         )
     src, out = (Path(p) for p in args.paths)
-    if _is_input(src, out) and not args.overwrite:
-        raise JtetError(f"{out} is the input file; pass --overwrite to replace it")
+    _refuse_input_as_output(src, out, args.overwrite)
     mesh = load(src)
     return _run_improve(mesh, out, args, str(src))
 
@@ -303,6 +307,7 @@ def _improve_batch(args) -> int:
     current file's best mesh. Exit code: the worst of the files' (130 > 3 > 2 > 0)."""
     from ._io import load
     from ._report import write_text_atomic
+    from ._stats import text_table
 
     pairs = _batch_outputs(args)
     rows, reports, codes = [], [], [0]
@@ -341,21 +346,10 @@ def _improve_batch(args) -> int:
         write_text_atomic(args.report, json.dumps(reports, indent=1))
     if not args.quiet:
         head = ["input", "tets", "min dihedral", "max dihedral", "status", "s"]
-        print(_plain_table(head, rows))
+        print(text_table(head, rows))
         if args.report:
             print(f"wrote {args.report}")
     return 130 if 130 in codes else 3 if 3 in codes else max(codes)
-
-
-def _plain_table(head: list[str], rows: list[list[str]]) -> str:
-    """Columns padded to their widest cell, the first left-aligned, a rule under ``head``."""
-    widths = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
-
-    def line(r):
-        cells = [r[0].ljust(widths[0])] + [c.rjust(w) for c, w in zip(r[1:], widths[1:])]
-        return "  ".join(cells).rstrip()
-
-    return "\n".join([line(head), "  ".join("-" * w for w in widths), *map(line, rows)])
 
 
 def cmd_stats(args) -> int:
@@ -437,8 +431,7 @@ def cmd_convert(args) -> int:
 
     src, out = Path(args.input), Path(args.output)
     output_format(out)  # an unknown extension fails before the input is read
-    if _is_input(src, out) and not args.overwrite:
-        raise JtetError(f"{out} is the input file; pass --overwrite to replace it")
+    _refuse_input_as_output(src, out, args.overwrite)
     mesh = load(src)
     cell_data = quality_cell_data(mesh) if args.quality_arrays else None
     save(mesh, out, cell_data=cell_data)
