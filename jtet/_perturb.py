@@ -36,6 +36,7 @@ import time
 
 import numpy as np
 
+from ._submesh import Submesh
 from ._topology import corner_counts
 
 # Slack and window in quality units (regular tet = 1), gentlest first. A narrow window
@@ -277,69 +278,6 @@ def _neighbourhood(mesh, seeds: np.ndarray, rings: int) -> np.ndarray:
     return sel
 
 
-class _Submesh:
-    """The tets ``sel`` (m,) of ``mesh`` as a mesh of their own; ``verts`` maps its
-    vertex ids to the mesh's. Its boundary is the mesh's boundary there plus the cut
-    faces, whose vertices are therefore fixed: nothing outside the tets changes."""
-
-    def __init__(self, mesh, sel: np.ndarray):
-        from ._topology import TET_FACES, match_rows
-
-        self.sel = sel
-        n = mesh.n_points
-        # ``pf_in``: the protected faces of these tets (the rest are kept as they are)
-        self.mesh, self.verts, self.pf_in = mesh._part(sel)
-        # the cut faces: the submesh's boundary faces that a tet outside it shares (from
-        # the tets, not the mesh's topology: after a kept round the mesh has none, and a
-        # build per round cost ~2 s at 983k tets)
-        bf = self.boundary_faces(self.mesh)
-        in_sub = np.zeros(n, bool)
-        in_sub[self.verts] = True
-        near = ~sel & (corner_counts(in_sub, mesh.tets) >= 3)
-        outer = mesh.tets[near][:, TET_FACES].reshape(-1, 3)
-        self.cut = bf[match_rows(outer, self.verts[bf], n) >= 0]
-
-    @staticmethod
-    def boundary_faces(sub) -> np.ndarray:
-        """(k, 3) sorted vertex triples of ``sub``'s boundary faces, rows sorted."""
-        T = sub.topology
-        f = T.faces[T.boundary_face]
-        return f[np.lexsort(f.T[::-1])]
-
-    def splice(self, mesh, sub):
-        """(new mesh, keep (m,)): ``mesh`` with these tets replaced by ``sub``'s, its
-        moved vertices moved and its new vertices appended, or None if ``sub`` changed a
-        cut face (a flip of two coplanar cut faces would not fit the mesh around).
-
-        Flips of the mesh's own boundary faces (2-2 flips of coplanar ones, which the
-        climb makes on the whole mesh too) are kept: a perturbation around a boundary
-        vertex often needs one (holeplate: the hole's top seam)."""
-        from ._topology import match_rows
-
-        if (match_rows(self.boundary_faces(sub), self.cut, sub.n_points) < 0).any():
-            return None
-        n_old = len(self.verts)
-        to_global = np.concatenate([self.verts, mesh.n_points + np.arange(sub.n_points - n_old)])
-        points = np.concatenate([mesh.points, sub.points[n_old:]])
-        points[self.verts] = sub.points[:n_old]
-        keep = ~self.sel
-        protected = np.concatenate(
-            [mesh.protected_faces[~self.pf_in], to_global[sub.protected_faces]]
-        )
-        labels = np.concatenate(
-            [mesh.protected_face_labels[~self.pf_in], sub.protected_face_labels]
-        )
-        out = mesh._derive(
-            points=points,
-            tets=np.concatenate([mesh.tets[keep], to_global[sub.tets]]),
-            tets_checked=int(keep.sum()),
-            region=np.concatenate([mesh.region[keep], sub.region]),
-            protected_faces=protected,
-            protected_face_labels=labels,
-        )
-        return out, keep
-
-
 _ROUND_IDS = itertools.count()
 
 
@@ -486,7 +424,7 @@ def perturb(run, t0: float) -> str:
         seeds = round_seeds(run.current, run.q, good)
         if not seeds.any():
             return "converged"
-        part = _Submesh(run.current, _neighbourhood(run.current, seeds, RINGS))
+        part = Submesh(run.current, _neighbourhood(run.current, seeds, RINGS))
         sel = part.sel
         state = RoundState(
             part.mesh, run.q[sel], run.lo_t[sel], run.hi_t[sel], sub_opts, worst, good, t0,
