@@ -324,6 +324,10 @@ def improve(
     # the run's topologies (the checks', every step's) treat subfacets bent by less than
     # the feature angle as one surface; the caller's mesh object is left as it was
     mesh = mesh._with_feature_angle(opts.feature_angle)
+    if opts.regions is not None:
+        sel = _selected_tets(mesh, opts.regions)
+        if not sel.all():
+            return _improve_regions(mesh, sel, opts, callback, t0)
     specs = _pass_kernel_specs(opts, mesh.n_tets)
     # the run's kernels that earlier processes left on disk load on background threads
     # while the checks build the mesh's topology (NumPy sorts that release the GIL)
@@ -381,6 +385,69 @@ def improve(
         seconds=time.perf_counter() - t0,
         options=opts,
         notes=notes(current, opts, run.q, run.lo_t, run.hi_t),
+    )
+
+
+def _selected_tets(mesh: TetMesh, regions: tuple[int, ...]) -> np.ndarray:
+    """(m,) bool: the tets whose region is one of ``regions``; ``MeshInputError`` names
+    the labels the mesh does not have."""
+    present = np.unique(mesh.region)
+    missing = sorted(set(regions) - set(present.tolist()))
+    if missing:
+        have = ", ".join(str(r) for r in present[:20]) + (", ..." if len(present) > 20 else "")
+        raise MeshInputError(
+            f"the mesh has no region {', '.join(map(str, missing))} (regions option); "
+            f"its regions are {have}"
+        )
+    return np.isin(mesh.region, regions)
+
+
+def _improve_regions(mesh: TetMesh, sel, opts: Options, callback, t0: float) -> ImproveResult:
+    """``improve`` of the tets ``sel`` (m,) as a mesh of their own, spliced back into
+    ``mesh`` (``Options.regions``): the other tets, their vertices and the faces they
+    share with ``sel``'s stay exactly as they are."""
+    from ._stats import mesh_stats
+    from ._submesh import Submesh
+
+    _require_conforming(mesh)  # the whole input, as a run on all of it would
+    part = Submesh(mesh, sel)
+    # the cut faces' edges and vertices protected: no flip or move can change them
+    result = improve(part.pinned_cut(), opts.replace(regions=None), callback=callback)
+    spliced = part.splice(mesh, result.mesh)
+    if spliced is None:  # the protected cut makes this impossible
+        raise InvariantError(
+            "the run on the selected regions changed a face they share with the others"
+        )
+    new, status = spliced[0], result.status
+    if opts.check:
+        from ._invariants import InvariantChecker
+
+        try:
+            InvariantChecker(mesh).check(new, len(result.history), "splice")
+        except InvariantError as e:
+            new, status = mesh, "invariant violation: " + " ".join(str(e).split())
+    stats_after = mesh_stats(new)
+    notes = list(result.notes)
+    measure = opts.quality
+    outside = stats_after.quality_min[measure] < result.stats_after.quality_min[measure]
+    if outside:
+        others = ", ".join(map(str, np.unique(mesh.region[~sel])))
+        done = result.stats_after
+        notes.append(
+            f"the worst tet by {measure} ({stats_after.quality_min[measure]:.4f}) is in a "
+            f"region the run left alone (region(s) {others}, not in the regions option); "
+            f"in region(s) {', '.join(map(str, opts.regions))} the dihedral angles now span "
+            f"{done.min_dihedral:.2f}-{done.max_dihedral:.2f} degrees"
+        )
+    return ImproveResult(
+        mesh=new,
+        stats_before=mesh_stats(mesh),
+        stats_after=stats_after,
+        history=result.history,
+        status=status,
+        seconds=time.perf_counter() - t0,
+        options=opts,
+        notes=notes,
     )
 
 

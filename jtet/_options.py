@@ -53,6 +53,12 @@ class Options:
             flipped, so the boundary stays geometrically identical. A positive angle lets
             flips replace subfacets bent by less than it: the boundary and interfaces
             then keep their vertices but their shape (and the region volumes) change.
+        regions: region labels (``TetMesh.region``) whose tets may change, or None (all):
+            the tets of the other regions stay exactly as they are, with their vertices
+            and the faces they share with the improved regions, as Gmsh's
+            ``optimize(dimTags=...)`` works on the volumes it is given. The run improves
+            those regions as a mesh of their own (goals, notes and history are theirs;
+            the statistics before / after are the whole mesh's) and splices it back.
         max_passes: stop after this many passes.
         patience: stop after this many passes in a row without progress.
         perturb: at most this many kept perturbation rounds after the climb converges
@@ -100,6 +106,7 @@ class Options:
     max_faces: int = 16
     boundary: str = "fixed"
     feature_angle: float = 0.0
+    regions: tuple[int, ...] | None = None
     max_passes: int = 50
     patience: int = 2
     perturb: int = 8
@@ -134,6 +141,7 @@ class Options:
                 raise JtetError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if self.seed < 0:
             raise JtetError(f"seed must be >= 0, got {self.seed}")
+        object.__setattr__(self, "regions", _region_labels(self.regions))
         ops = (self.ops,) if isinstance(self.ops, str) else tuple(self.ops)
         object.__setattr__(self, "ops", ops)
         bad = [o for o in ops if o not in OPS]
@@ -190,7 +198,26 @@ class Options:
     def as_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d["ops"] = list(self.ops)
+        if self.regions is not None:
+            d["regions"] = list(self.regions)
         return d
+
+
+def _region_labels(regions) -> tuple[int, ...] | None:
+    """``Options.regions`` as a sorted tuple of distinct ints (None stays None)."""
+    if regions is None:
+        return None
+    if isinstance(regions, numbers.Integral) and not isinstance(regions, bool):
+        regions = (regions,)
+    if isinstance(regions, str | bytes) or not hasattr(regions, "__iter__"):
+        raise JtetError(f"regions must be a list of region labels or None, got {regions!r}")
+    labels = list(regions)
+    bad = [r for r in labels if isinstance(r, bool) or not isinstance(r, numbers.Integral)]
+    if bad or not labels:
+        raise JtetError(
+            f"regions must be a non-empty list of integer region labels, got {regions!r}"
+        )
+    return tuple(sorted({int(r) for r in labels}))
 
 
 _FIELDS = frozenset(f.name for f in dataclasses.fields(Options))

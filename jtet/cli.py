@@ -32,6 +32,20 @@ def _ops(text: str) -> tuple[str, ...]:
     return ops
 
 
+def _regions(text: str) -> tuple[int, ...] | None:
+    if text.strip().lower() == "none":
+        return None
+    try:
+        labels = tuple(int(r) for r in text.split(",") if r.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated integer region labels, got {text!r}"
+        ) from None
+    if not labels:
+        raise argparse.ArgumentTypeError("expected at least one region label")
+    return labels
+
+
 def _add_quality(p: argparse.ArgumentParser, help: str) -> None:
     p.add_argument("--quality", choices=sorted(MEASURES), default=DEFAULTS.quality, help=help)
 
@@ -75,6 +89,14 @@ def _add_options(p: argparse.ArgumentParser) -> None:
         default=DEFAULTS.feature_angle,
         help="degrees; subfacets bent more than this are features, smaller bends may be "
         "flipped, changing the surface's shape (default 0: exactly flat only)",
+    )
+    p.add_argument(
+        "--regions",
+        type=_regions,
+        default=DEFAULTS.regions,
+        metavar="R1,R2",
+        help="improve only the tets of these region labels; the other regions, and the "
+        "faces they share with these, stay exactly as they are ('none', the default: all)",
     )
     p.add_argument("--max-passes", type=int, default=DEFAULTS.max_passes)
     p.add_argument(

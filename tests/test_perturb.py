@@ -20,12 +20,12 @@ from jtet._perturb import (
     WINDOWS,
     _Baseline,
     _neighbourhood,
-    _Submesh,
     better,
     jiggle_step,
     kicks,
 )
 from jtet._predicates import orient3d_tets
+from jtet._submesh import Submesh
 
 
 def reference_better(new_q, old_q, near, tol):
@@ -394,8 +394,15 @@ def test_neighbourhood_against_breadth_first_search(seed):
 def test_submesh_splice_round_trip_and_boundary_guard():
     mesh = delaunay_mesh(150, seed=4, surface_points=20)
     sel = _neighbourhood(mesh, np.arange(mesh.n_tets) == 7, 2)
-    part = _Submesh(mesh, sel)
+    part = Submesh(mesh, sel)
     assert part.mesh.n_tets == sel.sum() and len(part.verts) == part.mesh.n_points
+
+    # the cut faces: brute force, the faces that a tet inside and one outside share
+    def faces(tets):
+        return {tuple(sorted(t[i] for i in range(4) if i != j)) for t in tets for j in range(4)}
+
+    shared = faces(mesh.tets[sel].tolist()) & faces(mesh.tets[~sel].tolist())
+    assert {tuple(f) for f in np.sort(part.verts[part.cut], axis=1).tolist()} == shared
     out, keep = part.splice(mesh, part.mesh)
     np.testing.assert_array_equal(keep, ~sel)
     np.testing.assert_array_equal(out.points, mesh.points)
@@ -440,13 +447,23 @@ def test_splice_keeps_flips_of_the_mesh_boundary_and_refuses_cut_ones():
     hull (which the climb makes on the whole mesh too) splices back into a valid mesh
     with the same surfaces; a flip of the two coplanar cut faces at x = 1 does not."""
     mesh = _two_cubes()
-    part = _Submesh(mesh, mesh.points[mesh.tets].mean(axis=1)[:, 0] < 1)
+    part = Submesh(mesh, mesh.points[mesh.tets].mean(axis=1)[:, 0] < 1)
     assert len(part.cut) == 2
     hull = _flip(part.mesh, [0, 0, 0], [0, 1, 1])  # diagonal of the face x = 0
     out, keep = part.splice(mesh, hull)
     assert out.is_valid().ok and (~keep).sum() == 6 and out.n_tets == 12
     InvariantChecker(mesh).check(out, 0, "perturb")
     assert part.splice(mesh, _flip(part.mesh, [1, 0, 0], [1, 1, 1])) is None
+    # with the cut pinned (Options.regions), that flip is not even tried
+    from jtet._edge_removal import edge_candidates
+
+    pinned = part.pinned_cut()
+    assert len(pinned.protected_edges) == 5 and len(pinned.protected_vertices) == 4
+    ids = [int(np.flatnonzero((pinned.points == x).all(axis=1))[0]) for x in ([1, 0, 0], [1, 1, 1])]
+    e = np.flatnonzero((np.sort(pinned.topology.edges, axis=1) == sorted(ids)).all(axis=1))
+    assert len(e) == 1 and e[0] in edge_candidates(part.mesh, 7, None)
+    assert e[0] not in edge_candidates(pinned, 7, None)
+    assert part.splice(mesh, _flip(pinned, [0, 0, 0], [0, 1, 1])) is not None
 
 
 @pytest.mark.parametrize("op", ["edge", "face"])
