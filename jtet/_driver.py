@@ -263,6 +263,9 @@ class ImproveResult:
     ``mesh`` is then the last mesh that passed the checks). ``notes`` are sentences for
     the user that ``summary()`` prints after the table, e.g. that the worst tet has all
     its vertices on the fixed boundary and ``boundary="slide"`` may free it.
+    ``selected_stats`` (with ``Options.regions``): the statistics of the selected
+    regions' tets before and after (``stats_before`` / ``stats_after`` are the whole
+    mesh's), None otherwise.
     """
 
     mesh: TetMesh
@@ -274,11 +277,17 @@ class ImproveResult:
     options: Options | None = None
     # sentences for the user: why the worst tet stayed, which option may free it
     notes: list = field(default_factory=list)
+    selected_stats: tuple | None = None
 
     def summary(self) -> str:
         from ._stats import format_table
 
-        table = format_table(self.stats_before, self.stats_after, time_s=self.seconds)
+        stats, labels = (self.stats_before, self.stats_after), ("before", "after")
+        if self.selected_stats is not None:  # the whole mesh, then the regions improved
+            which = ",".join(map(str, self.options.regions)) if self.options else "?"
+            stats += tuple(self.selected_stats)
+            labels += (f"before (regions {which})", f"after (regions {which})")
+        table = format_table(*stats, time_s=self.seconds, labels=labels)
         return "\n".join([table, *(f"note: {n}" for n in self.notes)])
 
     def as_dict(self) -> dict:
@@ -290,6 +299,14 @@ class ImproveResult:
             "stats_after": self.stats_after.as_dict(),
             "history": self.history,
             "notes": self.notes,
+            **(
+                {
+                    "selected_stats_before": self.selected_stats[0].as_dict(),
+                    "selected_stats_after": self.selected_stats[1].as_dict(),
+                }
+                if self.selected_stats is not None
+                else {}
+            ),
         }
 
 
@@ -432,12 +449,9 @@ def _improve_regions(mesh: TetMesh, sel, opts: Options, callback, t0: float) -> 
     outside = stats_after.quality_min[measure] < result.stats_after.quality_min[measure]
     if outside:
         others = ", ".join(map(str, np.unique(mesh.region[~sel])))
-        done = result.stats_after
         notes.append(
             f"the worst tet by {measure} ({stats_after.quality_min[measure]:.4f}) is in a "
-            f"region the run left alone (region(s) {others}, not in the regions option); "
-            f"in region(s) {', '.join(map(str, opts.regions))} the dihedral angles now span "
-            f"{done.min_dihedral:.2f}-{done.max_dihedral:.2f} degrees"
+            f"region the run left alone (region(s) {others}, not in the regions option)"
         )
     return ImproveResult(
         mesh=new,
@@ -448,6 +462,7 @@ def _improve_regions(mesh: TetMesh, sel, opts: Options, callback, t0: float) -> 
         seconds=time.perf_counter() - t0,
         options=opts,
         notes=notes,
+        selected_stats=(result.stats_before, result.stats_after),
     )
 
 

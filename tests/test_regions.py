@@ -50,6 +50,13 @@ def test_other_regions_stay_exactly(mesh, selected, boundary):
     assert r.stats_before.n_tets == mesh.n_tets and r.stats_after.n_tets == out.n_tets
     assert r.stats_after.min_dihedral == pytest.approx(jtet.stats(out).min_dihedral)
     assert any("left alone" in n for n in r.notes)
+    # and the selected tets' own statistics, in a column of their own
+    sel_before, sel_after = r.selected_stats
+    assert sel_before.n_tets == (~frozen).sum() and sel_after.n_tets == out.n_tets - k
+    assert sel_after.quality_min["biased_min_sine"] == pytest.approx(after)
+    assert f"after (regions {selected})" in r.summary().splitlines()[0]
+    d = r.as_dict()
+    assert d["selected_stats_after"]["n_tets"] == sel_after.n_tets
 
 
 def test_all_regions_is_a_plain_run(mesh):
@@ -58,6 +65,7 @@ def test_all_regions_is_a_plain_run(mesh):
     assert np.array_equal(a.mesh.tets, b.mesh.tets)
     assert np.array_equal(a.mesh.points, b.mesh.points)
     assert a.options.regions == (1, 2)
+    assert a.selected_stats is None and "selected_stats_after" not in a.as_dict()
 
 
 def test_protected_faces_on_the_cut_keep_their_labels(mesh):
