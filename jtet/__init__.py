@@ -21,6 +21,7 @@ from ._report import plot_stats as plot_stats
 from ._stats import MeshStats as MeshStats
 from ._stats import format_table as format_table
 from ._stats import mesh_stats as mesh_stats
+from ._stats import region_stats as region_stats
 from ._stats import worst_tets as worst_tets
 from ._validity import ValidityReport as ValidityReport
 

@@ -104,6 +104,34 @@ def mesh_stats(mesh, measures: Iterable[str] | None = None, *, per_tet=None) -> 
     )
 
 
+# ``region_stats`` refuses more regions than this: a table column each (random labels
+# per tet would make thousands)
+MAX_REGION_COLUMNS = 16
+
+
+def region_stats(mesh, measures: Iterable[str] | None = None, *, per_tet=None) -> dict:
+    """{region label: ``MeshStats`` of the tets of that region} (ascending labels; the
+    points of a region are the vertices of its tets). ``per_tet`` as for ``mesh_stats``.
+    Raises ``JtetError`` for a mesh of more than ``MAX_REGION_COLUMNS`` regions."""
+    from ._errors import JtetError
+
+    labels = np.unique(mesh.region)
+    if len(labels) > MAX_REGION_COLUMNS:
+        raise JtetError(
+            f"the mesh has {len(labels)} regions; statistics by region are given for at "
+            f"most {MAX_REGION_COLUMNS}"
+        )
+    if per_tet is None:
+        per_tet = tet_all_measures(mesh.points, mesh.tets)
+    angles, lo, hi, qualities = per_tet
+    out = {}
+    for label in labels.tolist():
+        sel = mesh.region == label
+        part = (angles[sel], lo[sel], hi[sel], {k: v[sel] for k, v in qualities.items()})
+        out[label] = mesh_stats(mesh._part(sel)[0], measures, per_tet=part)
+    return out
+
+
 def _fmt_q(q: float) -> str:
     # worst qualities of bad meshes are tiny: keep their significant digits visible
     return f"{q:.4f}" if q == 0 or abs(q) >= 1e-3 else f"{q:.2e}"

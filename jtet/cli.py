@@ -381,9 +381,18 @@ def cmd_stats(args) -> int:
         raise JtetError(f"--worst must be >= 0, got {args.worst}")
     # every file is read before anything is printed: a bad one is the only output; one
     # mesh at a time is held, only its (small) results are kept
-    files = [_mesh_summary(path, args.worst, args.quality) for path in args.mesh]
+    files = [_mesh_summary(path, args.worst, args.quality, args.by_region) for path in args.mesh]
     stats = [f["stats"] for f in files]
     labels = _column_labels(args.mesh)
+    # with --by-region, each file's column is followed by one per region of it
+    columns = [
+        (col, f["stats"], [(f"{col}: region {r}", st) for r, st in f["regions"].items()])
+        for col, f in zip(["value"] if len(files) == 1 else labels, files, strict=True)
+    ]
+    table_stats = [st for _, whole, parts in columns for st in [whole, *(p for _, p in parts)]]
+    table_labels = [lb for col, _, parts in columns for lb in [col, *(p for p, _ in parts)]]
+    if len(files) == 1 and args.by_region:
+        table_labels = ["whole mesh", *(lb.split(": ", 1)[1] for lb in table_labels[1:])]
     if args.plot:
         from ._report import plot_stats
 
@@ -392,6 +401,11 @@ def cmd_stats(args) -> int:
         rows = [
             {"file": path, "valid": f["validity"].ok, **f["stats"].as_dict()}
             | ({"worst": f["worst"]} if args.worst else {})
+            | (
+                {"regions": {str(r): st.as_dict() for r, st in f["regions"].items()}}
+                if args.by_region
+                else {}
+            )
             for path, f in zip(args.mesh, files, strict=True)
         ]
         if len(files) == 1:  # one mesh: its statistics, as before there were several
@@ -404,10 +418,10 @@ def cmd_stats(args) -> int:
         print(f"{path}: {f['mesh']}")
     if len(files) == 1:
         report = files[0]["validity"]
-        print(format_table(stats[0], labels=("value",)))
+        print(format_table(*table_stats, labels=table_labels))
         print("valid" if report.ok else f"problems:\n{report}")
     else:
-        print(format_table(*stats, labels=labels))
+        print(format_table(*table_stats, labels=table_labels))
         for path, f in zip(args.mesh, files, strict=True):
             report = f["validity"]
             print(f"{path}: valid" if report.ok else f"{path}: problems:\n{report}")
@@ -420,18 +434,24 @@ def cmd_stats(args) -> int:
     return 0
 
 
-def _mesh_summary(path: str, n_worst: int, measure: str) -> dict:
+def _mesh_summary(path: str, n_worst: int, measure: str, by_region: bool = False) -> dict:
     """What ``jtet stats`` prints of one file: the mesh's one-line description, its
-    statistics, validity report and ``n_worst`` worst tets by ``measure``."""
+    statistics (and, ``by_region``, those of each region), validity report and
+    ``n_worst`` worst tets by ``measure``."""
     from ._io import load
     from ._quality import tet_all_measures
-    from ._stats import mesh_stats, worst_tets
+    from ._stats import mesh_stats, region_stats, worst_tets
 
     mesh = load(path)
     per_tet = tet_all_measures(mesh.points, mesh.tets)
+    try:
+        regions = region_stats(mesh, per_tet=per_tet) if by_region else {}
+    except JtetError as e:
+        raise JtetError(f"{path}: {e}") from None
     return {
         "mesh": repr(mesh),
         "stats": mesh_stats(mesh, per_tet=per_tet),
+        "regions": regions,
         "validity": mesh.is_valid(),
         "worst": worst_tets(mesh, n_worst, measure, per_tet=per_tet) if n_worst else None,
     }
@@ -562,6 +582,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="list the N worst tets: index (ParaView cell id of a .vtu), quality, dihedral "
         "angles, region, vertices fixed on the boundary, centroid",
+    )
+    ps.add_argument(
+        "--by-region",
+        action="store_true",
+        help="a column for each region of each mesh too (at most 16 regions; --json: a "
+        "'regions' object)",
     )
     ps.set_defaults(func=cmd_stats)
     pc = sub.add_parser(

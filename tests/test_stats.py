@@ -187,3 +187,43 @@ def test_worst_tets_of_a_mesh_without_topology():
     mesh = jtet.TetMesh(pts, [[0, 1, 2, 3], [0, 2, 1, 4], [0, 1, 2, 5]])
     rows = worst_tets(mesh, 2)
     assert len(rows) == 2 and all(r["fixed_vertices"] is None for r in rows)
+
+
+def test_region_stats_against_each_region_alone():
+    # reference: each region as a mesh of its own, built from plain arrays
+    from jtet._stats import MAX_REGION_COLUMNS, region_stats
+
+    mesh = grid_mesh(4, perturb=0.5, seed=3, two_regions=True)
+    by_region = region_stats(mesh)
+    assert sorted(by_region) == sorted(set(mesh.region.tolist())) == [0, 1]
+    for label, got in by_region.items():
+        tets = mesh.tets[mesh.region == label]
+        used, local = np.unique(tets, return_inverse=True)
+        alone = jtet.TetMesh(mesh.points[used], local.reshape(-1, 4))
+        want = mesh_stats(alone)
+        assert got.as_dict() == want.as_dict()
+    assert sum(s.n_tets for s in by_region.values()) == mesh.n_tets
+    many = mesh.replace(region=np.arange(mesh.n_tets) % (MAX_REGION_COLUMNS + 1))
+    with pytest.raises(jtet.JtetError, match="17 regions"):
+        region_stats(many)
+
+
+def test_cli_stats_by_region(tmp_path, capsys):
+    from jtet.cli import main
+
+    mesh = jtet.demo_mesh("two_regions")
+    path = tmp_path / "two.vtu"
+    jtet.save(mesh, path)
+    assert main(["stats", str(path), "--by-region"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1].split() == ["whole", "mesh", "region", "1", "region", "2"]
+    tets = next(line for line in lines if line.startswith("tets "))
+    assert tets.split()[1:] == ["1928", "910", "1018"]
+    assert main(["stats", str(path), "--by-region", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["regions"]["2"]["n_tets"] == 1018 and d["n_tets"] == 1928
+    # several files: a column per file, then one per region of it
+    assert main(["stats", str(path), str(path), "--by-region"]) == 0
+    head = capsys.readouterr().out.splitlines()[2]
+    # (the same name twice: the paths as given are the labels)
+    assert head.count(f"{path}: region 1") == 2 and head.count(": region 2") == 2
