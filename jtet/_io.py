@@ -45,6 +45,8 @@ PROTECTED_EDGES_ARRAY = "jtet:protected_edges"
 PROTECTED_VERTICES_ARRAY = "jtet:protected_vertices"
 PROTECTED_EDGE_LABELS_ARRAY = "jtet:protected_edge_labels"
 PROTECTED_VERTEX_LABELS_ARRAY = "jtet:protected_vertex_labels"
+#: field data of VTK files: one string "<dim> <label> <name>" per named label
+LABEL_NAMES_ARRAY = "jtet:label_names"
 PROTECTED_FACE_LABELS_ARRAY = "jtet:protected_face_labels"
 
 _VTK_TETRA = 10
@@ -319,6 +321,10 @@ def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
     if len(mesh.protected_vertices):
         grid.field_data[PROTECTED_VERTICES_ARRAY] = np.array(mesh.protected_vertices)
         grid.field_data[PROTECTED_VERTEX_LABELS_ARRAY] = np.array(mesh.protected_vertex_labels)
+    if len(mesh.label_names):
+        grid.field_data[LABEL_NAMES_ARRAY] = np.array(
+            [f"{dim} {label} {name}" for (dim, label), name in mesh.label_names.items()]
+        )
     return grid
 
 
@@ -401,7 +407,8 @@ def _read_vtk_file(path: Path, fmt: str):
 
 
 def _vtk_arrays_here(path: Path, fmt: str, source: str):
-    """``grid_to_arrays`` of the VTK file ``path``, read in this process."""
+    """(``grid_to_arrays``, ``grid_label_names``) of the VTK file ``path``, read in this
+    process."""
     try:
         grid = _read_vtk_file(path, fmt)
     except MeshFileError:
@@ -410,7 +417,33 @@ def _vtk_arrays_here(path: Path, fmt: str, source: str):
         raise MeshFileError(
             f"{path}: not a readable {_FORMAT_NAMES[fmt]} file ({_reason(e)})"
         ) from None
-    return grid_to_arrays(grid, source)
+    return grid_to_arrays(grid, source), grid_label_names(grid, source)
+
+
+def grid_label_names(grid, source: str = "pyvista grid") -> dict:
+    """(dim, label) -> name from the ``LABEL_NAMES_ARRAY`` field data of ``grid``
+    (``mesh_to_grid``'s); entries that do not parse are ignored with a warning."""
+    if LABEL_NAMES_ARRAY not in grid.field_data:
+        return {}
+    out, bad = {}, 0
+    for entry in np.asarray(grid.field_data[LABEL_NAMES_ARRAY]).reshape(-1).tolist():
+        parts = str(entry).split(maxsplit=2)
+        try:
+            dim, label = int(parts[0]), int(parts[1])
+            ok = 0 <= dim <= 3 and len(parts) == 3
+        except (ValueError, IndexError):
+            ok = False
+        if ok:
+            out.setdefault((dim, label), parts[2])
+        else:
+            bad += 1
+    if bad:
+        warnings.warn(
+            f"{source}: {bad} entr(ies) of field data {LABEL_NAMES_ARRAY!r} are not "
+            "'<dimension> <label> <name>'; ignored",
+            stacklevel=3,
+        )
+    return out
 
 
 def _limit_child_memory(path: Path) -> None:
@@ -433,7 +466,7 @@ def _limit_child_memory(path: Path) -> None:
 
 
 def _vtk_file_arrays(path: Path, fmt: str, source: str):
-    """``grid_to_arrays`` of the VTK file ``path``, read in a forked child process.
+    """``_vtk_arrays_here`` of the VTK file ``path``, read in a forked child process.
 
     VTK's readers take the whole process down on some damaged files: a truncated binary
     legacy file (segmentation fault), appended data whose block headers were damaged
@@ -601,6 +634,29 @@ def _gmsh_regions(m, blocks: list[int], source: str) -> np.ndarray | None:
         stacklevel=4,
     )
     return physical
+
+
+def _gmsh_label_names(m, source: str) -> dict:
+    """(dim, physical tag) -> name of the Gmsh file meshio read as ``m`` ($PhysicalNames),
+    for the dimensions whose labels are physical tags: where no element of a dimension
+    has one, its labels are entity tags (``_gmsh_regions``, ``_gmsh_surface_labels``),
+    which a physical group's name does not name."""
+    names = {}
+    for name, value in (m.field_data or {}).items():
+        v = np.asarray(value).reshape(-1)
+        if len(v) != 2 or not np.issubdtype(v.dtype, np.number) or not str(name):
+            continue
+        tag, dim = int(v[0]), int(v[1])
+        if 0 <= dim <= 3:
+            names.setdefault((dim, tag), str(name))
+    kinds = {3: "tetra", 2: "triangle", 1: "line", 0: "vertex"}
+    physical_dims = set()
+    for dim, kind in kinds.items():
+        blocks = [i for i, b in enumerate(m.cells) if b.type == kind]
+        physical = _gmsh_tags(m, blocks, source)[0] if blocks else None
+        if physical is not None and physical.any():
+            physical_dims.add(dim)
+    return {key: name for key, name in names.items() if key[0] in physical_dims}
 
 
 def _gmsh_surface_labels(m, blocks: list[int], source: str) -> np.ndarray | None:
@@ -806,7 +862,13 @@ def _meshio_mesh(mesh: TetMesh, fmt: str, cell_data: dict):
         blocks.append(meshio.CellBlock(kind, np.array(cells, np.int64)))
         for arrays in data.values():
             arrays.append(np.array(tags, np.int64))
-    return meshio.Mesh(np.array(mesh.points, dtype=np.float64), blocks, cell_data=data)
+    field_data = {}
+    if fmt == "gmsh":  # $PhysicalNames: meshio keys them by name (a name names one group)
+        for (dim, label), name in mesh.label_names.items():
+            field_data.setdefault(name, np.array([label, dim]))
+    return meshio.Mesh(
+        np.array(mesh.points, dtype=np.float64), blocks, cell_data=data, field_data=field_data
+    )
 
 
 #: the cell arrays meshio writes as a Gmsh / Medit file's element tags
@@ -965,8 +1027,9 @@ def load(path: str | os.PathLike) -> TetMesh:
             raise MeshFileError(f"{p}: the TetGen companion file {other.name} is missing")
         _check_tetgen_elements(p.with_suffix(".ele"))
     source = str(p)
+    names = None
     if fmt in ("vtu", "vtk"):
-        arrays = _vtk_file_arrays(p, fmt, source)
+        arrays, names = _vtk_file_arrays(p, fmt, source)
     else:
         captured = ""
         try:
@@ -980,8 +1043,10 @@ def load(path: str | os.PathLike) -> TetMesh:
         faces = _tetgen_faces(p.with_suffix(".node")) if fmt == "tetgen" else None
         required = _medit_required_vertices(p) if ext == ".mesh" else None
         arrays = _meshio_to_arrays(m, source, fmt, faces, required)
+        if fmt == "gmsh":
+            names = _gmsh_label_names(m, source)
     try:
-        return TetMesh.from_arrays(*arrays, source=source)
+        return TetMesh.from_arrays(*arrays, label_names=names, source=source)
     except MeshInputError as e:
         msg = str(e)
         raise MeshInputError(msg if msg.startswith(source) else f"{source}: {msg}") from None
@@ -1112,6 +1177,8 @@ def save(
             dropped.append("protected edges")
         if len(mesh.protected_vertices) and (fmt == "tetgen" or ext == ".meshb"):
             dropped.append("protected vertices")
+        if len(mesh.label_names):
+            dropped.append(f"{len(mesh.label_names)} label name(s) (Gmsh physical names)")
         if dropped:
             stored = {
                 ".mesh": "region labels and protected faces, edges and vertices",

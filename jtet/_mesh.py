@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import functools
+import numbers
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -18,6 +20,51 @@ def _readonly(a: np.ndarray) -> np.ndarray:
         a = np.array(a, order="C", copy=True)
     a.flags.writeable = False
     return a
+
+
+class LabelNames(Mapping):
+    """A read-only mapping (dimension, label) -> name (``TetMesh.label_names``); unlike
+    ``types.MappingProxyType`` it pickles, as the meshes that hold it do."""
+
+    def __init__(self, items: dict):
+        self._items = dict(items)
+
+    def __getitem__(self, key):
+        return self._items[key]
+
+    def __iter__(self):
+        return iter(self._items)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __repr__(self) -> str:
+        return f"LabelNames({self._items!r})"
+
+
+def _checked_names(names) -> LabelNames:
+    """``TetMesh.label_names`` as a read-only mapping (dim, label) -> name, sorted."""
+    if isinstance(names, LabelNames):
+        return names
+    if names is None:
+        return LabelNames({})
+    if not hasattr(names, "items"):
+        raise MeshInputError(f"label_names must be a mapping (dim, label) -> name, got {names!r}")
+    out = {}
+    for key, name in names.items():
+        ok = (
+            isinstance(key, tuple)
+            and len(key) == 2
+            and all(isinstance(k, numbers.Integral) and not isinstance(k, bool) for k in key)
+            and 0 <= key[0] <= 3
+        )
+        if not ok or not isinstance(name, str) or not name:
+            raise MeshInputError(
+                "label_names must map (dimension 0..3, integer label) to a non-empty name, "
+                f"got {key!r}: {name!r}"
+            )
+        out[(int(key[0]), int(key[1]))] = name
+    return LabelNames(dict(sorted(out.items())))
 
 
 def _orient_volumes6(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -174,6 +221,9 @@ class TetMesh:
         protected_edge_labels, protected_vertex_labels: (k,) int64 labels of the
             protected edges and vertices (0 when the input gave none: Gmsh physical
             curves and points, Medit references), written back by the savers.
+        label_names: read-only mapping (dimension, label) -> name of the labels that have
+            one: Gmsh physical names (dimension 3: ``region`` labels, 2: protected face
+            labels, 1: edge labels, 0: vertex labels), written back to Gmsh and VTK files.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it
@@ -189,6 +239,7 @@ class TetMesh:
     protected_vertices: Int[np.ndarray, " k"] = field(default=None)
     protected_edge_labels: Int[np.ndarray, " k"] = field(default=None)
     protected_vertex_labels: Int[np.ndarray, " k"] = field(default=None)
+    label_names: dict = field(default=None)
 
     def __post_init__(self):
         points = _checked_points(self.points)
@@ -207,6 +258,7 @@ class TetMesh:
             )
             object.__setattr__(self, name, _readonly(rows))
             object.__setattr__(self, label_name, _readonly(labels))
+        object.__setattr__(self, "label_names", _checked_names(self.label_names))
 
     def _derive(self, *, tets_checked: int = 0, **changes) -> TetMesh:
         """``replace(**changes)`` checking only what is new.
@@ -254,6 +306,10 @@ class TetMesh:
         object.__setattr__(out, "_feature_angle", self._feature_angle)
         for name, value in fields.items():
             object.__setattr__(out, name, _readonly(value))
+        names = self.label_names
+        if "label_names" in changes:
+            names = _checked_names(changes["label_names"])
+        object.__setattr__(out, "label_names", names)
         return out
 
     @staticmethod
@@ -338,6 +394,7 @@ class TetMesh:
         protected_edge_labels=None,
         protected_vertex_labels=None,
         *,
+        label_names=None,
         source: str = "input",
     ) -> TetMesh:
         """Build a mesh from user arrays, fixing a globally reversed orientation.
@@ -352,7 +409,7 @@ class TetMesh:
         """
         mesh = cls(
             points, tets, region, protected_faces, protected_edges, protected_face_labels,
-            protected_vertices, protected_edge_labels, protected_vertex_labels,
+            protected_vertices, protected_edge_labels, protected_vertex_labels, label_names,
         )  # fmt: skip
         vol = _orient_volumes6(mesh.points, mesh.tets)
         neg, pos = int((vol < 0).sum()), int((vol > 0).sum())
@@ -408,9 +465,10 @@ class TetMesh:
         Reads a ``region`` cell array when present (also ``gmsh:physical``,
         ``medit:ref``, ``CellEntityIds`` as written by meshio / VTK readers).
         """
-        from ._io import grid_to_arrays
+        from ._io import grid_label_names, grid_to_arrays
 
-        return cls.from_arrays(*grid_to_arrays(grid, source), source=source)
+        arrays = grid_to_arrays(grid, source)
+        return cls.from_arrays(*arrays, label_names=grid_label_names(grid, source), source=source)
 
     def replace(self, **changes) -> TetMesh:
         """A copy with some fields replaced; the constructor's checks run on the replaced
@@ -483,6 +541,7 @@ class TetMesh:
             protected_vertices=pv_local[pv_in],
             protected_edge_labels=self.protected_edge_labels[edges_in],
             protected_vertex_labels=self.protected_vertex_labels[pv_in],
+            label_names=self.label_names,
         )
         return sub._with_feature_angle(self._feature_angle), verts, faces_in
 

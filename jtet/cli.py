@@ -386,7 +386,11 @@ def cmd_stats(args) -> int:
     labels = _column_labels(args.mesh)
     # with --by-region, each file's column is followed by one per region of it
     columns = [
-        (col, f["stats"], [(f"{col}: region {r}", st) for r, st in f["regions"].items()])
+        (
+            col,
+            f["stats"],
+            [(f"{col}: {_region_name(r, f['names'])}", st) for r, st in f["regions"].items()],
+        )
         for col, f in zip(["value"] if len(files) == 1 else labels, files, strict=True)
     ]
     table_stats = [st for _, whole, parts in columns for st in [whole, *(p for _, p in parts)]]
@@ -452,9 +456,16 @@ def _mesh_summary(path: str, n_worst: int, measure: str, by_region: bool = False
         "mesh": repr(mesh),
         "stats": mesh_stats(mesh, per_tet=per_tet),
         "regions": regions,
+        "names": dict(mesh.label_names),
         "validity": mesh.is_valid(),
         "worst": worst_tets(mesh, n_worst, measure, per_tet=per_tet) if n_worst else None,
     }
+
+
+def _region_name(label: int, names: dict) -> str:
+    """ "region 2", or "region 2 (fluid)" when the mesh names it (Gmsh physical names)."""
+    name = names.get((3, label))
+    return f"region {label}" + (f" ({name})" if name else "")
 
 
 def _column_labels(paths: list[str]) -> list[str]:

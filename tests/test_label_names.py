@@ -1,0 +1,122 @@
+"""Gmsh physical names (``TetMesh.label_names``): read from .msh files, kept by every
+operation, written back to Gmsh and VTK files, read again by Gmsh itself."""
+
+import pickle
+
+import numpy as np
+import pytest
+
+import jtet
+from jtet.cli import main
+
+gmsh = pytest.importorskip("gmsh")
+
+
+def _named_ball_in_box(path, save_all_entities=False, names=True):
+    """A ball (physical volume 1 "ball") in a box (2 "box"), the box's walls as physical
+    surface 10 "walls"; a 2.2 or 4.1 .msh file at ``path``."""
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        box = gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
+        ball = gmsh.model.occ.addSphere(0.5, 0.5, 0.5, 0.25)
+        gmsh.model.occ.fragment([(3, box)], [(3, ball)])
+        gmsh.model.occ.synchronize()
+        vols = sorted(t for _, t in gmsh.model.getEntities(3))
+        inner = min(vols, key=lambda v: gmsh.model.occ.getMass(3, v))
+        outer = max(vols, key=lambda v: gmsh.model.occ.getMass(3, v))
+        if not save_all_entities:
+            gmsh.model.addPhysicalGroup(3, [inner], 1, "ball" if names else "")
+            gmsh.model.addPhysicalGroup(3, [outer], 2, "box" if names else "")
+        walls = [t for _, t in gmsh.model.getBoundary([(3, outer)], oriented=False)]
+        walls = [t for t in walls if gmsh.model.occ.getMass(2, t) > 0.9]  # the six squares
+        gmsh.model.addPhysicalGroup(2, walls, 10, "walls" if names else "")
+        if save_all_entities:
+            gmsh.option.setNumber("Mesh.SaveAll", 1)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.2)
+        gmsh.model.mesh.generate(3)
+        gmsh.write(str(path))
+    finally:
+        gmsh.finalize()
+
+
+def _gmsh_names(path):
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.open(str(path))
+        return {(d, t): gmsh.model.getPhysicalName(d, t) for d, t in gmsh.model.getPhysicalGroups()}
+    finally:
+        gmsh.finalize()
+
+
+NAMES = {(2, 10): "walls", (3, 1): "ball", (3, 2): "box"}
+
+
+def test_names_round_trip_through_improve_and_formats(tmp_path):
+    src = tmp_path / "in.msh"
+    _named_ball_in_box(src)
+    mesh = jtet.load(src)
+    assert dict(mesh.label_names) == NAMES
+    assert sorted(set(mesh.region.tolist())) == [1, 2]
+    # every operation keeps them: a run, a regions run, a pickle
+    for out in (jtet.improve(mesh).mesh, jtet.improve(mesh, regions=[1]).mesh):
+        assert dict(out.label_names) == NAMES
+    assert dict(pickle.loads(pickle.dumps(mesh)).label_names) == NAMES
+    # Gmsh reads jtet's .msh with the names; VTK files keep them as field data
+    out = tmp_path / "out.msh"
+    assert main(["improve", str(src), str(out), "-q"]) == 0
+    assert _gmsh_names(out) == NAMES
+    for ext in (".vtu", ".vtk"):
+        assert main(["convert", str(out), str(tmp_path / f"c{ext}"), "-q"]) == 0
+        assert dict(jtet.load(tmp_path / f"c{ext}").label_names) == NAMES
+    assert main(["convert", str(tmp_path / "c.vtu"), str(tmp_path / "back.msh"), "-q"]) == 0
+    assert _gmsh_names(tmp_path / "back.msh") == NAMES
+
+
+def test_names_of_entity_tags_are_not_taken(tmp_path):
+    # Mesh.SaveAll without physical volumes: the regions are the volume entities, which
+    # the names of physical groups do not name; the surfaces' physical names stay
+    src = tmp_path / "all.msh"
+    _named_ball_in_box(src, save_all_entities=True)
+    mesh = jtet.load(src)
+    assert all(dim == 2 for dim, _ in mesh.label_names)
+
+
+def test_medit_and_tetgen_outputs_warn_that_names_are_dropped(tmp_path):
+    src = tmp_path / "in.msh"
+    _named_ball_in_box(src)
+    mesh = jtet.load(src)
+    for name in ("o.mesh", "o.node"):
+        with pytest.warns(UserWarning, match=r"3 label name\(s\)"):
+            jtet.save(mesh, tmp_path / name)
+
+
+def test_stats_by_region_shows_the_names(tmp_path, capsys):
+    src = tmp_path / "in.msh"
+    _named_ball_in_box(src)
+    assert main(["stats", str(src), "--by-region"]) == 0
+    head = capsys.readouterr().out.splitlines()[1]
+    assert "region 1 (ball)" in head and "region 2 (box)" in head
+
+
+def test_label_names_are_checked():
+    mesh = jtet.demo_mesh("two_regions")
+    assert dict(mesh.replace(label_names={(3, 1): "a"}).label_names) == {(3, 1): "a"}
+    for bad in ({(4, 1): "a"}, {(3,): "a"}, {(3, 1): ""}, {(3, 1): 5}, {(3, True): "a"}, [1]):
+        with pytest.raises(jtet.MeshInputError, match="label_names"):
+            mesh.replace(label_names=bad)
+    names = mesh.replace(label_names={(3, 2): "b", (3, 1): "a"}).label_names
+    assert list(names) == [(3, 1), (3, 2)]  # sorted
+    with pytest.raises(TypeError):
+        names[(3, 3)] = "c"  # read-only
+
+
+def test_damaged_vtk_names_are_ignored_with_a_warning(tmp_path):
+    mesh = jtet.demo_mesh("two_regions").replace(label_names={(3, 1): "a b"})
+    grid = mesh.to_pyvista()
+    assert jtet.TetMesh.from_pyvista(grid).label_names == {(3, 1): "a b"}
+    grid.field_data["jtet:label_names"] = np.array(["3 1 a b", "x 2 c", "3"])
+    with pytest.warns(UserWarning, match="2 entr"):
+        got = jtet.TetMesh.from_pyvista(grid)
+    assert dict(got.label_names) == {(3, 1): "a b"}
