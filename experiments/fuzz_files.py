@@ -52,6 +52,7 @@ def _mesh():
         protected_face_labels=np.arange(len(faces)) + 1,
         protected_edges=T.edges[~T.edge_boundary][:3],
         protected_vertices=[1, 5],
+        label_names={(3, 1): "odd tets", (2, 1): "first face", (2, 2): "second"},
     )
 
 
