@@ -120,3 +120,20 @@ def test_damaged_vtk_names_are_ignored_with_a_warning(tmp_path):
     with pytest.warns(UserWarning, match="2 entr"):
         got = jtet.TetMesh.from_pyvista(grid)
     assert dict(got.label_names) == {(3, 1): "a b"}
+
+
+def test_cli_regions_by_name(tmp_path, capsys):
+    src = tmp_path / "in.msh"
+    _named_ball_in_box(src)
+    by_name, by_label = tmp_path / "a.vtu", tmp_path / "b.vtu"
+    assert (
+        main(["improve", str(src), str(by_name), "--regions", "ball", "--ops", "edge", "-q"]) == 0
+    )
+    assert main(["improve", str(src), str(by_label), "--regions", "1", "--ops", "edge", "-q"]) == 0
+    a, b = jtet.load(by_name), jtet.load(by_label)
+    assert np.array_equal(a.tets, b.tets) and np.array_equal(a.points, b.points)
+    capsys.readouterr()
+    assert main(["improve", str(src), str(tmp_path / "c.vtu"), "--regions", "fluid,2"]) == 2
+    err = capsys.readouterr().err
+    assert "no region named 'fluid'" in err and "ball (1), box (2)" in err
+    assert not (tmp_path / "c.vtu").exists()

@@ -125,7 +125,7 @@ def test_cli_regions(tmp_path, mesh):
     assert np.array_equal(jtet.load(again).tets, written.tets)
 
 
-@pytest.mark.parametrize("flag", ["x", "1,,a", ""])
+@pytest.mark.parametrize("flag", ["1,,a", "", "2,"])
 def test_cli_bad_regions(tmp_path, mesh, flag, capsys):
     src = tmp_path / "in.vtu"
     jtet.save(mesh, src)
@@ -141,3 +141,7 @@ def test_cli_unknown_region(tmp_path, mesh, capsys):
     assert main(["improve", str(src), str(tmp_path / "o.vtu"), "--regions", "4"]) == 2
     err = capsys.readouterr().err
     assert "no region 4" in err and not (tmp_path / "o.vtu").exists()
+    # a word is a region name (Gmsh physical names): this mesh names none
+    assert main(["improve", str(src), str(tmp_path / "o.vtu"), "--regions", "x"]) == 2
+    err = capsys.readouterr().err
+    assert "no region named 'x'" in err and not (tmp_path / "o.vtu").exists()
