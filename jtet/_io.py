@@ -45,7 +45,8 @@ PROTECTED_EDGES_ARRAY = "jtet:protected_edges"
 PROTECTED_VERTICES_ARRAY = "jtet:protected_vertices"
 PROTECTED_EDGE_LABELS_ARRAY = "jtet:protected_edge_labels"
 PROTECTED_VERTEX_LABELS_ARRAY = "jtet:protected_vertex_labels"
-#: field data of VTK files: one string "<dim> <label> <name>" per named label
+#: field data of VTK files: the UTF-8 bytes (uint8) of a JSON list of [dim, label, name]
+#: (VTK's string arrays, as pyvista handles them, hold ASCII only; Gmsh names are UTF-8)
 LABEL_NAMES_ARRAY = "jtet:label_names"
 PROTECTED_FACE_LABELS_ARRAY = "jtet:protected_face_labels"
 
@@ -322,9 +323,10 @@ def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
         grid.field_data[PROTECTED_VERTICES_ARRAY] = np.array(mesh.protected_vertices)
         grid.field_data[PROTECTED_VERTEX_LABELS_ARRAY] = np.array(mesh.protected_vertex_labels)
     if len(mesh.label_names):
-        grid.field_data[LABEL_NAMES_ARRAY] = np.array(
-            [f"{dim} {label} {name}" for (dim, label), name in mesh.label_names.items()]
-        )
+        import json
+
+        text = json.dumps([[d, lb, name] for (d, lb), name in mesh.label_names.items()])
+        grid.field_data[LABEL_NAMES_ARRAY] = np.frombuffer(text.encode("utf-8"), np.uint8)
     return grid
 
 
@@ -422,25 +424,44 @@ def _vtk_arrays_here(path: Path, fmt: str, source: str):
 
 def grid_label_names(grid, source: str = "pyvista grid") -> dict:
     """(dim, label) -> name from the ``LABEL_NAMES_ARRAY`` field data of ``grid``
-    (``mesh_to_grid``'s); entries that do not parse are ignored with a warning."""
+    (``mesh_to_grid``'s); a damaged array is ignored with a warning, and so are entries
+    that are not [dimension 0..3, integer label, non-empty name]."""
+    import json
+
     if LABEL_NAMES_ARRAY not in grid.field_data:
         return {}
+    try:
+        raw = np.asarray(grid.field_data[LABEL_NAMES_ARRAY])
+        if raw.dtype != np.uint8:
+            raise ValueError(f"{raw.dtype} values, not the bytes of a JSON text")
+        entries = json.loads(raw.tobytes().decode("utf-8"))
+        if not isinstance(entries, list):
+            raise ValueError("not a JSON list")
+    except (ValueError, UnicodeDecodeError) as e:
+        warnings.warn(
+            f"{source}: field data {LABEL_NAMES_ARRAY!r} is unreadable ({_reason(e)}); "
+            "the label names are ignored",
+            stacklevel=3,
+        )
+        return {}
     out, bad = {}, 0
-    for entry in np.asarray(grid.field_data[LABEL_NAMES_ARRAY]).reshape(-1).tolist():
-        parts = str(entry).split(maxsplit=2)
-        try:
-            dim, label = int(parts[0]), int(parts[1])
-            ok = 0 <= dim <= 3 and len(parts) == 3
-        except (ValueError, IndexError):
-            ok = False
+    for entry in entries:
+        ok = (
+            isinstance(entry, list)
+            and len(entry) == 3
+            and all(type(v) is int for v in entry[:2])
+            and 0 <= entry[0] <= 3
+            and isinstance(entry[2], str)
+            and entry[2] != ""
+        )
         if ok:
-            out.setdefault((dim, label), parts[2])
+            out.setdefault((entry[0], entry[1]), entry[2])
         else:
             bad += 1
     if bad:
         warnings.warn(
             f"{source}: {bad} entr(ies) of field data {LABEL_NAMES_ARRAY!r} are not "
-            "'<dimension> <label> <name>'; ignored",
+            "[dimension, label, name]; ignored",
             stacklevel=3,
         )
     return out

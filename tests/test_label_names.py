@@ -113,13 +113,28 @@ def test_label_names_are_checked():
 
 
 def test_damaged_vtk_names_are_ignored_with_a_warning(tmp_path):
-    mesh = jtet.demo_mesh("two_regions").replace(label_names={(3, 1): "a b"})
+    import json
+
+    named = {(3, 1): "Fluß 流体", (2, 7): "a b"}  # Gmsh names are UTF-8
+    mesh = jtet.demo_mesh("two_regions").replace(label_names=named)
+    for ext in (".vtu", ".vtk"):
+        jtet.save(mesh, tmp_path / f"u{ext}")
+        assert dict(jtet.load(tmp_path / f"u{ext}").label_names) == named
     grid = mesh.to_pyvista()
-    assert jtet.TetMesh.from_pyvista(grid).label_names == {(3, 1): "a b"}
-    grid.field_data["jtet:label_names"] = np.array(["3 1 a b", "x 2 c", "3"])
-    with pytest.warns(UserWarning, match="2 entr"):
-        got = jtet.TetMesh.from_pyvista(grid)
-    assert dict(got.label_names) == {(3, 1): "a b"}
+    assert dict(jtet.TetMesh.from_pyvista(grid).label_names) == named
+
+    def with_names(value):
+        grid.field_data["jtet:label_names"] = value
+        return jtet.TetMesh.from_pyvista(grid)
+
+    entries = [[3, 1, "ok"], [4, 1, "dim"], [3, "1", "label"], [3, 2, ""], [3, 3], "x"]
+    text = json.dumps(entries).encode()
+    with pytest.warns(UserWarning, match="5 entr"):
+        assert dict(with_names(np.frombuffer(text, np.uint8)).label_names) == {(3, 1): "ok"}
+    for damaged in (np.frombuffer(b"\xc8[", np.uint8), np.frombuffer(b"[1,", np.uint8),
+                    np.frombuffer(b"{}", np.uint8), np.array([1.5, 2.0])):  # fmt: skip
+        with pytest.warns(UserWarning, match="unreadable"):
+            assert len(with_names(damaged).label_names) == 0
 
 
 def test_cli_regions_by_name(tmp_path, capsys):
