@@ -284,7 +284,8 @@ class ImproveResult:
 
         stats, labels = (self.stats_before, self.stats_after), ("before", "after")
         if self.selected_stats is not None:  # the whole mesh, then the regions improved
-            which = ",".join(map(str, self.options.regions)) if self.options else "?"
+            names = self.mesh.label_names
+            which = ",".join(names.get((3, r), str(r)) for r in self.options.regions)
             stats += tuple(self.selected_stats)
             labels += (f"before (regions {which})", f"after (regions {which})")
         table = format_table(*stats, time_s=self.seconds, labels=labels)
