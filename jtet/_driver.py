@@ -342,6 +342,8 @@ def improve(
     # the run's topologies (the checks', every step's) treat subfacets bent by less than
     # the feature angle as one surface; the caller's mesh object is left as it was
     mesh = mesh._with_feature_angle(opts.feature_angle)
+    if mesh.periodic:
+        return _improve_periodic(mesh, opts, callback)
     if opts.regions is not None:
         sel = _selected_tets(mesh, opts.regions)
         if not sel.all():
@@ -404,6 +406,45 @@ def improve(
         options=opts,
         notes=notes(current, opts, run.q, run.lo_t, run.hi_t),
     )
+
+
+def _improve_periodic(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
+    """``improve`` of a mesh with periodic links (``TetMesh.periodic``): their vertices
+    and the boundary edges between two of them are protected for the run (no move, no
+    2-2 flip on a periodic surface), so every periodic surface keeps its triangulation,
+    its partner's image, and the vertex pairs stay valid (vertex ids never change). The
+    result has the input's own protected edges and vertices (those of the run were
+    never removed nor moved) and its periodic links."""
+    import dataclasses
+
+    from ._submesh import CUT_LABEL
+
+    verts = np.unique(np.concatenate([link.pairs.reshape(-1) for link in mesh.periodic]))
+    T = mesh.topology
+    on = np.zeros(mesh.n_points, bool)
+    on[verts] = True
+    edges = T.edges[T.edge_boundary & on[T.edges].all(axis=1)]
+    # listed after the mesh's own: an entity listed twice keeps its first label
+    pinned = mesh.replace(
+        periodic=(),
+        protected_edges=np.concatenate([mesh.protected_edges, edges]),
+        protected_edge_labels=np.concatenate(
+            [mesh.protected_edge_labels, np.full(len(edges), CUT_LABEL)]
+        ),
+        protected_vertices=np.concatenate([mesh.protected_vertices, verts]),
+        protected_vertex_labels=np.concatenate(
+            [mesh.protected_vertex_labels, np.full(len(verts), CUT_LABEL)]
+        ),
+    )
+    result = improve(pinned, opts, callback=callback)
+    out = result.mesh.replace(
+        protected_edges=mesh.protected_edges,
+        protected_edge_labels=mesh.protected_edge_labels,
+        protected_vertices=mesh.protected_vertices,
+        protected_vertex_labels=mesh.protected_vertex_labels,
+        periodic=mesh.periodic,
+    )
+    return dataclasses.replace(result, mesh=out)
 
 
 def _selected_tets(mesh: TetMesh, regions: tuple[int, ...]) -> np.ndarray:

@@ -48,6 +48,9 @@ PROTECTED_VERTEX_LABELS_ARRAY = "jtet:protected_vertex_labels"
 #: field data of VTK files: the UTF-8 bytes (uint8) of a JSON list of [dim, label, name]
 #: (VTK's string arrays, as pyvista handles them, hold ASCII only; Gmsh names are UTF-8)
 LABEL_NAMES_ARRAY = "jtet:label_names"
+#: field data of VTK files: the UTF-8 bytes of a JSON list of the periodic links,
+#: [dim, slave tag, master tag, 16 affine numbers or null, [[slave, master], ...]]
+PERIODIC_ARRAY = "jtet:periodic"
 PROTECTED_FACE_LABELS_ARRAY = "jtet:protected_face_labels"
 
 _VTK_TETRA = 10
@@ -323,10 +326,14 @@ def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
         grid.field_data[PROTECTED_VERTICES_ARRAY] = np.array(mesh.protected_vertices)
         grid.field_data[PROTECTED_VERTEX_LABELS_ARRAY] = np.array(mesh.protected_vertex_labels)
     if len(mesh.label_names):
-        import json
-
-        text = json.dumps([[d, lb, name] for (d, lb), name in mesh.label_names.items()])
-        grid.field_data[LABEL_NAMES_ARRAY] = np.frombuffer(text.encode("utf-8"), np.uint8)
+        names = [[d, lb, name] for (d, lb), name in mesh.label_names.items()]
+        grid.field_data[LABEL_NAMES_ARRAY] = _json_bytes(names)
+    if mesh.periodic:
+        links = [
+            [p.dim, *p.tags, None if p.affine is None else list(p.affine), p.pairs.tolist()]
+            for p in mesh.periodic
+        ]
+        grid.field_data[PERIODIC_ARRAY] = _json_bytes(links)
     return grid
 
 
@@ -419,30 +426,66 @@ def _vtk_arrays_here(path: Path, fmt: str, source: str):
         raise MeshFileError(
             f"{path}: not a readable {_FORMAT_NAMES[fmt]} file ({_reason(e)})"
         ) from None
-    return grid_to_arrays(grid, source), grid_label_names(grid, source)
+    return grid_to_arrays(grid, source), grid_label_names(grid, source), grid_periodic(grid, source)
+
+
+def _json_field(grid, name: str, source: str):
+    """The JSON list in the uint8 field data ``name`` of ``grid`` (None without it, or,
+    with a warning, when it does not decode)."""
+    import json
+
+    if name not in grid.field_data:
+        return None
+    try:
+        raw = np.asarray(grid.field_data[name])
+        if raw.dtype != np.uint8:
+            raise ValueError(f"{raw.dtype} values, not the bytes of a JSON text")
+        value = json.loads(raw.tobytes().decode("utf-8"))
+        if not isinstance(value, list):
+            raise ValueError("not a JSON list")
+    except (ValueError, UnicodeDecodeError, RecursionError) as e:
+        warnings.warn(
+            f"{source}: field data {name!r} is unreadable ({_reason(e)}); ignored", stacklevel=4
+        )
+        return None
+    return value
+
+
+def _json_bytes(value) -> np.ndarray:
+    import json
+
+    return np.frombuffer(json.dumps(value).encode("utf-8"), np.uint8)
+
+
+def grid_periodic(grid, source: str = "pyvista grid") -> list | None:
+    """The periodic links in the ``PERIODIC_ARRAY`` field data of ``grid``
+    (``mesh_to_grid``'s), as ``TetMesh.periodic`` takes them; None without."""
+    links = _json_field(grid, PERIODIC_ARRAY, source)
+    if links is None:
+        return None
+    from ._mesh import _checked_periodic
+
+    try:
+        return list(
+            _checked_periodic(
+                [(d, (s, m), a, np.asarray(pairs).reshape(-1, 2)) for d, s, m, a, pairs in links],
+                grid.n_points,
+            )
+        )
+    except (TypeError, ValueError, MeshInputError) as e:
+        warnings.warn(
+            f"{source}: field data {PERIODIC_ARRAY!r} is unreadable ({_reason(e)}); ignored",
+            stacklevel=3,
+        )
+        return None
 
 
 def grid_label_names(grid, source: str = "pyvista grid") -> dict:
     """(dim, label) -> name from the ``LABEL_NAMES_ARRAY`` field data of ``grid``
     (``mesh_to_grid``'s); a damaged array is ignored with a warning, and so are entries
     that are not [dimension 0..3, integer label, non-empty name]."""
-    import json
-
-    if LABEL_NAMES_ARRAY not in grid.field_data:
-        return {}
-    try:
-        raw = np.asarray(grid.field_data[LABEL_NAMES_ARRAY])
-        if raw.dtype != np.uint8:
-            raise ValueError(f"{raw.dtype} values, not the bytes of a JSON text")
-        entries = json.loads(raw.tobytes().decode("utf-8"))
-        if not isinstance(entries, list):
-            raise ValueError("not a JSON list")
-    except (ValueError, UnicodeDecodeError) as e:
-        warnings.warn(
-            f"{source}: field data {LABEL_NAMES_ARRAY!r} is unreadable ({_reason(e)}); "
-            "the label names are ignored",
-            stacklevel=3,
-        )
+    entries = _json_field(grid, LABEL_NAMES_ARRAY, source)
+    if entries is None:
         return {}
     out, bad = {}, 0
     for entry in entries:
@@ -680,6 +723,42 @@ def _gmsh_label_names(m, source: str) -> dict:
     return {key: name for key, name in names.items() if key[0] in physical_dims}
 
 
+def _gmsh_periodic(m, source: str) -> list | None:
+    """The periodic links of the Gmsh file meshio read as ``m`` (``$Periodic``), each
+    checked: its vertex ids in range and, with an affine map, each slave vertex the
+    image of its master (meshio takes node tag - 1 as the vertex id, wrong for files whose
+    node tags have gaps). A link that fails is dropped with a warning."""
+    links = getattr(m, "gmsh_periodic", None)
+    if not links:
+        return None
+    points = np.asarray(m.points, np.float64)
+    n = len(points)
+    scale = float(np.ptp(points, axis=0).max()) if n else 1.0
+    out, bad = [], 0
+    for link in links:
+        try:
+            dim, (slave, master), affine, pairs = link
+            pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
+            ok = not len(pairs) or (pairs.min() >= 0 and pairs.max() < n)
+            if ok and affine is not None and len(pairs):
+                A = np.asarray(affine, np.float64).reshape(4, 4)
+                image = points[pairs[:, 1]] @ A[:3, :3].T + A[:3, 3]
+                ok = bool(np.abs(image - points[pairs[:, 0]]).max() <= 1e-6 * scale)
+        except (TypeError, ValueError):
+            ok = False
+        if ok:
+            out.append((int(dim), (int(slave), int(master)), affine, pairs))
+        else:
+            bad += 1
+    if bad:
+        warnings.warn(
+            f"{source}: {bad} periodic link(s) whose vertex pairs do not match the mesh; "
+            "ignored (their surfaces may lose their matching triangulations)",
+            stacklevel=4,
+        )
+    return out or None
+
+
 def _gmsh_surface_labels(m, blocks: list[int], source: str) -> np.ndarray | None:
     """Labels of the triangles in ``blocks`` of a Gmsh file: their physical surface tags
     (0 for a triangle in none) when any has one, else their surface entities."""
@@ -887,8 +966,18 @@ def _meshio_mesh(mesh: TetMesh, fmt: str, cell_data: dict):
     if fmt == "gmsh":  # $PhysicalNames: meshio keys them by name (a name names one group)
         for (dim, label), name in mesh.label_names.items():
             field_data.setdefault(name, np.array([label, dim]))
+    periodic = None
+    if fmt == "gmsh" and mesh.periodic:
+        periodic = [
+            [p.dim, p.tags, None if p.affine is None else np.array(p.affine), np.array(p.pairs)]
+            for p in mesh.periodic
+        ]
     return meshio.Mesh(
-        np.array(mesh.points, dtype=np.float64), blocks, cell_data=data, field_data=field_data
+        np.array(mesh.points, dtype=np.float64),
+        blocks,
+        cell_data=data,
+        field_data=field_data,
+        gmsh_periodic=periodic,
     )
 
 
@@ -1048,9 +1137,9 @@ def load(path: str | os.PathLike) -> TetMesh:
             raise MeshFileError(f"{p}: the TetGen companion file {other.name} is missing")
         _check_tetgen_elements(p.with_suffix(".ele"))
     source = str(p)
-    names = None
+    names = periodic = None
     if fmt in ("vtu", "vtk"):
-        arrays, names = _vtk_file_arrays(p, fmt, source)
+        arrays, names, periodic = _vtk_file_arrays(p, fmt, source)
     else:
         captured = ""
         try:
@@ -1066,8 +1155,9 @@ def load(path: str | os.PathLike) -> TetMesh:
         arrays = _meshio_to_arrays(m, source, fmt, faces, required)
         if fmt == "gmsh":
             names = _gmsh_label_names(m, source)
+            periodic = _gmsh_periodic(m, source)
     try:
-        return TetMesh.from_arrays(*arrays, label_names=names, source=source)
+        return TetMesh.from_arrays(*arrays, label_names=names, periodic=periodic, source=source)
     except MeshInputError as e:
         msg = str(e)
         raise MeshInputError(msg if msg.startswith(source) else f"{source}: {msg}") from None
@@ -1200,6 +1290,8 @@ def save(
             dropped.append("protected vertices")
         if len(mesh.label_names):
             dropped.append(f"{len(mesh.label_names)} label name(s) (Gmsh physical names)")
+        if mesh.periodic:
+            dropped.append(f"{len(mesh.periodic)} periodic link(s)")
         if dropped:
             stored = {
                 ".mesh": "region labels and protected faces, edges and vertices",

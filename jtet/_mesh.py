@@ -7,6 +7,7 @@ import numbers
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from jaxtyping import Float, Int
@@ -65,6 +66,48 @@ def _checked_names(names) -> LabelNames:
             )
         out[(int(key[0]), int(key[1]))] = name
     return LabelNames(dict(sorted(out.items())))
+
+
+class Periodic(NamedTuple):
+    """One periodic link of a Gmsh mesh (``$Periodic``): the nodes of entity
+    ``tags[0]`` (dimension ``dim``) are images of those of entity ``tags[1]``."""
+
+    dim: int
+    tags: tuple[int, int]
+    affine: tuple[float, ...] | None  # 16 numbers, row-major 4 x 4: master -> slave
+    pairs: np.ndarray  # (k, 2) int64 vertex ids (slave, master), read-only
+
+
+def _checked_periodic(links, n_points: int) -> tuple[Periodic, ...]:
+    """``TetMesh.periodic`` as a tuple of ``Periodic`` with in-range vertex ids."""
+    if links is None:
+        return ()
+    out = []
+    for link in links:
+        try:
+            dim, tags, affine, pairs = link
+            dim, tags = int(dim), (int(tags[0]), int(tags[1]))
+            affine = None if affine is None else tuple(float(a) for a in np.ravel(affine))
+            pairs = np.asarray(pairs)
+            if not np.issubdtype(pairs.dtype, np.integer) and pairs.size:
+                raise ValueError("pairs must be integer vertex ids")
+            pairs = pairs.astype(np.int64).reshape(-1, 2)
+        except (TypeError, ValueError, IndexError) as e:
+            raise MeshInputError(
+                "periodic must hold (dim, (slave tag, master tag), affine or None, (k, 2) "
+                f"vertex pairs) links: {e}"
+            ) from None
+        if not 0 <= dim <= 2 or (affine is not None and len(affine) != 16):
+            raise MeshInputError(
+                f"periodic link {tags}: dimension {dim} (0..2) with {len(affine or ())} "
+                "affine numbers (16 or none)"
+            )
+        if len(pairs) and (pairs.min() < 0 or pairs.max() >= n_points):
+            raise MeshInputError(
+                f"periodic link {tags} holds vertex ids out of range [0, {n_points})"
+            )
+        out.append(Periodic(dim, tags, affine, _readonly(pairs)))
+    return tuple(out)
 
 
 def _orient_volumes6(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -224,6 +267,10 @@ class TetMesh:
         label_names: read-only mapping (dimension, label) -> name of the labels that have
             one: Gmsh physical names (dimension 3: ``region`` labels, 2: protected face
             labels, 1: edge labels, 0: vertex labels), written back to Gmsh and VTK files.
+        periodic: tuple of ``Periodic`` links (Gmsh ``$Periodic``: pairs of vertices of
+            periodic surfaces, curves and points). ``improve`` keeps these vertices in
+            place and the boundary edges between them, so the periodic surfaces keep
+            matching triangulations, and the savers write the links back.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it
@@ -240,6 +287,7 @@ class TetMesh:
     protected_edge_labels: Int[np.ndarray, " k"] = field(default=None)
     protected_vertex_labels: Int[np.ndarray, " k"] = field(default=None)
     label_names: dict = field(default=None)
+    periodic: tuple = field(default=None)
 
     def __post_init__(self):
         points = _checked_points(self.points)
@@ -259,6 +307,7 @@ class TetMesh:
             object.__setattr__(self, name, _readonly(rows))
             object.__setattr__(self, label_name, _readonly(labels))
         object.__setattr__(self, "label_names", _checked_names(self.label_names))
+        object.__setattr__(self, "periodic", _checked_periodic(self.periodic, len(points)))
 
     def _derive(self, *, tets_checked: int = 0, **changes) -> TetMesh:
         """``replace(**changes)`` checking only what is new.
@@ -310,6 +359,10 @@ class TetMesh:
         if "label_names" in changes:
             names = _checked_names(changes["label_names"])
         object.__setattr__(out, "label_names", names)
+        periodic = self.periodic
+        if "periodic" in changes or len(points) < self.n_points:
+            periodic = _checked_periodic(changes.get("periodic", periodic), len(points))
+        object.__setattr__(out, "periodic", periodic)
         return out
 
     @staticmethod
@@ -395,6 +448,7 @@ class TetMesh:
         protected_vertex_labels=None,
         *,
         label_names=None,
+        periodic=None,
         source: str = "input",
     ) -> TetMesh:
         """Build a mesh from user arrays, fixing a globally reversed orientation.
@@ -410,6 +464,7 @@ class TetMesh:
         mesh = cls(
             points, tets, region, protected_faces, protected_edges, protected_face_labels,
             protected_vertices, protected_edge_labels, protected_vertex_labels, label_names,
+            periodic,
         )  # fmt: skip
         vol = _orient_volumes6(mesh.points, mesh.tets)
         neg, pos = int((vol < 0).sum()), int((vol > 0).sum())
@@ -465,10 +520,15 @@ class TetMesh:
         Reads a ``region`` cell array when present (also ``gmsh:physical``,
         ``medit:ref``, ``CellEntityIds`` as written by meshio / VTK readers).
         """
-        from ._io import grid_label_names, grid_to_arrays
+        from ._io import grid_label_names, grid_periodic, grid_to_arrays
 
         arrays = grid_to_arrays(grid, source)
-        return cls.from_arrays(*arrays, label_names=grid_label_names(grid, source), source=source)
+        return cls.from_arrays(
+            *arrays,
+            label_names=grid_label_names(grid, source),
+            periodic=grid_periodic(grid, source),
+            source=source,
+        )
 
     def replace(self, **changes) -> TetMesh:
         """A copy with some fields replaced; the constructor's checks run on the replaced

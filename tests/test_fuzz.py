@@ -35,8 +35,9 @@ WEIGHTS = {
     "face_pass": 0.15,
     "smooth_pass": 0.05,  # ~10x the cost of an edge pass (JIT per star capacity)
     "improve": 0.15,
-    "improve_damaged": 0.15,
+    "improve_damaged": 0.10,
     "improve_regions": 0.05,
+    "improve_periodic": 0.05,
 }
 
 settings.register_profile(
@@ -221,3 +222,32 @@ def test_improve_some_regions(spec, opts, data):
     InvariantChecker(mesh._with_feature_angle(opts.feature_angle)).check(out, -1, "regions")
     assert out.quality(opts.quality).min() >= mesh.quality(opts.quality).min()
     assert _bad(out) <= _bad(mesh)
+
+
+@_cases("improve_periodic")
+@given(mesh_specs(), options(), st.data())
+def test_improve_keeps_periodic_vertices_and_boundary_edges(spec, opts, data):
+    # periodic links (TetMesh.periodic) on random boundary vertices: none of them moves,
+    # every boundary edge between two of them stays, the links come back unchanged
+    mesh = build_mesh(spec)
+    assume(mesh is not None)
+    T = mesh.topology
+    boundary = np.unique(T.faces[T.boundary_face])
+    assume(len(boundary) >= 4)
+    k = data.draw(st.integers(2, len(boundary) // 2 * 2))
+    seed = data.draw(st.integers(0, 2**32 - 1))
+    chosen = np.random.default_rng(seed).choice(boundary, k - k % 2, replace=False)
+    linked = mesh.replace(periodic=[(2, (2, 1), None, chosen.reshape(-1, 2))])
+    on = np.zeros(mesh.n_points, bool)
+    on[chosen] = True
+    kept = T.edges[T.edge_boundary & on[T.edges].all(axis=1)]
+    result = jtet.improve(linked, opts)
+    assert not result.status.startswith("invariant violation"), (spec, opts, result.status)
+    out = result.mesh
+    np.testing.assert_array_equal(out.points[chosen], mesh.points[chosen])
+    T2 = out.topology
+    edges = {tuple(e) for e in np.sort(T2.edges[T2.edge_boundary], axis=1).tolist()}
+    assert {tuple(e) for e in np.sort(kept, axis=1).tolist()} <= edges
+    assert len(out.periodic) == 1 and np.array_equal(out.periodic[0].pairs, chosen.reshape(-1, 2))
+    np.testing.assert_array_equal(out.protected_vertices, mesh.protected_vertices)
+    np.testing.assert_array_equal(out.protected_edges, mesh.protected_edges)
