@@ -417,26 +417,12 @@ def _improve_periodic(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
     never removed nor moved) and its periodic links."""
     import dataclasses
 
-    from ._submesh import CUT_LABEL
-
     verts = np.unique(np.concatenate([link.pairs.reshape(-1) for link in mesh.periodic]))
     T = mesh.topology
     on = np.zeros(mesh.n_points, bool)
     on[verts] = True
     edges = T.edges[T.edge_boundary & on[T.edges].all(axis=1)]
-    # listed after the mesh's own: an entity listed twice keeps its first label
-    pinned = mesh.replace(
-        periodic=(),
-        protected_edges=np.concatenate([mesh.protected_edges, edges]),
-        protected_edge_labels=np.concatenate(
-            [mesh.protected_edge_labels, np.full(len(edges), CUT_LABEL)]
-        ),
-        protected_vertices=np.concatenate([mesh.protected_vertices, verts]),
-        protected_vertex_labels=np.concatenate(
-            [mesh.protected_vertex_labels, np.full(len(verts), CUT_LABEL)]
-        ),
-    )
-    result = improve(pinned, opts, callback=callback)
+    result = improve(mesh._with_pinned(edges, verts, periodic=()), opts, callback=callback)
     out = result.mesh.replace(
         protected_edges=mesh.protected_edges,
         protected_edge_labels=mesh.protected_edge_labels,

@@ -235,6 +235,9 @@ def topology_face_conflicts(tets: np.ndarray, topology) -> tuple[np.ndarray, np.
     return t[mis], np.unique(t[dup], axis=0)
 
 
+#: label of the edges and vertices ``TetMesh._with_pinned`` protects for a run
+PIN_LABEL = -1
+
 #: the kinds of protected entities: their field, their labels' field, their vertex count
 PROTECTED = {
     "face": ("protected_faces", "protected_face_labels", 3),
@@ -604,6 +607,25 @@ class TetMesh:
             label_names=self.label_names,
         )
         return sub._with_feature_angle(self._feature_angle), verts, faces_in
+
+    def _with_pinned(self, edges: np.ndarray, vertices: np.ndarray, **changes) -> TetMesh:
+        """This mesh with ``edges`` (k, 2) and ``vertices`` (j,) protected too (label
+        ``PIN_LABEL``; an entity protected already keeps its own), and ``changes``: a run
+        then removes none of these edges and moves none of these vertices. Runs pin what
+        must come back exactly (a submesh's cut, periodic surfaces) and give the result
+        its own protected entities back."""
+        # listed after the mesh's own: an entity listed twice keeps its first label
+        return self.replace(
+            protected_edges=np.concatenate([self.protected_edges, edges]),
+            protected_edge_labels=np.concatenate(
+                [self.protected_edge_labels, np.full(len(edges), PIN_LABEL)]
+            ),
+            protected_vertices=np.concatenate([self.protected_vertices, vertices]),
+            protected_vertex_labels=np.concatenate(
+                [self.protected_vertex_labels, np.full(len(vertices), PIN_LABEL)]
+            ),
+            **changes,
+        )
 
     def vertex_kinds(self, vids: np.ndarray) -> np.ndarray:
         """(v,) int8 kinds (``_topology`` FREE, SURFACE, SEGMENT, CORNER) of the vertices

@@ -13,9 +13,6 @@ import numpy as np
 
 from ._topology import TET_FACES, corner_counts, match_rows
 
-# label of the edges and vertices ``pinned_cut`` protects (dropped again by ``splice``,
-# which keeps the mesh's own protected edges and vertices)
-CUT_LABEL = -1
 _TRIANGLE_EDGES = np.array([[0, 1], [0, 2], [1, 2]])
 
 
@@ -43,23 +40,12 @@ class Submesh:
         self.cut = outer[match_rows(inner, outer, len(self.verts)) >= 0]
 
     def pinned_cut(self):
-        """``.mesh`` with the edges and vertices of the cut faces protected (label
-        ``CUT_LABEL``): no flip changes a cut face (a 2-2 or 4-4 flip removes one of its
-        edges) and no vertex on one moves, so any run on it splices back."""
-        sub = self.mesh
+        """``.mesh`` with the edges and vertices of the cut faces pinned (protected):
+        no flip changes a cut face (a 2-2 or 4-4 flip removes one of its edges) and no
+        vertex on one moves, so any run on it splices back (``splice`` keeps the
+        mesh's own protected edges and vertices, not these)."""
         edges = self.cut[:, _TRIANGLE_EDGES].reshape(-1, 2)
-        verts = self.cut.reshape(-1)
-        # listed after the submesh's own: an entity listed twice keeps its first label
-        return sub.replace(
-            protected_edges=np.concatenate([sub.protected_edges, edges]),
-            protected_edge_labels=np.concatenate(
-                [sub.protected_edge_labels, np.full(len(edges), CUT_LABEL)]
-            ),
-            protected_vertices=np.concatenate([sub.protected_vertices, verts]),
-            protected_vertex_labels=np.concatenate(
-                [sub.protected_vertex_labels, np.full(len(verts), CUT_LABEL)]
-            ),
-        )
+        return self.mesh._with_pinned(edges, self.cut.reshape(-1))
 
     @staticmethod
     def boundary_faces(sub) -> np.ndarray:
