@@ -263,8 +263,9 @@ class ImproveResult:
     ``mesh`` is then the last mesh that passed the checks). ``notes`` are sentences for
     the user that ``summary()`` prints after the table, e.g. that the worst tet has all
     its vertices on the fixed boundary and ``boundary="slide"`` may free it.
-    ``selected_stats`` (with ``Options.regions``): the statistics of the selected
-    regions' tets before and after (``stats_before`` / ``stats_after`` are the whole
+    ``selected_stats`` (with ``Options.regions`` or ``TetMesh.protected_tets``): the
+    statistics of the tets the run could change (those of the regions, minus the
+    protected ones) before and after (``stats_before`` / ``stats_after`` are the whole
     mesh's), None otherwise.
     """
 
@@ -284,10 +285,17 @@ class ImproveResult:
 
         stats, labels = (self.stats_before, self.stats_after), ("before", "after")
         if self.selected_stats is not None:  # the whole mesh, then the regions improved
-            names = self.mesh.label_names
-            which = ",".join(names.get((3, r), str(r)) for r in self.options.regions)
+            names, regions = self.mesh.label_names, self.options.regions
+            which = ", ".join(
+                (
+                    [("regions " + ",".join(names.get((3, r), str(r)) for r in regions))]
+                    if regions
+                    else []
+                )
+                + (["unprotected"] if len(self.mesh.protected_tets) else [])
+            )
             stats += tuple(self.selected_stats)
-            labels += (f"before (regions {which})", f"after (regions {which})")
+            labels += (f"before ({which})", f"after ({which})")
         table = format_table(*stats, time_s=self.seconds, labels=labels)
         return "\n".join([table, *(f"note: {n}" for n in self.notes)])
 
@@ -344,10 +352,20 @@ def improve(
     mesh = mesh._with_feature_angle(opts.feature_angle)
     if mesh.periodic:
         return _improve_periodic(mesh, opts, callback)
-    if opts.regions is not None:
-        sel = _selected_tets(mesh, opts.regions)
+    if opts.regions is not None or len(mesh.protected_tets):
+        # the run changes only these tets: those of the regions, minus the protected ones
+        sel = np.ones(mesh.n_tets, bool)
+        if opts.regions is not None:
+            sel = _selected_tets(mesh, opts.regions)
+        sel &= ~mesh.protected_tet_mask()
+        if not sel.any():
+            raise MeshInputError(
+                "nothing to improve: every tet "
+                + ("of the regions option's regions " if opts.regions is not None else "")
+                + "is a protected tet"
+            )
         if not sel.all():
-            return _improve_regions(mesh, sel, opts, callback, t0)
+            return _improve_part(mesh, sel, opts, callback, t0)
     specs = _pass_kernel_specs(opts, mesh.n_tets)
     # the run's kernels that earlier processes left on disk load on background threads
     # while the checks build the mesh's topology (NumPy sorts that release the GIL)
@@ -447,21 +465,31 @@ def _selected_tets(mesh: TetMesh, regions: tuple[int, ...]) -> np.ndarray:
     return np.isin(mesh.region, regions)
 
 
-def _improve_regions(mesh: TetMesh, sel, opts: Options, callback, t0: float) -> ImproveResult:
+def _improve_part(mesh: TetMesh, sel, opts: Options, callback, t0: float) -> ImproveResult:
     """``improve`` of the tets ``sel`` (m,) as a mesh of their own, spliced back into
-    ``mesh`` (``Options.regions``): the other tets, their vertices and the faces they
-    share with ``sel``'s stay exactly as they are."""
+    ``mesh`` (``Options.regions``, ``TetMesh.protected_tets``): the other tets, their
+    vertices and the faces they share with ``sel``'s stay exactly as they are."""
+    from ._predicates import orient3d_tets
     from ._stats import mesh_stats
     from ._submesh import Submesh
 
     _require_conforming(mesh)  # the whole input, as a run on all of it would
+    bad = int((orient3d_tets(mesh.points, mesh.tets) <= 0).sum())
+    if bad:
+        # the part's run sees nothing of the tets around it, and where tets overlap
+        # (inverted) or are flat, a flip there can make a face that one of those has
+        raise MeshInputError(
+            f"the mesh has {bad} inverted or degenerate tet(s); improving only some of its "
+            "tets (regions, protected tets) needs a mesh without: improve it whole first"
+        )
     part = Submesh(mesh, sel)
     # the cut faces' edges and vertices protected: no flip or move can change them
     result = improve(part.pinned_cut(), opts.replace(regions=None), callback=callback)
     spliced = part.splice(mesh, result.mesh)
-    if spliced is None:  # the protected cut makes this impossible
+    if spliced is None:  # the pinned cut and valid tets make this impossible
         raise InvariantError(
-            "the run on the selected regions changed a face they share with the others"
+            "the run on the selected tets changed a face they share with the others, or made "
+            "a face of another tet"
         )
     new, status = spliced[0], result.status
     if opts.check:
@@ -476,10 +504,15 @@ def _improve_regions(mesh: TetMesh, sel, opts: Options, callback, t0: float) -> 
     measure = opts.quality
     outside = stats_after.quality_min[measure] < result.stats_after.quality_min[measure]
     if outside:
-        others = ", ".join(map(str, np.unique(mesh.region[~sel])))
+        why = []
+        if len(mesh.protected_tets):
+            why.append("a protected tet")
+        if opts.regions is not None and not np.isin(mesh.region, opts.regions).all():
+            others = ", ".join(map(str, np.setdiff1d(mesh.region, opts.regions)))
+            why.append(f"in region(s) {others}, not in the regions option")
         notes.append(
-            f"the worst tet by {measure} ({stats_after.quality_min[measure]:.4f}) is in a "
-            f"region the run left alone (region(s) {others}, not in the regions option)"
+            f"the worst tet by {measure} ({stats_after.quality_min[measure]:.4f}) is one "
+            f"the run left alone ({' or '.join(why)})"
         )
     return ImproveResult(
         mesh=new,

@@ -51,6 +51,7 @@ LABEL_NAMES_ARRAY = "jtet:label_names"
 #: field data of VTK files: the UTF-8 bytes of a JSON list of the periodic links,
 #: [dim, slave tag, master tag, 16 affine numbers or null, [[slave, master], ...]]
 PERIODIC_ARRAY = "jtet:periodic"
+PROTECTED_TETS_ARRAY = "jtet:protected_tets"
 PROTECTED_FACE_LABELS_ARRAY = "jtet:protected_face_labels"
 
 _VTK_TETRA = 10
@@ -334,6 +335,8 @@ def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
             for p in mesh.periodic
         ]
         grid.field_data[PERIODIC_ARRAY] = _json_bytes(links)
+    if len(mesh.protected_tets):
+        grid.field_data[PROTECTED_TETS_ARRAY] = np.array(mesh.protected_tets)
     return grid
 
 
@@ -416,8 +419,8 @@ def _read_vtk_file(path: Path, fmt: str):
 
 
 def _vtk_arrays_here(path: Path, fmt: str, source: str):
-    """(``grid_to_arrays``, ``grid_label_names``) of the VTK file ``path``, read in this
-    process."""
+    """(``grid_to_arrays``, {``TetMesh.from_arrays`` keyword: value} of what field data
+    holds besides) of the VTK file ``path``, read in this process."""
     try:
         grid = _read_vtk_file(path, fmt)
     except MeshFileError:
@@ -426,7 +429,18 @@ def _vtk_arrays_here(path: Path, fmt: str, source: str):
         raise MeshFileError(
             f"{path}: not a readable {_FORMAT_NAMES[fmt]} file ({_reason(e)})"
         ) from None
-    return grid_to_arrays(grid, source), grid_label_names(grid, source), grid_periodic(grid, source)
+    return grid_to_arrays(grid, source), grid_extras(grid, source)
+
+
+def grid_extras(grid, source: str = "pyvista grid") -> dict:
+    """{``TetMesh.from_arrays`` keyword: value} of what ``mesh_to_grid`` puts in field
+    data besides the protected faces, edges and vertices: label names, periodic links,
+    protected tets."""
+    return {
+        "label_names": grid_label_names(grid, source),
+        "periodic": grid_periodic(grid, source),
+        "protected_tets": _field_entities(grid, PROTECTED_TETS_ARRAY, 4, source),
+    }
 
 
 def _json_field(grid, name: str, source: str):
@@ -990,7 +1004,7 @@ def _lower_blocks(mesh: TetMesh, fmt: str) -> list[tuple[str, np.ndarray, np.nda
     stores as elements: the faces as triangles tagged with their labels (Gmsh physical
     surfaces, Medit references: what solvers read), the edges as lines and, in Gmsh
     files, the vertices as point elements, each tagged with its label (Medit files get
-    ``RequiredVertices``, which hold no labels: ``_append_required_vertices``)."""
+    ``RequiredVertices``, which hold no labels: ``_append_required``)."""
     out = []
     if len(mesh.protected_faces):
         out.append(("triangle", mesh.protected_faces, mesh.protected_face_labels))
@@ -1002,21 +1016,20 @@ def _lower_blocks(mesh: TetMesh, fmt: str) -> list[tuple[str, np.ndarray, np.nda
     return out
 
 
-# the keyword with what may surround it on its line (from the character before it)
-_REQUIRED_VERTICES = re.compile(rb"(?:^|[\s])RequiredVertices[ \t]*\r?(?:\n|$)")
-
-
-def _medit_required_vertices(path: Path) -> np.ndarray | None:
-    """0-based ids (k,) of an ASCII Medit file's ``RequiredVertices`` (vertices MMG
-    never moves; meshio skips the section), None without one."""
+def _medit_required(path: Path, section: str) -> np.ndarray | None:
+    """0-based ids (k,) of an ASCII Medit file's ``RequiredVertices`` or
+    ``RequiredTetrahedra`` (``section``: vertices MMG never moves, tets it never
+    changes; meshio skips them), None without one."""
     import mmap
 
-    keyword = b"RequiredVertices"
+    keyword = section.encode()
+    # the keyword with what may surround it on its line (from the character before it)
+    alone = re.compile(rb"(?:^|[\s])" + keyword + rb"[ \t]*\r?(?:\n|$)")
     with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
         # find(), not a regular expression over the whole file: 34 -> 2 ms for a
         # 182k-tet file; the keyword must stand alone on its line
         at = data.find(keyword)
-        while at >= 0 and not _REQUIRED_VERTICES.match(data[max(at - 1, 0) : at + 20]):
+        while at >= 0 and not alone.match(data[max(at - 1, 0) : at + len(keyword) + 4]):
             at = data.find(keyword, at + 1)
         if at < 0:
             return None
@@ -1036,12 +1049,74 @@ def _medit_required_vertices(path: Path) -> np.ndarray | None:
         or values is None
         or (values < 1).any()
     ):
-        raise MeshInputError(f"{path}: unreadable RequiredVertices section")
+        raise MeshInputError(f"{path}: unreadable {section} section")
     return values - 1
 
 
-def _append_required_vertices(path: Path, vertices: np.ndarray) -> None:
-    """Put the protected ``vertices`` (k,) as ``RequiredVertices`` (1-based) before the
+# Medit sections of MMG's that meshio 5.3 refuses ("Unknown keyword"), all a count and as
+# many ids: jtet reads RequiredTetrahedra itself (``_medit_required_tets``); the
+# triangles and edges the others name are protected faces and edges anyway
+_MESHIO_UNKNOWN_SECTIONS = (
+    "RequiredTetrahedra",
+    "RequiredTriangles",
+    "RequiredEdges",
+    "RequiredQuadrilaterals",
+)
+
+
+def _medit_without_unknown_sections(path: Path) -> Path | None:
+    """A temporary copy of the ASCII Medit file ``path`` without the sections of
+    ``_MESHIO_UNKNOWN_SECTIONS`` (for meshio to read), or None when it has none of them.
+    The caller removes the copy."""
+    import mmap
+
+    with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
+        cuts = []
+        for section in _MESHIO_UNKNOWN_SECTIONS:
+            keyword = section.encode()
+            alone = re.compile(rb"(?:^|[\s])" + keyword + rb"[ \t]*\r?(?:\n|$)")
+            at = data.find(keyword)
+            while at >= 0:
+                if alone.match(data[max(at - 1, 0) : at + len(keyword) + 4]):
+                    end = at + len(keyword)
+                    head = data[end : end + 32].split(maxsplit=1)
+                    count = int(head[0]) if head and head[0].isdigit() else -1
+                    tokens = list(re.finditer(rb"\S+", data[end : end + 32 + 24 * max(count, 0)]))
+                    if count < 0 or len(tokens) < count + 1:
+                        raise MeshInputError(f"{path}: unreadable {section} section")
+                    cuts.append((at, end + tokens[count].end()))
+                at = data.find(keyword, at + 1)
+        if not cuts:
+            return None
+        cuts.sort()
+        import tempfile
+
+        fd, name = tempfile.mkstemp(prefix="jtet-medit-", suffix=".mesh")
+        tmp = Path(name)
+        with os.fdopen(fd, "wb") as out:
+            start = 0
+            for a, b in cuts:
+                out.write(data[start:a])
+                start = b
+            out.write(data[start:])
+    return tmp
+
+
+def _medit_required_tets(path: Path, tets: np.ndarray) -> np.ndarray | None:
+    """The tets (k, 4) of ``tets`` (the file's, in its order) that the Medit file's
+    ``RequiredTetrahedra`` lists; None without the section."""
+    ids = _medit_required(path, "RequiredTetrahedra")
+    if ids is None:
+        return None
+    if len(ids) and ids.max() >= len(tets):
+        raise MeshInputError(
+            f"{path}: RequiredTetrahedra lists tet {int(ids.max()) + 1} of {len(tets)}"
+        )
+    return tets[ids]
+
+
+def _append_required(path: Path, sections: dict[str, np.ndarray]) -> None:
+    """Put each of ``sections`` (Medit keyword -> 0-based ids (k,)), 1-based, before the
     final ``End`` of the ASCII Medit file meshio wrote at ``path``."""
     with open(path, "r+b") as f:
         f.seek(max(f.seek(0, os.SEEK_END) - 64, 0))
@@ -1051,8 +1126,10 @@ def _append_required_vertices(path: Path, vertices: np.ndarray) -> None:
             raise MeshFileError(f"{path}: the Medit file has no final End")
         f.seek(f.tell() - len(tail) + end)
         f.truncate()
-        ids = "\n".join(map(str, (np.asarray(vertices) + 1).tolist()))
-        f.write(f"RequiredVertices\n{len(vertices)}\n{ids}\n\nEnd\n".encode())
+        for keyword, values in sections.items():
+            ids = "\n".join(map(str, (np.asarray(values) + 1).tolist()))
+            f.write(f"{keyword}\n{len(values)}\n{ids}\n\n".encode())
+        f.write(b"End\n")
 
 
 # ---------------------------------------------------------------------------------------
@@ -1137,27 +1214,35 @@ def load(path: str | os.PathLike) -> TetMesh:
             raise MeshFileError(f"{p}: the TetGen companion file {other.name} is missing")
         _check_tetgen_elements(p.with_suffix(".ele"))
     source = str(p)
-    names = periodic = None
+    extras = {}
     if fmt in ("vtu", "vtk"):
-        arrays, names, periodic = _vtk_file_arrays(p, fmt, source)
+        arrays, extras = _vtk_file_arrays(p, fmt, source)
     else:
         captured = ""
+        readable = _medit_without_unknown_sections(p) if ext == ".mesh" else None
         try:
             with _quiet_meshio() as buf, gmsh_read_mends():
-                m = _meshio_module(fmt).read(str(p))
+                m = _meshio_module(fmt).read(str(readable or p))
         except Exception as e:
             captured = buf.getvalue()
             raise MeshFileError(
                 f"{p}: not a readable {_FORMAT_NAMES[fmt]} file ({_reason(e, captured)})"
             ) from None
+        finally:
+            if readable is not None:
+                readable.unlink(missing_ok=True)
         faces = _tetgen_faces(p.with_suffix(".node")) if fmt == "tetgen" else None
-        required = _medit_required_vertices(p) if ext == ".mesh" else None
+        required = _medit_required(p, "RequiredVertices") if ext == ".mesh" else None
         arrays = _meshio_to_arrays(m, source, fmt, faces, required)
         if fmt == "gmsh":
-            names = _gmsh_label_names(m, source)
-            periodic = _gmsh_periodic(m, source)
+            extras = {
+                "label_names": _gmsh_label_names(m, source),
+                "periodic": _gmsh_periodic(m, source),
+            }
+        if ext == ".mesh":
+            extras["protected_tets"] = _medit_required_tets(p, arrays[1])
     try:
-        return TetMesh.from_arrays(*arrays, label_names=names, periodic=periodic, source=source)
+        return TetMesh.from_arrays(*arrays, **extras, source=source)
     except MeshInputError as e:
         msg = str(e)
         raise MeshInputError(msg if msg.startswith(source) else f"{source}: {msg}") from None
@@ -1175,8 +1260,14 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict) -> None:
             _meshio_module(fmt).write(str(tmp), m, fmt_version="2.2", binary=True)
         else:
             _meshio_module(fmt).write(str(tmp), m)
-    if fmt == "medit" and len(mesh.protected_vertices) and tmp.suffix.lower() == ".mesh":
-        _append_required_vertices(tmp, mesh.protected_vertices)
+    if fmt == "medit" and tmp.suffix.lower() == ".mesh":
+        sections = {
+            "RequiredVertices": mesh.protected_vertices,
+            "RequiredTetrahedra": np.flatnonzero(mesh.protected_tet_mask()),
+        }
+        sections = {k: v for k, v in sections.items() if len(v)}
+        if sections:
+            _append_required(tmp, sections)
     if fmt == "tetgen" and len(mesh.protected_faces):
         _write_tetgen_faces(tmp.with_suffix(".face"), mesh)
 
@@ -1292,6 +1383,8 @@ def save(
             dropped.append(f"{len(mesh.label_names)} label name(s) (Gmsh physical names)")
         if mesh.periodic:
             dropped.append(f"{len(mesh.periodic)} periodic link(s)")
+        if len(mesh.protected_tets) and (fmt == "tetgen" or ext == ".meshb"):
+            dropped.append("protected tets")
         if dropped:
             stored = {
                 ".mesh": "region labels and protected faces, edges and vertices",
@@ -1303,6 +1396,13 @@ def save(
                 stacklevel=2,
             )
     elif fmt == "gmsh":
+        if len(mesh.protected_tets):
+            warnings.warn(
+                f"{p}: the Gmsh format has no protected tets; not saved: "
+                f"{len(mesh.protected_tets)} protected tet(s) (a physical volume of their "
+                "own keeps them apart: improve --regions)",
+                stacklevel=2,
+            )
         if _lower_blocks(mesh, fmt) and cell_data:
             # meshio 5.3's Gmsh 2.2 reader splits element data over two or more element
             # blocks at element 2 and refuses its own file ("Incompatible cell data"),

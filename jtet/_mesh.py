@@ -274,6 +274,9 @@ class TetMesh:
             periodic surfaces, curves and points). ``improve`` keeps these vertices in
             place and the boundary edges between them, so the periodic surfaces keep
             matching triangulations, and the savers write the links back.
+        protected_tets: (k, 4) int64 tets that ``improve`` leaves exactly as they are
+            (sorted vertex rows; MMG's ``RequiredTetrahedra``, the VTK cell array
+            ``jtet:protected_tet``), with their vertices and faces.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it
@@ -291,6 +294,7 @@ class TetMesh:
     protected_vertex_labels: Int[np.ndarray, " k"] = field(default=None)
     label_names: dict = field(default=None)
     periodic: tuple = field(default=None)
+    protected_tets: Int[np.ndarray, "k 4"] = field(default=None)
 
     def __post_init__(self):
         points = _checked_points(self.points)
@@ -311,6 +315,8 @@ class TetMesh:
             object.__setattr__(self, label_name, _readonly(labels))
         object.__setattr__(self, "label_names", _checked_names(self.label_names))
         object.__setattr__(self, "periodic", _checked_periodic(self.periodic, len(points)))
+        pt = self._entity_array(self.protected_tets, 4, "protected_tets", len(points))
+        object.__setattr__(self, "protected_tets", _readonly(pt))
 
     def _derive(self, *, tets_checked: int = 0, **changes) -> TetMesh:
         """``replace(**changes)`` checking only what is new.
@@ -366,6 +372,12 @@ class TetMesh:
         if "periodic" in changes or len(points) < self.n_points:
             periodic = _checked_periodic(changes.get("periodic", periodic), len(points))
         object.__setattr__(out, "periodic", periodic)
+        pt = self.protected_tets
+        if "protected_tets" in changes or len(points) < self.n_points:
+            pt = self._entity_array(
+                changes.get("protected_tets", pt), 4, "protected_tets", len(points)
+            )
+        object.__setattr__(out, "protected_tets", _readonly(pt))
         return out
 
     @staticmethod
@@ -452,6 +464,7 @@ class TetMesh:
         *,
         label_names=None,
         periodic=None,
+        protected_tets=None,
         source: str = "input",
     ) -> TetMesh:
         """Build a mesh from user arrays, fixing a globally reversed orientation.
@@ -467,7 +480,7 @@ class TetMesh:
         mesh = cls(
             points, tets, region, protected_faces, protected_edges, protected_face_labels,
             protected_vertices, protected_edge_labels, protected_vertex_labels, label_names,
-            periodic,
+            periodic, protected_tets,
         )  # fmt: skip
         vol = _orient_volumes6(mesh.points, mesh.tets)
         neg, pos = int((vol < 0).sum()), int((vol > 0).sum())
@@ -523,15 +536,10 @@ class TetMesh:
         Reads a ``region`` cell array when present (also ``gmsh:physical``,
         ``medit:ref``, ``CellEntityIds`` as written by meshio / VTK readers).
         """
-        from ._io import grid_label_names, grid_periodic, grid_to_arrays
+        from ._io import grid_extras, grid_to_arrays
 
         arrays = grid_to_arrays(grid, source)
-        return cls.from_arrays(
-            *arrays,
-            label_names=grid_label_names(grid, source),
-            periodic=grid_periodic(grid, source),
-            source=source,
-        )
+        return cls.from_arrays(*arrays, **grid_extras(grid, source), source=source)
 
     def replace(self, **changes) -> TetMesh:
         """A copy with some fields replaced; the constructor's checks run on the replaced
@@ -594,6 +602,7 @@ class TetMesh:
         edges_in = match_rows(edges, self.protected_edges, n) >= 0
         pv_local = local[self.protected_vertices]
         pv_in = pv_local >= 0
+        protected = tets[self.protected_tet_mask()[sel]] if len(self.protected_tets) else tets[:0]
         sub = TetMesh(
             self.points[verts],
             local[tets],
@@ -605,8 +614,26 @@ class TetMesh:
             protected_edge_labels=self.protected_edge_labels[edges_in],
             protected_vertex_labels=self.protected_vertex_labels[pv_in],
             label_names=self.label_names,
+            protected_tets=local[protected],
         )
         return sub._with_feature_angle(self._feature_angle), verts, faces_in
+
+    def protected_tet_mask(self) -> np.ndarray:
+        """(m,) bool: the tets listed in ``protected_tets``. ``MeshInputError`` when one
+        of those is no tet of this mesh."""
+        from ._topology import match_rows
+
+        mask = np.zeros(self.n_tets, bool)
+        if not len(self.protected_tets):
+            return mask
+        at = match_rows(self.tets, self.protected_tets, self.n_points)
+        if (at < 0).any():
+            bad = self.protected_tets[at < 0]
+            raise MeshInputError(
+                f"{len(bad)} protected tet(s) are no tets of the mesh (first: {bad[0].tolist()})"
+            )
+        mask[at] = True
+        return mask
 
     def _with_pinned(self, edges: np.ndarray, vertices: np.ndarray, **changes) -> TetMesh:
         """This mesh with ``edges`` (k, 2) and ``vertices`` (j,) protected too (label
@@ -673,5 +700,7 @@ class TetMesh:
         return (
             f"TetMesh({self.n_points} points, {self.n_tets} tets, {nreg} region(s), "
             f"{len(self.protected_faces)} protected faces, {len(self.protected_edges)} protected edges"
-            + (f", {pv} protected vertices)" if pv else ")")
+            + (f", {pv} protected vertices" if pv else "")
+            + (f", {len(self.protected_tets)} protected tets" if len(self.protected_tets) else "")
+            + ")"
         )

@@ -37,7 +37,12 @@ class Submesh:
         outer = local[mesh.tets[near][:, TET_FACES].reshape(-1, 3)]
         outer = np.sort(outer[(outer >= 0).all(axis=1)], axis=1)
         inner = self.mesh.tets[:, TET_FACES].reshape(-1, 3)
-        self.cut = outer[match_rows(inner, outer, len(self.verts)) >= 0]
+        shared = match_rows(inner, outer, len(self.verts)) >= 0
+        self.cut = outer[shared]
+        # faces of outside tets whose three vertices are in the submesh but that no
+        # submesh tet has: a run on the submesh must not create one (in a mesh without
+        # inverted or degenerate tets it cannot: the new tets fill the old ones' space)
+        self.ghosts = outer[~shared]
 
     def pinned_cut(self):
         """``.mesh`` with the edges and vertices of the cut faces pinned (protected):
@@ -57,7 +62,8 @@ class Submesh:
     def splice(self, mesh, sub):
         """(new mesh, keep (m,)): ``mesh`` with these tets replaced by ``sub``'s, its
         moved vertices moved and its new vertices appended, or None if ``sub`` changed a
-        cut face (a flip of two coplanar cut faces would not fit the mesh around). The
+        cut face (a flip of two coplanar cut faces would not fit the mesh around) or
+        made a face that a tet outside has (``ghosts``: it would lie in three tets). The
         new mesh keeps ``mesh``'s protected edges and vertices (those of ``sub`` are
         theirs, never removed nor moved, or ``pinned_cut``'s).
 
@@ -66,6 +72,10 @@ class Submesh:
         vertex often needs one (holeplate: the hole's top seam)."""
         if (match_rows(self.boundary_faces(sub), self.cut, sub.n_points) < 0).any():
             return None
+        if len(self.ghosts):
+            faces = np.sort(sub.tets[:, TET_FACES].reshape(-1, 3), axis=1)
+            if (match_rows(faces, self.ghosts, sub.n_points) >= 0).any():
+                return None
         n_old = len(self.verts)
         to_global = np.concatenate([self.verts, mesh.n_points + np.arange(sub.n_points - n_old)])
         points = np.concatenate([mesh.points, sub.points[n_old:]])

@@ -403,6 +403,11 @@ def test_submesh_splice_round_trip_and_boundary_guard():
 
     shared = faces(mesh.tets[sel].tolist()) & faces(mesh.tets[~sel].tolist())
     assert {tuple(f) for f in np.sort(part.verts[part.cut], axis=1).tolist()} == shared
+    # the ghosts: faces of outside tets on three submesh vertices that no submesh tet has
+    inside = set(part.verts.tolist())
+    outside = {f for f in faces(mesh.tets[~sel].tolist()) if set(f) <= inside}
+    ghosts = outside - faces(mesh.tets[sel].tolist())
+    assert {tuple(f) for f in np.sort(part.verts[part.ghosts], axis=1).tolist()} == ghosts
     out, keep = part.splice(mesh, part.mesh)
     np.testing.assert_array_equal(keep, ~sel)
     np.testing.assert_array_equal(out.points, mesh.points)
@@ -414,6 +419,9 @@ def test_submesh_splice_round_trip_and_boundary_guard():
         tets=np.delete(part.mesh.tets, t, 0), region=np.delete(part.mesh.region, t)
     )
     assert part.splice(mesh, smaller) is None
+    # a submesh tet with a face an outside tet has (here: made so) does not splice
+    part.ghosts = np.sort(part.mesh.tets[:1, :3], axis=1)
+    assert part.splice(mesh, part.mesh) is None
 
 
 def _two_cubes():
