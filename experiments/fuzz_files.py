@@ -54,6 +54,7 @@ def _mesh():
         protected_vertices=[1, 5],
         label_names={(3, 1): "odd tets", (2, 1): "first face", (2, 2): "second"},
         periodic=[(2, (2, 1), None, np.unique(faces)[:4].reshape(-1, 2))],
+        protected_tets=mesh.tets[:3],
     )
 
 
