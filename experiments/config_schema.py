@@ -35,7 +35,12 @@ def _omegaconf_type(tp):
             raise TypeError(f"unsupported option type {tp}")
         return Optional[_omegaconf_type(args[0])]  # noqa: UP045 (OmegaConf wants Optional)
     if origin is tuple:
-        return list[typing.get_args(tp)[0]]
+        item = typing.get_args(tp)[0]
+        if typing.get_origin(item) in (types.UnionType, typing.Union):
+            # region labels or names: OmegaConf takes no unions inside containers, and
+            # jtet.Options checks the values anyway
+            return list[Any]
+        return list[item]
     if tp in (int, float, bool, str):
         return tp
     raise TypeError(f"unsupported option type {tp}")

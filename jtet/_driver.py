@@ -356,7 +356,7 @@ def improve(
         # the run changes only these tets: those of the regions, minus the protected ones
         sel = np.ones(mesh.n_tets, bool)
         if opts.regions is not None:
-            sel = _selected_tets(mesh, opts.regions)
+            sel = np.isin(mesh.region, _region_labels(mesh, opts.regions))
         sel &= ~mesh.protected_tet_mask()
         if not sel.any():
             raise MeshInputError(
@@ -451,18 +451,27 @@ def _improve_periodic(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
     return dataclasses.replace(result, mesh=out)
 
 
-def _selected_tets(mesh: TetMesh, regions: tuple[int, ...]) -> np.ndarray:
-    """(m,) bool: the tets whose region is one of ``regions``; ``MeshInputError`` names
-    the labels the mesh does not have."""
+def _region_labels(mesh: TetMesh, regions: tuple[int | str, ...]) -> list[int]:
+    """The labels of ``Options.regions`` in ``mesh``, names resolved through
+    ``mesh.label_names``; ``MeshInputError`` names the labels and names it lacks."""
+    named = {name: label for (dim, label), name in mesh.label_names.items() if dim == 3}
+    unknown = [r for r in regions if isinstance(r, str) and r not in named]
+    if unknown:
+        have = ", ".join(f"{n} ({lb})" for n, lb in named.items()) or "none"
+        raise MeshInputError(
+            f"the mesh has no region named {', '.join(map(repr, unknown))} (regions "
+            f"option); its named regions: {have}"
+        )
+    labels = [named[r] if isinstance(r, str) else r for r in regions]
     present = np.unique(mesh.region)
-    missing = sorted(set(regions) - set(present.tolist()))
+    missing = sorted(set(labels) - set(present.tolist()))
     if missing:
         have = ", ".join(str(r) for r in present[:20]) + (", ..." if len(present) > 20 else "")
         raise MeshInputError(
             f"the mesh has no region {', '.join(map(str, missing))} (regions option); "
             f"its regions are {have}"
         )
-    return np.isin(mesh.region, regions)
+    return labels
 
 
 def _improve_part(mesh: TetMesh, sel, opts: Options, callback, t0: float) -> ImproveResult:
@@ -507,8 +516,9 @@ def _improve_part(mesh: TetMesh, sel, opts: Options, callback, t0: float) -> Imp
         why = []
         if len(mesh.protected_tets):
             why.append("a protected tet")
-        if opts.regions is not None and not np.isin(mesh.region, opts.regions).all():
-            others = ", ".join(map(str, np.setdiff1d(mesh.region, opts.regions)))
+        labels = _region_labels(mesh, opts.regions) if opts.regions is not None else []
+        if opts.regions is not None and not np.isin(mesh.region, labels).all():
+            others = ", ".join(map(str, np.setdiff1d(mesh.region, labels)))
             why.append(f"in region(s) {others}, not in the regions option")
         notes.append(
             f"the worst tet by {measure} ({stats_after.quality_min[measure]:.4f}) is one "

@@ -53,7 +53,8 @@ class Options:
             flipped, so the boundary stays geometrically identical. A positive angle lets
             flips replace subfacets bent by less than it: the boundary and interfaces
             then keep their vertices but their shape (and the region volumes) change.
-        regions: region labels (``TetMesh.region``) whose tets may change, or None (all):
+        regions: region labels (``TetMesh.region``) whose tets may change, or names of
+            regions (``TetMesh.label_names``: Gmsh physical volumes), or None (all):
             the tets of the other regions stay exactly as they are, with their vertices
             and the faces they share with the improved regions, as Gmsh's
             ``optimize(dimTags=...)`` works on the volumes it is given. The run improves
@@ -106,7 +107,7 @@ class Options:
     max_faces: int = 16
     boundary: str = "fixed"
     feature_angle: float = 0.0
-    regions: tuple[int, ...] | None = None
+    regions: tuple[int | str, ...] | None = None
     max_passes: int = 50
     patience: int = 2
     perturb: int = 8
@@ -203,21 +204,30 @@ class Options:
         return d
 
 
-def _region_labels(regions) -> tuple[int, ...] | None:
-    """``Options.regions`` as a sorted tuple of distinct ints (None stays None)."""
+def _region_labels(regions) -> tuple[int | str, ...] | None:
+    """``Options.regions`` as a tuple of distinct labels (ints, sorted) and names (str, in
+    their order) (None stays None)."""
     if regions is None:
         return None
-    if isinstance(regions, numbers.Integral) and not isinstance(regions, bool):
+    if isinstance(regions, numbers.Integral | str) and not isinstance(regions, bool):
         regions = (regions,)
-    if isinstance(regions, str | bytes) or not hasattr(regions, "__iter__"):
+    if isinstance(regions, bytes) or not hasattr(regions, "__iter__"):
         raise JtetError(f"regions must be a list of region labels or None, got {regions!r}")
-    labels = list(regions)
-    bad = [r for r in labels if isinstance(r, bool) or not isinstance(r, numbers.Integral)]
-    if bad or not labels:
-        raise JtetError(
-            f"regions must be a non-empty list of integer region labels, got {regions!r}"
+    items = list(regions)
+
+    def ok(r):
+        return (isinstance(r, numbers.Integral) and not isinstance(r, bool)) or (
+            isinstance(r, str) and r != ""
         )
-    return tuple(sorted({int(r) for r in labels}))
+
+    if not items or not all(ok(r) for r in items):
+        raise JtetError(
+            "regions must be a non-empty list of integer region labels or region names, "
+            f"got {regions!r}"
+        )
+    labels = sorted({int(r) for r in items if not isinstance(r, str)})
+    names = list(dict.fromkeys(r for r in items if isinstance(r, str)))
+    return tuple(labels + names)
 
 
 _FIELDS = frozenset(f.name for f in dataclasses.fields(Options))

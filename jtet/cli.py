@@ -33,7 +33,7 @@ def _ops(text: str) -> tuple[str, ...]:
 
 
 def _regions(text: str) -> tuple[int | str, ...] | None:
-    """Region labels, or names of Gmsh physical volumes (resolved per mesh)."""
+    """Region labels, or names of Gmsh physical volumes (``improve`` resolves them)."""
     if text.strip().lower() == "none":
         return None
     parts = [r.strip() for r in text.split(",")]
@@ -42,22 +42,6 @@ def _regions(text: str) -> tuple[int | str, ...] | None:
             f"expected comma-separated region labels or names, got {text!r}"
         )
     return tuple(int(r) if r.lstrip("+-").isdigit() else r for r in parts)
-
-
-def _region_labels(regions, mesh) -> tuple[int, ...] | None:
-    """``--regions`` with names of the mesh's regions (``TetMesh.label_names``, Gmsh
-    physical volumes) replaced by their labels."""
-    if regions is None or all(isinstance(r, int) for r in regions):
-        return regions
-    named = {name: label for (dim, label), name in mesh.label_names.items() if dim == 3}
-    unknown = [r for r in regions if isinstance(r, str) and r not in named]
-    if unknown:
-        have = ", ".join(f"{n} ({lb})" for n, lb in named.items()) or "none"
-        raise JtetError(
-            f"--regions: the mesh has no region named {', '.join(map(repr, unknown))}; "
-            f"its named regions: {have}"
-        )
-    return tuple(named[r] if isinstance(r, str) else r for r in regions)
 
 
 def _add_quality(p: argparse.ArgumentParser, help: str) -> None:
@@ -187,11 +171,9 @@ def _optional_float(text: str) -> float | None:
     return None if text.lower() == "none" else float(text)
 
 
-def _options_from(args, mesh=None) -> Options:
+def _options_from(args) -> Options:
     names = {f.name for f in dataclasses.fields(Options)}
     kw = {k: v for k, v in vars(args).items() if k in names}
-    if mesh is not None and kw.get("regions") is not None:
-        kw["regions"] = _region_labels(kw["regions"], mesh)
     return Options(**kw)
 
 
@@ -244,7 +226,7 @@ def _improve_and_save(mesh, out: Path, args, prefix: str = ""):
     from ._io import save
     from ._report import quality_cell_data
 
-    opts = _options_from(args, mesh)
+    opts = _options_from(args)
     progress = _Progress(opts.max_passes, args.quiet, prefix)
     result = improve(mesh, opts, callback=progress)
     progress.done()

@@ -147,6 +147,16 @@ def test_cli_regions_by_name(tmp_path, capsys):
     assert main(["improve", str(src), str(by_label), "--regions", "1", "--ops", "edge", "-q"]) == 0
     a, b = jtet.load(by_name), jtet.load(by_label)
     assert np.array_equal(a.tets, b.tets) and np.array_equal(a.points, b.points)
+    # the API and options files take the names too
+    api = jtet.improve(jtet.load(src), regions=["ball"], ops=("edge",)).mesh
+    assert np.array_equal(api.tets, b.tets)
+    (tmp_path / "o.yaml").write_text("regions: [ball]\nops: [edge]\n")
+    assert jtet.load_options(tmp_path / "o.yaml").regions == ("ball",)
+    by_file = tmp_path / "d.vtu"
+    assert (
+        main(["improve", str(src), str(by_file), "--options", str(tmp_path / "o.yaml"), "-q"]) == 0
+    )
+    assert np.array_equal(jtet.load(by_file).tets, b.tets)
     capsys.readouterr()
     assert main(["improve", str(src), str(tmp_path / "c.vtu"), "--regions", "fluid,2"]) == 2
     err = capsys.readouterr().err

@@ -94,7 +94,7 @@ def test_unknown_regions_are_refused(mesh):
         jtet.improve(mesh, regions=[1, 3, 9])
 
 
-@pytest.mark.parametrize("bad", [[], "1", [1.5], [True], {"a": 1}.keys()])
+@pytest.mark.parametrize("bad", [[], [1.5], [True], [""], b"1", [None]])
 def test_regions_option_is_checked(bad):
     with pytest.raises(jtet.JtetError, match="regions must be"):
         jtet.Options(regions=bad)
@@ -102,6 +102,9 @@ def test_regions_option_is_checked(bad):
 
 def test_regions_option_forms(tmp_path):
     assert jtet.Options(regions=[3, 1, 3]).regions == (1, 3)
+    # names (of Gmsh physical volumes, resolved by improve) after the labels, in order
+    assert jtet.Options(regions=["solid", 2, "fluid", "solid"]).regions == (2, "solid", "fluid")
+    assert jtet.Options(regions="fluid").regions == ("fluid",)
     assert jtet.Options(regions=np.int64(2)).regions == (2,)
     assert jtet.Options().as_dict()["regions"] is None
     path = tmp_path / "o.yaml"
