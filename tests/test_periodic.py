@@ -138,3 +138,17 @@ def test_periodic_field_is_checked():
                 [(2, 1)]):  # fmt: skip
         with pytest.raises(jtet.MeshInputError, match="periodic"):
             mesh.replace(periodic=bad)
+
+
+def test_periodic_links_with_protected_tets(tmp_path):
+    # the periodic pins wrap the protected tets' part run: both hold
+    src = tmp_path / "box.msh"
+    _periodic_box(src)
+    mesh = jtet.load(src)
+    kept = mesh.tets[np.argsort(mesh.quality())[:5]]
+    r = jtet.improve(mesh.replace(protected_tets=kept), boundary="slide", check=True)
+    assert r.status == "converged" and r.selected_stats is not None
+    _assert_periodic(r.mesh)
+    rows = {tuple(t) for t in np.sort(r.mesh.tets, axis=1).tolist()}
+    assert all(tuple(t) in rows for t in np.sort(kept, axis=1).tolist())
+    assert np.array_equal(r.mesh.protected_edges, mesh.protected_edges)
