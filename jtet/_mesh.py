@@ -702,5 +702,6 @@ class TetMesh:
             f"{len(self.protected_faces)} protected faces, {len(self.protected_edges)} protected edges"
             + (f", {pv} protected vertices" if pv else "")
             + (f", {len(self.protected_tets)} protected tets" if len(self.protected_tets) else "")
+            + (f", {len(self.periodic)} periodic links" if self.periodic else "")
             + ")"
         )
