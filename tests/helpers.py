@@ -1,5 +1,6 @@
 """Tiny canonical meshes and seeded random meshes shared by the tests."""
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -114,3 +115,25 @@ def shared_mesh_path(name: str) -> Path:
     if not path.exists():
         pytest.skip("shared/meshes not next to the checkout")
     return path
+
+
+@contextlib.contextmanager
+def gmsh_model():
+    """A quiet Gmsh session (skips the test without the gmsh module), finalized after."""
+    gmsh = pytest.importorskip("gmsh")
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        yield gmsh
+    finally:
+        gmsh.finalize()
+
+
+def gmsh_mesh_and_write(gmsh, path, h: float, version: float | None = None) -> None:
+    """Mesh the current Gmsh model in 3-D with sizes up to ``h`` and write it to ``path``
+    (MSH ``version``, or Gmsh's default)."""
+    gmsh.option.setNumber("Mesh.MeshSizeMax", h)
+    if version is not None:
+        gmsh.option.setNumber("Mesh.MshFileVersion", version)
+    gmsh.model.mesh.generate(3)
+    gmsh.write(str(path))

@@ -5,6 +5,7 @@ import pickle
 
 import numpy as np
 import pytest
+from helpers import gmsh_mesh_and_write, gmsh_model
 
 import jtet
 from jtet.cli import main
@@ -15,9 +16,7 @@ gmsh = pytest.importorskip("gmsh")
 def _named_ball_in_box(path, save_all_entities=False, names=True):
     """A ball (physical volume 1 "ball") in a box (2 "box"), the box's walls as physical
     surface 10 "walls"; a 2.2 or 4.1 .msh file at ``path``."""
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
+    with gmsh_model():
         box = gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
         ball = gmsh.model.occ.addSphere(0.5, 0.5, 0.5, 0.25)
         gmsh.model.occ.fragment([(3, box)], [(3, ball)])
@@ -33,21 +32,13 @@ def _named_ball_in_box(path, save_all_entities=False, names=True):
         gmsh.model.addPhysicalGroup(2, walls, 10, "walls" if names else "")
         if save_all_entities:
             gmsh.option.setNumber("Mesh.SaveAll", 1)
-        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.2)
-        gmsh.model.mesh.generate(3)
-        gmsh.write(str(path))
-    finally:
-        gmsh.finalize()
+        gmsh_mesh_and_write(gmsh, path, 0.2)
 
 
 def _gmsh_names(path):
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
+    with gmsh_model():
         gmsh.open(str(path))
         return {(d, t): gmsh.model.getPhysicalName(d, t) for d, t in gmsh.model.getPhysicalGroups()}
-    finally:
-        gmsh.finalize()
 
 
 NAMES = {(2, 10): "walls", (3, 1): "ball", (3, 2): "box"}

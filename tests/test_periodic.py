@@ -5,6 +5,7 @@ import types
 
 import numpy as np
 import pytest
+from helpers import gmsh_mesh_and_write, gmsh_model
 
 import jtet
 from jtet._io import _gmsh_periodic
@@ -15,9 +16,7 @@ gmsh = pytest.importorskip("gmsh")
 
 def _periodic_box(path, version=2.2, h=0.2):
     """The unit cube meshed with its face x = 1 periodic to x = 0 (translation)."""
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
+    with gmsh_model():
         gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
         gmsh.model.occ.synchronize()
 
@@ -29,12 +28,7 @@ def _periodic_box(path, version=2.2, h=0.2):
 
         shift = [1, 0, 0, 1, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]
         gmsh.model.mesh.setPeriodic(2, [face_at(1.0)], [face_at(0.0)], shift)
-        gmsh.option.setNumber("Mesh.MeshSizeMax", h)
-        gmsh.option.setNumber("Mesh.MshFileVersion", version)
-        gmsh.model.mesh.generate(3)
-        gmsh.write(str(path))
-    finally:
-        gmsh.finalize()
+        gmsh_mesh_and_write(gmsh, path, h, version)
 
 
 def _boundary_faces(mesh):
@@ -158,9 +152,7 @@ def _periodic_rve(path, h):
     """A ball in the unit cube, periodic in x, y and z (every face of the cube tied to its
     opposite: surfaces, and Gmsh adds their curves and points), physical volumes
     "inclusion" (1) and "matrix" (2), MSH 4.1."""
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
+    with gmsh_model():
         box = gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
         ball = gmsh.model.occ.addSphere(0.5, 0.5, 0.5, 0.3)
         gmsh.model.occ.fragment([(3, box)], [(3, ball)])
@@ -181,12 +173,7 @@ def _periodic_rve(path, h):
         vols = sorted(gmsh.model.getEntities(3), key=lambda e: gmsh.model.occ.getMass(*e))
         gmsh.model.addPhysicalGroup(3, [vols[0][1]], 1, "inclusion")
         gmsh.model.addPhysicalGroup(3, [vols[1][1]], 2, "matrix")
-        gmsh.option.setNumber("Mesh.MeshSizeMax", h)
-        gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
-        gmsh.model.mesh.generate(3)
-        gmsh.write(str(path))
-    finally:
-        gmsh.finalize()
+        gmsh_mesh_and_write(gmsh, path, h, 4.1)
 
 
 def test_three_way_periodic_rve(tmp_path):
