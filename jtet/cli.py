@@ -332,6 +332,7 @@ def _improve_batch(args) -> int:
 
     pairs = _batch_outputs(args)
     rows, reports, codes = [], [], [0]
+    partial = False  # a row shows only the tets a part run could change
     for i, (src, out) in enumerate(pairs):
         try:
             mesh = load(src)
@@ -344,10 +345,13 @@ def _improve_batch(args) -> int:
             continue
         codes.append(code)
         before, after = result.stats_before, result.stats_after
+        mark = ""
+        if result.selected_stats is not None:  # regions / protected tets: the part's own
+            (before, after), mark, partial = result.selected_stats, " *", True
         written = code != 3
         rows.append(
             [
-                str(src),
+                str(src) + mark,
                 f"{before.n_tets} -> {after.n_tets}",
                 f"{before.min_dihedral:.2f} -> {after.min_dihedral:.2f}",
                 f"{before.max_dihedral:.2f} -> {after.max_dihedral:.2f}",
@@ -368,6 +372,8 @@ def _improve_batch(args) -> int:
     if not args.quiet:
         head = ["input", "tets", "min dihedral", "max dihedral", "status", "s"]
         print(text_table(head, rows))
+        if partial:
+            print("* the tets the run could change (its regions, unprotected tets) only")
         if args.report:
             print(f"wrote {args.report}")
     return 130 if 130 in codes else 3 if 3 in codes else max(codes)

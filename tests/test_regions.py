@@ -164,3 +164,15 @@ def test_regions_of_a_mesh_with_inverted_tets_are_refused(mesh):
     with pytest.raises(jtet.MeshInputError, match="inverted or degenerate tet"):
         jtet.improve(bent, regions=[1])
     assert jtet.improve(bent, regions=[1, 2], ops=("edge",)).status == "converged"
+
+
+def test_batch_table_shows_the_part(tmp_path, mesh, capsys):
+    src, outdir = tmp_path / "two.vtu", tmp_path / "out"
+    outdir.mkdir()
+    jtet.save(mesh, src)
+    assert main(["improve", str(src), "--out-dir", str(outdir), "--regions", "2",
+                 "--ops", "edge,face"]) == 0  # fmt: skip
+    out = capsys.readouterr().out.splitlines()
+    row = next(line for line in out if line.startswith(f"{src} *"))
+    assert row.split()[2] == str((mesh.region == 2).sum())  # the part's tets before
+    assert out[-1].startswith("* the tets the run could change")
