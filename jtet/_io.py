@@ -1277,7 +1277,7 @@ def save(
             dropped.append("protected tets")
         if dropped:
             stored = {
-                ".mesh": "region labels and protected faces, edges and vertices",
+                ".mesh": "region labels and protected faces, edges, vertices and tets",
                 ".meshb": "region labels and protected faces and edges",
             }.get(ext, "region labels and protected faces")
             warnings.warn(
