@@ -286,14 +286,12 @@ class ImproveResult:
         stats, labels = (self.stats_before, self.stats_after), ("before", "after")
         if self.selected_stats is not None:  # the whole mesh, then the regions improved
             names, regions = self.mesh.label_names, self.options.regions
-            which = ", ".join(
-                (
-                    [("regions " + ",".join(names.get((3, r), str(r)) for r in regions))]
-                    if regions
-                    else []
-                )
-                + (["unprotected"] if len(self.mesh.protected_tets) else [])
-            )
+            parts = []
+            if regions:
+                parts.append("regions " + ",".join(names.get((3, r), str(r)) for r in regions))
+            if len(self.mesh.protected_tets):
+                parts.append("unprotected")
+            which = ", ".join(parts)
             stats += tuple(self.selected_stats)
             labels += (f"before ({which})", f"after ({which})")
         table = format_table(*stats, time_s=self.seconds, labels=labels)
@@ -356,7 +354,7 @@ def improve(
         # the run changes only these tets: those of the regions, minus the protected ones
         sel = np.ones(mesh.n_tets, bool)
         if opts.regions is not None:
-            sel = np.isin(mesh.region, _region_labels(mesh, opts.regions))
+            sel = np.isin(mesh.region, _resolved_regions(mesh, opts.regions))
         sel &= ~mesh.protected_tet_mask()
         if not sel.any():
             raise MeshInputError(
@@ -451,7 +449,7 @@ def _improve_periodic(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
     return dataclasses.replace(result, mesh=out)
 
 
-def _region_labels(mesh: TetMesh, regions: tuple[int | str, ...]) -> list[int]:
+def _resolved_regions(mesh: TetMesh, regions: tuple[int | str, ...]) -> list[int]:
     """The labels of ``Options.regions`` in ``mesh``, names resolved through
     ``mesh.label_names``; ``MeshInputError`` names the labels and names it lacks."""
     named = {name: label for (dim, label), name in mesh.label_names.items() if dim == 3}
@@ -516,7 +514,7 @@ def _improve_part(mesh: TetMesh, sel, opts: Options, callback, t0: float) -> Imp
         why = []
         if len(mesh.protected_tets):
             why.append("a protected tet")
-        labels = _region_labels(mesh, opts.regions) if opts.regions is not None else []
+        labels = _resolved_regions(mesh, opts.regions) if opts.regions is not None else []
         if opts.regions is not None and not np.isin(mesh.region, labels).all():
             others = ", ".join(map(str, np.setdiff1d(mesh.region, labels)))
             why.append(f"in region(s) {others}, not in the regions option")

@@ -275,8 +275,8 @@ class TetMesh:
             place and the boundary edges between them, so the periodic surfaces keep
             matching triangulations, and the savers write the links back.
         protected_tets: (k, 4) int64 tets that ``improve`` leaves exactly as they are
-            (sorted vertex rows; MMG's ``RequiredTetrahedra``, the VTK cell array
-            ``jtet:protected_tet``), with their vertices and faces.
+            (sorted vertex rows; MMG's ``RequiredTetrahedra``, the VTK field data
+            ``jtet:protected_tets``), with their vertices and faces.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it

@@ -1,10 +1,10 @@
 """A part of a mesh as a mesh of its own, and the mesh with that part replaced.
 
 Perturbation rounds work on the neighbourhood of the worst tets (``_perturb``) and a run
-with ``Options.regions`` on the tets of those regions (``_driver``): both improve a
-``Submesh`` and ``splice`` it back. The submesh's boundary is the mesh's boundary there
-plus the cut faces (shared with a tet outside), so nothing outside it changes as long
-as the cut faces stay.
+with ``Options.regions`` or protected tets on the tets it may change (``_driver``): both
+improve a ``Submesh`` and ``splice`` it back. The submesh's boundary is the mesh's
+boundary there plus the cut faces (shared with a tet outside), so nothing outside it
+changes as long as the cut faces stay.
 """
 
 from __future__ import annotations

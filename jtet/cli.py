@@ -389,19 +389,16 @@ def cmd_stats(args) -> int:
     files = [_mesh_summary(path, args.worst, args.quality, args.by_region) for path in args.mesh]
     stats = [f["stats"] for f in files]
     labels = _column_labels(args.mesh)
-    # with --by-region, each file's column is followed by one per region of it
-    columns = [
-        (
-            col,
-            f["stats"],
-            [(f"{col}: {_region_name(r, f['names'])}", st) for r, st in f["regions"].items()],
-        )
-        for col, f in zip(["value"] if len(files) == 1 else labels, files, strict=True)
-    ]
-    table_stats = [st for _, whole, parts in columns for st in [whole, *(p for _, p in parts)]]
-    table_labels = [lb for col, _, parts in columns for lb in [col, *(p for p, _ in parts)]]
-    if len(files) == 1 and args.by_region:
-        table_labels = ["whole mesh", *(lb.split(": ", 1)[1] for lb in table_labels[1:])]
+    # a column per file, each followed, with --by-region, by one per region of it (one
+    # file: "value", or "whole mesh" and "region 2 (fluid)" without the file's name)
+    table_stats, table_labels = [], []
+    for col, f in zip(labels, files, strict=True):
+        table_stats += [f["stats"], *f["regions"].values()]
+        regions = [_region_name(r, f["names"]) for r in f["regions"]]
+        if len(files) == 1:
+            table_labels += ["whole mesh" if regions else "value", *regions]
+        else:
+            table_labels += [col, *(f"{col}: {name}" for name in regions)]
     if args.plot:
         from ._report import plot_stats
 
@@ -425,12 +422,11 @@ def cmd_stats(args) -> int:
 
     for path, f in zip(args.mesh, files, strict=True):
         print(f"{path}: {f['mesh']}")
+    print(format_table(*table_stats, labels=table_labels))
     if len(files) == 1:
         report = files[0]["validity"]
-        print(format_table(*table_stats, labels=table_labels))
         print("valid" if report.ok else f"problems:\n{report}")
     else:
-        print(format_table(*table_stats, labels=table_labels))
         for path, f in zip(args.mesh, files, strict=True):
             report = f["validity"]
             print(f"{path}: valid" if report.ok else f"{path}: problems:\n{report}")
