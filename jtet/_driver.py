@@ -476,12 +476,12 @@ def _improve_part(mesh: TetMesh, sel, opts: Options, callback, t0: float) -> Imp
     """``improve`` of the tets ``sel`` (m,) as a mesh of their own, spliced back into
     ``mesh`` (``Options.regions``, ``TetMesh.protected_tets``): the other tets, their
     vertices and the faces they share with ``sel``'s stay exactly as they are."""
-    from ._predicates import orient3d_tets
     from ._stats import mesh_stats
     from ._submesh import Submesh
 
     _require_conforming(mesh)  # the whole input, as a run on all of it would
-    bad = int((orient3d_tets(mesh.points, mesh.tets) <= 0).sum())
+    stats_before = mesh_stats(mesh)  # its counts come from the robust orient3d
+    bad = stats_before.n_inverted + stats_before.n_degenerate
     if bad:
         # the part's run sees nothing of the tets around it, and where tets overlap
         # (inverted) or are flat, a flip there can make a face that one of those has
@@ -524,7 +524,7 @@ def _improve_part(mesh: TetMesh, sel, opts: Options, callback, t0: float) -> Imp
         )
     return ImproveResult(
         mesh=new,
-        stats_before=mesh_stats(mesh),
+        stats_before=stats_before,
         stats_after=stats_after,
         history=result.history,
         status=status,
