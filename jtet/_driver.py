@@ -434,10 +434,7 @@ def _improve_periodic(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
     import dataclasses
 
     verts = np.unique(np.concatenate([link.pairs.reshape(-1) for link in mesh.periodic]))
-    T = mesh.topology
-    on = np.zeros(mesh.n_points, bool)
-    on[verts] = True
-    edges = T.edges[T.edge_boundary & on[T.edges].all(axis=1)]
+    edges = _boundary_edges_between(mesh.tets, verts, mesh.n_points)
     result = improve(mesh._with_pinned(edges, verts, periodic=()), opts, callback=callback)
     out = result.mesh.replace(
         protected_edges=mesh.protected_edges,
@@ -447,6 +444,25 @@ def _improve_periodic(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
         periodic=mesh.periodic,
     )
     return dataclasses.replace(result, mesh=out)
+
+
+def _boundary_edges_between(tets, verts, n: int) -> np.ndarray:
+    """(k, 2) sorted rows: the edges of boundary faces of ``tets`` (m, 4) whose two
+    vertices are both in ``verts`` (j,) of ``n``. Only the tets with two or more corners
+    in ``verts`` hold such a face, and every tet holding one of their faces with two such
+    corners is among them: the faces are counted there, not through a whole-mesh
+    topology, which the run on the pinned mesh builds again anyway (its subsegments
+    change)."""
+    from ._topology import TET_FACES, corner_counts
+
+    on = np.zeros(n, bool)
+    on[verts] = True
+    near = tets[corner_counts(on, tets) >= 2]
+    faces = np.sort(near[:, TET_FACES].reshape(-1, 3), axis=1)
+    faces = faces[on[faces].sum(axis=1) >= 2]
+    rows, count = np.unique(faces, axis=0, return_counts=True)
+    edges = rows[count == 1][:, [[0, 1], [0, 2], [1, 2]]].reshape(-1, 2)
+    return np.unique(edges[on[edges].all(axis=1)], axis=0)
 
 
 def _resolved_regions(mesh: TetMesh, regions: tuple[int | str, ...]) -> list[int]:

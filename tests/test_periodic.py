@@ -188,3 +188,29 @@ def test_three_way_periodic_rve(tmp_path):
     assert dict(written.label_names) == {(3, 1): "inclusion", (3, 2): "matrix"}
     # measured 29.3 degrees (h = 0.08: 34.5); the pinned periodic faces limit it
     assert jtet.stats(written).min_dihedral > max(25.0, jtet.stats(mesh).min_dihedral + 10)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_boundary_edges_between_match_the_topology(seed):
+    """The periodic run's pinned edges, found among the tets with two or more corners in
+    the vertex set, are the whole-mesh topology's boundary edges with both ends in it."""
+    from helpers import delaunay_mesh
+
+    from jtet._driver import _boundary_edges_between
+
+    mesh = delaunay_mesh(300, seed=seed, surface_points=150)
+    rng = np.random.default_rng(seed)
+    T = mesh.topology
+    boundary_verts = np.unique(T.faces[T.boundary_face])
+    # most boundary vertices and some interior ones (interior pairs must not count)
+    verts = np.union1d(
+        rng.choice(boundary_verts, len(boundary_verts) * 3 // 4, replace=False),
+        rng.choice(mesh.n_points, 40, replace=False),
+    )
+    on = np.zeros(mesh.n_points, bool)
+    on[verts] = True
+    expected = T.edges[T.edge_boundary & on[T.edges].all(axis=1)]
+    expected = np.unique(np.sort(expected, axis=1), axis=0)
+    got = _boundary_edges_between(mesh.tets, verts, mesh.n_points)
+    assert len(expected) > 20
+    np.testing.assert_array_equal(got, expected)
