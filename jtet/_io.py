@@ -733,13 +733,15 @@ def _gmsh_label_names(m, source: str) -> dict:
         tag, dim = int(v[0]), int(v[1])
         if 0 <= dim <= 3:
             names.setdefault((dim, tag), str(name))
-    kinds = {3: "tetra", 2: "triangle", 1: "line", 0: "vertex"}
-    physical_dims = set()
-    for dim, kind in kinds.items():
-        blocks = [i for i, b in enumerate(m.cells) if b.type == kind]
-        physical = _gmsh_tags(m, blocks, source)[0] if blocks else None
-        if physical is not None and physical.any():
-            physical_dims.add(dim)
+    # a look at each block's physical tags (meshio's Gmsh reader makes integer arrays),
+    # not their labels concatenated and checked again
+    physical = m.cell_data.get("gmsh:physical") or []
+    kinds = {"tetra": 3, "triangle": 2, "line": 1, "vertex": 0}
+    physical_dims = {
+        kinds[block.type]
+        for block, tags in zip(m.cells, physical, strict=False)
+        if block.type in kinds and np.any(tags)
+    }
     return {key: name for key, name in names.items() if key[0] in physical_dims}
 
 
