@@ -550,7 +550,8 @@ def _limit_child_memory(path: Path) -> None:
 
 
 def _vtk_file_arrays(path: Path, fmt: str, source: str):
-    """``_vtk_arrays_here`` of the VTK file ``path``, read in a forked child process.
+    """``_vtk_arrays_here`` of the VTK file ``path``, read in a forked child process
+    (``_forked``; where there is none, in this process).
 
     VTK's readers take the whole process down on some damaged files: a truncated binary
     legacy file (segmentation fault), appended data whose block headers were damaged
@@ -558,14 +559,10 @@ def _vtk_file_arrays(path: Path, fmt: str, source: str):
     lines found such a file within 16-190 tries for each format. In a child the crash
     becomes a ``MeshFileError``; the child's warnings are raised again here. The fork
     costs ~10 ms, and the arrays come back through a pipe (~0.1 s for 1M tets).
-    Platforms without ``os.fork`` (or not Linux, where forking a threaded process is
-    safe only for such work) read in this process.
     """
-    import pickle
-    import signal
-    import sys
+    from ._forked import call_in_child, can_fork
 
-    if not hasattr(os, "fork") or not sys.platform.startswith("linux"):
+    if not can_fork():
         return _vtk_arrays_here(path, fmt, source)
     # VTK's modules are imported here, before the fork: each child inherits them instead
     # of importing them again (~0.25 s a read, most of a small file's load), and the
@@ -574,55 +571,17 @@ def _vtk_file_arrays(path: Path, fmt: str, source: str):
     import vtkmodules.vtkIOLegacy  # noqa: F401
     import vtkmodules.vtkIOXML  # noqa: F401
 
-    read_end, write_end = os.pipe()
-    with warnings.catch_warnings():
-        # JAX warns at every fork once its threads run; this child runs no JAX
-        warnings.simplefilter("ignore", RuntimeWarning)
-        pid = os.fork()
-    if pid == 0:  # the child: read, send (status, value, warnings), exit
-        os.close(read_end)
-        try:
-            # a crash's message (a C++ abort's, faulthandler's dump) is noise here: the
-            # parent says why in one line
-            import faulthandler
+    def read():
+        _limit_child_memory(path)
+        return _vtk_arrays_here(path, fmt, source)
 
-            faulthandler.disable()
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, 2)
-            _limit_child_memory(path)
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                value = _vtk_arrays_here(path, fmt, source)
-            out = ("ok", value, [(str(w.message), w.category) for w in caught])
-        except BaseException as e:
-            out = ("error", e, [])
-        try:
-            payload = pickle.dumps(out, protocol=pickle.HIGHEST_PROTOCOL)
-        except Exception as e:
-            payload = pickle.dumps(("error", MeshFileError(f"{path}: {_reason(e)}"), []))
-        with os.fdopen(write_end, "wb") as f:
-            f.write(payload)
-        os._exit(0)
-    os.close(write_end)
-    try:
-        with os.fdopen(read_end, "rb") as f:
-            payload = f.read()
-    finally:
-        _, status = os.waitpid(pid, 0)
-    if not payload:
-        how = "crashed"
-        if os.WIFSIGNALED(status):
-            how += f" with {signal.Signals(os.WTERMSIG(status)).name}"
-        raise MeshFileError(
+    def crashed(how: str) -> MeshFileError:
+        return MeshFileError(
             f"{path}: not a readable {_FORMAT_NAMES[fmt]} file (VTK's reader {how}: the "
             "file is damaged)"
         )
-    kind, value, caught = pickle.loads(payload)
-    for message, category in caught:
-        warnings.warn(message, category, stacklevel=3)
-    if kind == "error":
-        raise value
-    return value
+
+    return call_in_child(read, crashed)
 
 
 def _write_vtk_file(grid, path: Path, fmt: str) -> None:
