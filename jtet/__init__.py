@@ -23,6 +23,8 @@ from ._stats import format_table as format_table
 from ._stats import mesh_stats as mesh_stats
 from ._stats import region_stats as region_stats
 from ._stats import worst_tets as worst_tets
+from ._tetrahedralize import read_surface as read_surface
+from ._tetrahedralize import tetrahedralize as tetrahedralize
 from ._validity import ValidityReport as ValidityReport
 
 stats = mesh_stats  # ``jtet.stats(mesh)``: statistics of a mesh

@@ -222,7 +222,10 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
         )
     if not is_tet.any():
         only = ", ".join(f"{_vtk_cell_name(t)} x {c}" for t, c in zip(kinds, counts, strict=True))
-        raise MeshInputError(f"{source}: the mesh has no tetrahedra (only {only})")
+        hint = ""
+        if any(_vtk_cell_dimension(t) == 2 for t in kinds):
+            hint = "; a surface: mesh the volume it bounds with jtet tetrahedralize"
+        raise MeshInputError(f"{source}: the mesh has no tetrahedra (only {only}){hint}")
 
     # ``cell_offsets`` (pyvista >= 0.46) was called ``offset`` before.
     offsets = getattr(grid, "cell_offsets", None)
@@ -1054,8 +1057,14 @@ def load(path: str | os.PathLike) -> TetMesh:
     ext = p.suffix.lower()
     fmt = _READ_FORMATS.get(ext)
     if fmt is None:
+        from ._tetrahedralize import SURFACE_EXTENSIONS
+
+        hint = ""
+        if ext in SURFACE_EXTENSIONS:
+            hint = " (a surface: mesh the volume it bounds with jtet tetrahedralize)"
         raise MeshFileError(
-            f"{p}: unknown mesh file extension {ext or '(none)'!r}; jtet reads {_KNOWN_EXTENSIONS}"
+            f"{p}: unknown mesh file extension {ext or '(none)'!r}; jtet reads "
+            f"{_KNOWN_EXTENSIONS}{hint}"
         )
     if p.stat().st_size == 0:
         raise MeshFileError(f"{p}: the file is empty")

@@ -494,6 +494,87 @@ def cmd_convert(args) -> int:
     return 0
 
 
+def _ticking(label: str, quiet: bool):
+    """A context that shows ``label`` and the seconds spent on stderr while it lasts
+    (on a terminal; elsewhere one line at the start): work that reports no progress of
+    its own, so a long run does not look hung."""
+    import contextlib
+    import threading
+
+    @contextlib.contextmanager
+    def tick():
+        if quiet:
+            yield
+            return
+        if not sys.stderr.isatty():
+            print(f"{label} ...", file=sys.stderr, flush=True)
+            yield
+            return
+        t0, stop = time.perf_counter(), threading.Event()
+
+        def show():
+            while not stop.wait(0.5):
+                print(f"\r{label} {time.perf_counter() - t0:6.1f}s", end="", file=sys.stderr)
+
+        thread = threading.Thread(target=show, daemon=True)
+        thread.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            thread.join()
+            print(f"\r{label} {time.perf_counter() - t0:6.1f}s", file=sys.stderr)
+
+    return tick()
+
+
+def cmd_tetrahedralize(args) -> int:
+    """``jtet tetrahedralize SURFACE OUT``: fTetWild's tet mesh of the volume a surface
+    file bounds, written with the per-tet quality arrays, ready for ``jtet improve``."""
+    from ._io import output_format, save
+    from ._report import quality_cell_data
+    from ._stats import mesh_stats
+    from ._tetrahedralize import open_edges, read_surface, tetrahedralize
+
+    src, out = Path(args.surface), Path(args.output)
+    output_format(out)  # an unknown extension fails before the work
+    _refuse_input_as_output(src, out, args.overwrite)
+    t0 = time.perf_counter()
+    points, triangles = read_surface(src)
+    if not args.quiet:
+        n_open = open_edges(triangles)
+        shape = "closed" if not n_open else f"not closed: {n_open} open or non-manifold edges"
+        size = (
+            f"edge length {args.edge_length:g}"
+            if args.edge_length is not None
+            else f"edge length {args.edge_length_fac:g} x the bounding box diagonal"
+        )
+        print(
+            f"jtet: {src}: {len(points)} points, {len(triangles)} triangles ({shape}); "
+            f"fTetWild, {size}, envelope {args.epsilon:g}",
+            file=sys.stderr,
+        )
+    with _ticking("fTetWild", args.quiet):
+        mesh = tetrahedralize(
+            (points, triangles),
+            edge_length=args.edge_length,
+            edge_length_fac=args.edge_length_fac,
+            epsilon=args.epsilon,
+            optimize=not args.no_optimize,
+            threads=args.threads,
+        )
+    save(mesh, out, cell_data=quality_cell_data(mesh))
+    if not args.quiet:
+        s = mesh_stats(mesh)
+        print(
+            f"jtet: {src} -> {out}  ({mesh.n_tets} tets, {mesh.n_points} points, min / max "
+            f"dihedral {s.min_dihedral:.2f} / {s.max_dihedral:.2f} deg, "
+            f"{time.perf_counter() - t0:.1f} s)"
+        )
+        print(f"improve it with: jtet improve {out} {out.with_stem(out.stem + '_improved')}")
+    return 0
+
+
 def cmd_demo(args) -> int:
     from ._io import demo_mesh
 
@@ -617,6 +698,42 @@ def build_parser() -> argparse.ArgumentParser:
     pc.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
     pc.add_argument("-q", "--quiet", action="store_true")
     pc.set_defaults(func=cmd_convert)
+    pt = sub.add_parser(
+        "tetrahedralize",
+        help="mesh the volume a surface file bounds with fTetWild (a mesh to improve)",
+    )
+    pt.add_argument("surface", help="surface file (.stl .obj .ply .off .vtp .vtk)")
+    pt.add_argument("output", help="output mesh (format from the extension)")
+    size = pt.add_mutually_exclusive_group()
+    size.add_argument(
+        "--edge-length", type=float, metavar="L", help="target edge length, in the surface's units"
+    )
+    size.add_argument(
+        "--edge-length-fac",
+        type=float,
+        default=0.05,
+        metavar="F",
+        help="target edge length as a fraction of the bounding box diagonal (default 0.05)",
+    )
+    pt.add_argument(
+        "--epsilon",
+        type=float,
+        default=1e-3,
+        metavar="E",
+        help="how far the boundary may lie from the surface, as a fraction of the bounding "
+        "box diagonal (default 1e-3)",
+    )
+    pt.add_argument(
+        "--no-optimize",
+        action="store_true",
+        help="fTetWild's raw output, without its own optimization (faster, poor tets)",
+    )
+    pt.add_argument(
+        "--threads", type=int, default=0, metavar="N", help="fTetWild's threads (0: all cores)"
+    )
+    pt.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
+    pt.add_argument("-q", "--quiet", action="store_true")
+    pt.set_defaults(func=cmd_tetrahedralize)
     pd = sub.add_parser("demo", help="improve the embedded demo mesh and write its outputs")
     pd.add_argument(
         "--out", default="jtet-demo-out", help="output directory (default: ./jtet-demo-out)"
@@ -624,7 +741,13 @@ def build_parser() -> argparse.ArgumentParser:
     _add_options(pd)
     pd.add_argument("-q", "--quiet", action="store_true")
     pd.set_defaults(func=cmd_demo)
-    p.subcommands = {"improve": pi, "stats": ps, "convert": pc, "demo": pd}
+    p.subcommands = {
+        "improve": pi,
+        "stats": ps,
+        "convert": pc,
+        "tetrahedralize": pt,
+        "demo": pd,
+    }
     return p
 
 

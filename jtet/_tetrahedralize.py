@@ -1,0 +1,253 @@
+"""Tetrahedral meshes of surfaces, made by fTetWild (``pytetwild``): where a user has only
+a surface (an STL of a part, a segmented organ, a CAD export), the mesh to improve.
+
+fTetWild (Hu et al., "Fast Tetrahedral Meshing in the Wild") meshes triangle soups: open,
+self-intersecting or non-manifold surfaces too. It keeps the output's boundary within
+``epsilon`` (relative to the bounding box's diagonal) of the input surface and keeps
+what the surface's winding number puts inside. Its output is already optimized for its
+own energy (AMIPS), not for dihedral angles: ``jtet improve`` then raises the worst tets.
+fTetWild runs in a forked child process (``_forked``): it writes a scratch file into its
+working directory (the child's is a temporary one), and a crash of its C++ code on a
+strange surface becomes a clear error instead of taking the caller's process down.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import MeshFileError, MeshInputError
+from ._mesh import TetMesh
+
+#: File extensions ``read_surface`` reads (the VTK formats through pyvista, OFF through
+#: meshio); a ``.vtk`` / ``.vtp`` may hold a volume grid, whose boundary is taken.
+SURFACE_EXTENSIONS = (".stl", ".obj", ".ply", ".off", ".vtp", ".vtk")
+
+
+def _surface_here(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(points, triangles) of the surface file ``path``, read in this process."""
+    if path.suffix.lower() == ".off":
+        import meshio
+
+        m = meshio.off.read(str(path))
+        tris = [np.asarray(b.data) for b in m.cells if b.type == "triangle"]
+        return np.asarray(m.points, np.float64), (
+            np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)
+        )
+    import pyvista as pv
+
+    from ._io import _vtk_capture
+
+    with _vtk_capture() as errors:
+        data = pv.read(str(path))
+        errs = errors()
+    if errs:
+        raise MeshFileError(f"{path}: not a readable surface file ({errs[0]})")
+    if not isinstance(data, pv.PolyData):
+        if not hasattr(data, "extract_surface"):
+            raise MeshFileError(f"{path}: holds a {type(data).__name__}, not a surface")
+        data = data.extract_surface()
+    return _polydata_triangles(data)
+
+
+def _polydata_triangles(data) -> tuple[np.ndarray, np.ndarray]:
+    """(points (n, 3) float64, triangles (k, 3) int64) of a ``pyvista.PolyData``: its
+    polygons and strips split into triangles (lines and vertices bound no volume)."""
+    data = data.triangulate()
+    faces = np.asarray(data.faces, np.int64).reshape(-1, 4)  # (3, a, b, c) rows
+    return np.asarray(data.points, np.float64), faces[:, 1:]
+
+
+def read_surface(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a triangulated surface: (points (n, 3) float64, triangles (k, 3) int64).
+
+    ``.stl``, ``.obj``, ``.ply``, ``.vtp``, ``.vtk`` (VTK's readers, in a forked child:
+    some take their process down on a damaged file) and ``.off``. Polygons are split
+    into triangles; a volume grid gives its boundary surface.
+
+    Raises:
+        MeshFileError: a missing, unreadable or damaged file, or another extension.
+    """
+    from ._io import _reason
+
+    p = Path(path)
+    if p.suffix.lower() not in SURFACE_EXTENSIONS:
+        raise MeshFileError(
+            f"{p}: unknown surface file extension {p.suffix or '(none)'!r}; jtet reads "
+            f"surfaces from {', '.join(SURFACE_EXTENSIONS)}"
+        )
+    if not p.is_file():
+        raise MeshFileError(f"{p}: no such file")
+
+    def read():
+        try:
+            return _surface_here(p)
+        except MeshFileError:
+            raise
+        except Exception as e:
+            raise MeshFileError(f"{p}: not a readable surface file ({_reason(e)})") from None
+
+    from ._forked import call_in_child, can_fork
+
+    if not can_fork() or p.suffix.lower() == ".off":  # meshio: Python, no crash
+        return read()
+    return call_in_child(
+        read,
+        lambda how: MeshFileError(
+            f"{p}: not a readable surface file (VTK's reader {how}: the file is damaged)"
+        ),
+    )
+
+
+def check_surface(points, triangles, source: str = "surface") -> tuple[np.ndarray, np.ndarray]:
+    """(points (n, 3) float64, triangles (k, 3) int64) checked for fTetWild.
+
+    Raises:
+        MeshInputError: wrong shapes, non-finite coordinates, indices out of range, fewer
+            than 4 triangles, or all points in one plane.
+    """
+    pts = np.asarray(points)
+    tris = np.asarray(triangles)
+    if pts.ndim != 2 or pts.shape[1] != 3 or not np.issubdtype(pts.dtype, np.number):
+        raise MeshInputError(f"{source}: points must be an (n, 3) array, got {pts.shape}")
+    if tris.ndim != 2 or tris.shape[1] != 3 or not np.issubdtype(tris.dtype, np.integer):
+        raise MeshInputError(
+            f"{source}: triangles must be a (k, 3) integer array, got {tris.shape} {tris.dtype}"
+        )
+    pts = pts.astype(np.float64)
+    tris = tris.astype(np.int64)
+    bad = ~np.isfinite(pts).all(axis=1)
+    if bad.any():
+        raise MeshInputError(
+            f"{source}: {int(bad.sum())} point(s) with NaN or infinite coordinates "
+            f"(first: point {int(np.flatnonzero(bad)[0])})"
+        )
+    if len(tris) < 4:
+        raise MeshInputError(
+            f"{source}: {len(tris)} triangle(s); a surface around a volume has at least 4"
+        )
+    if tris.min() < 0 or tris.max() >= len(pts):
+        raise MeshInputError(
+            f"{source}: triangle vertex ids must be in 0..{len(pts) - 1}, found "
+            f"{int(tris.min())}..{int(tris.max())}"
+        )
+    used = pts[np.unique(tris)]
+    spread = used - used.mean(axis=0)
+    # the smallest singular value against the largest: 0 for points in one plane
+    sv = np.linalg.svd(spread, compute_uv=False)
+    if sv[0] == 0 or sv[-1] <= 1e-12 * sv[0]:
+        raise MeshInputError(f"{source}: all points lie in one plane (or line): no volume")
+    return pts, tris
+
+
+def open_edges(triangles: np.ndarray) -> int:
+    """How many edges of ``triangles`` (k, 3) are not shared by exactly two of them (0
+    for a closed manifold surface)."""
+    e = np.sort(triangles[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    _, count = np.unique(e, axis=0, return_counts=True)
+    return int((count != 2).sum())
+
+
+def _ftetwild(points, triangles, settings: dict) -> tuple[np.ndarray, np.ndarray]:
+    """fTetWild's (points (n, 3) float64, tets (m, 4) int64), in this process, with a
+    temporary working directory for its scratch file."""
+    import pytetwild
+
+    with tempfile.TemporaryDirectory(prefix="jtet-ftetwild-") as tmp, contextlib.chdir(tmp):
+        p, t = pytetwild.tetrahedralize(
+            points, triangles.astype(np.int32), vtk_ordering=True, quiet=True, **settings
+        )
+    return np.asarray(p, np.float64), np.asarray(t, np.int64).reshape(-1, 4)
+
+
+def tetrahedralize(
+    surface,
+    *,
+    edge_length: float | None = None,
+    edge_length_fac: float = 0.05,
+    epsilon: float = 1e-3,
+    optimize: bool = True,
+    threads: int = 0,
+) -> TetMesh:
+    """A tetrahedral mesh of the volume a surface bounds, made by fTetWild.
+
+    Args:
+        surface: a surface file (``read_surface``), a ``pyvista.PolyData`` or a pair
+            (points (n, 3), triangles (k, 3)).
+        edge_length: target edge length in the surface's units; None: ``edge_length_fac``
+            times the diagonal of the surface's bounding box.
+        edge_length_fac: target edge length relative to the bounding box's diagonal
+            (fTetWild's default 0.05).
+        epsilon: how far the mesh's boundary may lie from the surface, relative to the
+            bounding box's diagonal (fTetWild's envelope; default 1e-3).
+        optimize: run fTetWild's own optimization (False: its raw output, with flat and
+            very poor tets, much faster).
+        threads: fTetWild's threads (0: all cores). fTetWild's output differs from run to
+            run even on one thread: save it, and improve the saved mesh, for runs that
+            can be repeated.
+
+    Returns:
+        The mesh (one region, 0; no protected entities), positively oriented.
+
+    Raises:
+        MeshFileError: an unreadable surface file.
+        MeshInputError: a surface with no volume (``check_surface``), settings out of
+            range, or fTetWild failing on it (its crash included).
+    """
+    if isinstance(surface, str | os.PathLike):
+        source = str(surface)
+        points, triangles = read_surface(surface)
+    elif hasattr(surface, "faces") and hasattr(surface, "points"):  # pyvista.PolyData
+        source = "surface"
+        points, triangles = _polydata_triangles(surface)
+    else:
+        source = "surface"
+        try:
+            points, triangles = surface
+        except (TypeError, ValueError):
+            raise MeshInputError(
+                "surface must be a file name, a pyvista.PolyData or (points, triangles)"
+            ) from None
+    points, triangles = check_surface(points, triangles, source)
+    for name, value, lo, hi in (
+        ("edge_length_fac", edge_length_fac, 0.0, 1.0),
+        ("epsilon", epsilon, 0.0, 1.0),
+    ):
+        if not (np.isfinite(value) and lo < value <= hi):
+            raise MeshInputError(f"{name} must be in ({lo:g}, {hi:g}], got {value!r}")
+    if edge_length is not None and not (np.isfinite(edge_length) and edge_length > 0):
+        raise MeshInputError(f"edge_length must be positive, got {edge_length!r}")
+    if int(threads) != threads or threads < 0:
+        raise MeshInputError(f"threads must be a whole number >= 0, got {threads!r}")
+    settings = {
+        "edge_length_fac": float(edge_length_fac),
+        "edge_length_abs": None if edge_length is None else float(edge_length),
+        "epsilon": float(epsilon),
+        "optimize": bool(optimize),
+        "num_threads": int(threads),
+    }
+
+    from ._forked import call_in_child, can_fork
+    from ._io import _reason
+
+    def mesh():
+        try:
+            return _ftetwild(points, triangles, settings)
+        except Exception as e:  # the wrapper's RuntimeError, a bad_alloc, ...
+            raise MeshInputError(f"{source}: fTetWild failed ({_reason(e)})") from None
+
+    def crashed(how: str) -> MeshInputError:
+        return MeshInputError(f"{source}: fTetWild {how} on this surface")
+
+    tet_points, tets = call_in_child(mesh, crashed) if can_fork() else mesh()
+    if not len(tets):
+        raise MeshInputError(
+            f"{source}: fTetWild made no tets: does the surface enclose a volume? "
+            f"({open_edges(triangles)} open edge(s))"
+        )
+    used, tets = np.unique(tets, return_inverse=True)
+    return TetMesh.from_arrays(tet_points[used], tets.reshape(-1, 4), source=f"fTetWild({source})")
