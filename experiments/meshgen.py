@@ -253,12 +253,34 @@ def file(path: str) -> jtet.TetMesh:
     return jtet.load(Path(path))
 
 
+def surface(
+    path: str,
+    edge_length: float | None = None,
+    edge_length_fac: float = 0.05,
+    epsilon: float = 1e-3,
+    optimize: bool = True,
+    threads: int = 1,
+) -> jtet.TetMesh:
+    """fTetWild's mesh of the volume the surface file ``path`` bounds
+    (``jtet.tetrahedralize``; relative paths: to the caller's cwd). fTetWild's output
+    varies from run to run: a run's ``save_input=true`` keeps the mesh it improved."""
+    return jtet.tetrahedralize(
+        Path(path),
+        edge_length=edge_length,
+        edge_length_fac=edge_length_fac,
+        epsilon=epsilon,
+        optimize=optimize,
+        threads=threads,
+    )
+
+
 GENERATORS: dict[str, Callable[..., jtet.TetMesh]] = {
     "gmsh_shape": gmsh_shape,
     "gmsh_two_regions": gmsh_two_regions,
     "tetwild": tetwild,
     "perturbed": perturbed,
     "file": file,
+    "surface": surface,
 }
 
 

@@ -102,7 +102,8 @@ def test_every_group_option_composes_and_validates(group):
     names = _options(group)
     assert names, f"configs/{group}/ is empty"
     for name in names:
-        extra = ["mesh.params.path=some_mesh.vtu"] if (group, name) == ("mesh", "file") else []
+        paths = {"file": "some_mesh.vtu", "surface": "some_surface.stl"}
+        extra = [f"mesh.params.path={paths[name]}"] if group == "mesh" and name in paths else []
         cfg = _compose([f"{group}={name}", *extra], hydra_config=True)
         opts = _validate(cfg)
         if group == "quality":
@@ -286,6 +287,16 @@ def test_file_generator(tmp_path):
     jtet.save(jtet.demo_mesh("two_regions"), path)
     mesh = meshgen.generate("file", {"path": str(path)})
     assert np.array_equal(mesh.tets, jtet.demo_mesh("two_regions").tets)
+
+
+def test_surface_generator(tmp_path):
+    pv = pytest.importorskip("pyvista")
+    path = tmp_path / "ball.stl"
+    pv.Sphere(theta_resolution=12, phi_resolution=12).save(str(path))
+    mesh = meshgen.generate("surface", {"path": str(path), "edge_length_fac": 0.15})
+    assert mesh.n_tets > 100 and mesh.is_valid().ok
+    with pytest.raises(ValueError, match="edge_lenght"):
+        meshgen.check("surface", {"path": str(path), "edge_lenght": 0.1})
 
 
 # ---------------------------------------------------------------------------------------
