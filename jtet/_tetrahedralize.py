@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -40,18 +41,24 @@ def _surface_here(path: Path) -> tuple[np.ndarray, np.ndarray]:
         )
     import pyvista as pv
 
-    from ._io import _vtk_capture
+    from ._io import _clean, _vtk_capture
 
-    with _vtk_capture() as errors:
+    with _vtk_capture() as errors, warnings.catch_warnings(record=True) as caught:
+        # pyvista reports its readers' failures as warnings: they mean an unreadable file.
+        # Its others (a point array of the wrong length in a damaged file) are about data
+        # that is not read
+        warnings.simplefilter("always")
         data = pv.read(str(path))
-        errs = errors()
-    if errs:
-        raise MeshFileError(f"{path}: not a readable surface file ({errs[0]})")
-    if not isinstance(data, pv.PolyData):
-        if not hasattr(data, "extract_surface"):
-            raise MeshFileError(f"{path}: holds a {type(data).__name__}, not a surface")
-        data = data.extract_surface()
-    return _polydata_triangles(data)
+        errs = errors() + [
+            _clean(str(w.message).splitlines()[0]) for w in caught if "error" in str(w.message)
+        ]
+        if errs:
+            raise MeshFileError(f"{path}: not a readable surface file ({errs[0]})")
+        if not isinstance(data, pv.PolyData):
+            if not hasattr(data, "extract_surface"):
+                raise MeshFileError(f"{path}: holds a {type(data).__name__}, not a surface")
+            data = data.extract_surface()
+        return _polydata_triangles(data)
 
 
 def _polydata_triangles(data) -> tuple[np.ndarray, np.ndarray]:
