@@ -1,11 +1,12 @@
-"""Damaged-file fuzzing: jtet.load on mutated mesh files must return a mesh or raise a
-JtetError, never another exception, a hang or a crash.
+"""Damaged-file fuzzing: jtet.load on mutated mesh files (and jtet.read_surface on mutated
+surface files) must return a mesh or raise a JtetError, never another exception, a hang
+or a crash.
 
     python experiments/fuzz_files.py --tries 300 --seed 0
     python experiments/fuzz_files.py --formats vtk,vtu --tries 2000
 
 A small labelled mesh (regions, protected faces with labels, edges and vertices) is saved
-in every format; each try mutates one of its files (flips 1-3 bytes, truncates it,
+in every format (its boundary as a surface in the surface formats); each try mutates one of its files (flips 1-3 bytes, truncates it,
 deletes a line, or replaces a line's start with a bad number) and loads it. Each format
 runs in a child process, so a reader that crashes the process (as VTK's did before its
 reads moved to a forked child) is reported with its signal and the try that did it; the
@@ -29,7 +30,9 @@ import traceback
 import warnings
 from pathlib import Path
 
-FORMATS = ("vtu", "vtk", "msh", "mesh", "meshb", "node")
+# surface files (``jtet tetrahedralize``'s input) are read and checked, not loaded
+SURFACES = ("stl", "obj", "ply", "off", "vtp")
+FORMATS = ("vtu", "vtk", "msh", "mesh", "meshb", "node", *SURFACES)
 BAD_TOKENS = (b"-1", b"0", b"99999999", b"nan", b"1e308", b"abc", b"")
 
 
@@ -56,6 +59,28 @@ def _mesh():
         periodic=[(2, (2, 1), None, np.unique(faces)[:4].reshape(-1, 2))],
         protected_tets=mesh.tets[:3],
     )
+
+
+def _save_surface(mesh, path: Path) -> None:
+    """The boundary of ``mesh`` as a surface file (OFF through meshio, the rest pyvista)."""
+    import meshio
+    import numpy as np
+    import pyvista as pv
+
+    T = mesh.topology
+    faces = T.faces[T.boundary_face]
+    if path.suffix == ".off":
+        meshio.write(str(path), meshio.Mesh(mesh.points, [("triangle", faces)]))
+        return
+    cells = np.hstack([np.full((len(faces), 1), 3), faces]).ravel()
+    pv.PolyData(np.asarray(mesh.points), cells).save(str(path))
+
+
+def _read_surface(path: Path) -> None:
+    import jtet
+    from jtet._tetrahedralize import check_surface
+
+    check_surface(*jtet.read_surface(path), str(path))
 
 
 def _mutate(data: bytes, rng) -> bytes:
@@ -87,7 +112,15 @@ def run_format(fmt: str, tries: int, seed: int, keep: Path) -> dict:
     work = Path(tempfile.mkdtemp(prefix=f"jtet-fuzz-{fmt}-"))
     warnings.simplefilter("ignore")
     src = work / f"src.{fmt}"
-    jtet.save(_mesh(), src)
+    if fmt in SURFACES:
+        _save_surface(_mesh(), src)
+        load = _read_surface
+    else:
+        jtet.save(_mesh(), src)
+
+        def load(path):
+            jtet.load(path).is_valid()
+
     # TetGen: the .node, the .ele and the .face of the protected faces
     names = [f"src.{fmt}"] if fmt != "node" else ["src.node", "src.ele", "src.face"]
     originals = {n: (work / n).read_bytes() for n in names}
@@ -102,8 +135,7 @@ def run_format(fmt: str, tries: int, seed: int, keep: Path) -> dict:
         for n in names:
             shutil.copy(work / n.replace("src", "mut"), keep / n.replace("src", "last"))
         try:
-            mesh = jtet.load(work / f"mut.{fmt}")
-            mesh.is_valid()
+            load(work / f"mut.{fmt}")
             counts["loaded"] += 1
         except jtet.JtetError:
             counts["refused"] += 1

@@ -24,21 +24,15 @@ import numpy as np
 from ._errors import MeshFileError, MeshInputError
 from ._mesh import TetMesh
 
-#: File extensions ``read_surface`` reads (the VTK formats through pyvista, OFF through
-#: meshio); a ``.vtk`` / ``.vtp`` may hold a volume grid, whose boundary is taken.
+#: File extensions ``read_surface`` reads (OFF by ``_read_off``, the others through
+#: pyvista); a ``.vtk`` / ``.vtp`` may hold a volume grid, whose boundary is taken.
 SURFACE_EXTENSIONS = (".stl", ".obj", ".ply", ".off", ".vtp", ".vtk")
 
 
 def _surface_here(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(points, triangles) of the surface file ``path``, read in this process."""
     if path.suffix.lower() == ".off":
-        import meshio
-
-        m = meshio.off.read(str(path))
-        tris = [np.asarray(b.data) for b in m.cells if b.type == "triangle"]
-        return np.asarray(m.points, np.float64), (
-            np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)
-        )
+        return _read_off(path)
     import pyvista as pv
 
     from ._io import _clean, _vtk_capture
@@ -59,6 +53,67 @@ def _surface_here(path: Path) -> tuple[np.ndarray, np.ndarray]:
                 raise MeshFileError(f"{path}: holds a {type(data).__name__}, not a surface")
             data = data.extract_surface()
         return _polydata_triangles(data)
+
+
+def _read_off(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(points, triangles) of an ASCII OFF file: ``OFF``, the vertex, face and edge
+    counts, a line of 3 coordinates per vertex, a line per face (its vertex count, its
+    vertex ids, maybe a colour); ``#`` starts a comment. Polygons are split into fans.
+    (meshio's reader loops forever on a file cut short after its header.)"""
+    import re
+
+    text = re.sub(rb"#[^\n]*", b"", path.read_bytes())
+    fast = _read_off_triangles(text)
+    if fast is not None:
+        return fast
+    lines = [ln.split() for ln in text.splitlines()]
+    lines = [ln for ln in lines if ln]
+    if not lines or lines[0][0] != b"OFF":
+        raise MeshFileError(f"{path}: not an OFF file (its first word is not OFF)")
+    head = lines[0][1:] or (lines[1] if len(lines) > 1 else [])
+    body = lines[1:] if lines[0][1:] else lines[2:]
+    try:
+        n_verts, n_faces = int(head[0]), int(head[1])
+        if n_verts < 0 or n_faces < 0 or len(body) < n_verts + n_faces:
+            raise ValueError(f"{len(body)} data lines for {n_verts} vertices, {n_faces} faces")
+        points = np.array([ln[:3] for ln in body[:n_verts]], dtype=np.float64).reshape(-1, 3)
+        faces = body[n_verts : n_verts + n_faces]
+        sizes = np.array([int(f[0]) for f in faces], np.int64)
+        if (sizes < 3).any() or any(len(f) <= k for f, k in zip(faces, sizes, strict=True)):
+            raise ValueError("a face with fewer than 3 vertices or fewer ids than its count")
+        ids = [np.array(f[1 : k + 1], dtype=np.int64) for f, k in zip(faces, sizes, strict=True)]
+    except (ValueError, IndexError) as e:
+        raise MeshFileError(f"{path}: not a readable OFF file ({e})") from None
+    # a fan of triangles (0, j, j + 1) of each polygon, one array operation per size
+    triangles = [np.zeros((0, 3), np.int64)]
+    for k in np.unique(sizes):
+        polys = np.array([i for i, size in zip(ids, sizes, strict=True) if size == k])
+        j = np.arange(1, k - 1)
+        triangles.append(
+            np.stack(
+                [np.repeat(polys[:, 0], k - 2), polys[:, j].ravel(), polys[:, j + 1].ravel()], 1
+            )
+        )
+    return points, np.concatenate(triangles)
+
+
+def _read_off_triangles(text: bytes) -> tuple[np.ndarray, np.ndarray] | None:
+    """``_read_off`` of an OFF file (comments removed) of triangles without colours, by
+    whole-file token arrays (1M triangles: 0.9 s instead of 4.6 s line by line); None
+    for any other file."""
+    tokens = text.split()
+    try:
+        n_verts, n_faces = int(tokens[1]), int(tokens[2])
+    except (IndexError, ValueError):
+        return None
+    if tokens[0] != b"OFF" or n_verts < 0 or len(tokens) != 4 + 3 * n_verts + 4 * n_faces:
+        return None
+    try:
+        points = np.array(tokens[4 : 4 + 3 * n_verts], dtype=np.float64).reshape(-1, 3)
+        faces = np.array(tokens[4 + 3 * n_verts :], dtype=np.int64).reshape(-1, 4)
+    except ValueError:
+        return None
+    return (points, faces[:, 1:]) if (faces[:, 0] == 3).all() else None
 
 
 def _polydata_triangles(data) -> tuple[np.ndarray, np.ndarray]:
@@ -100,7 +155,7 @@ def read_surface(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
 
     from ._forked import call_in_child, can_fork
 
-    if not can_fork() or p.suffix.lower() == ".off":  # meshio: Python, no crash
+    if not can_fork() or p.suffix.lower() == ".off":  # Python and NumPy: no crash
         return read()
     return call_in_child(
         read,

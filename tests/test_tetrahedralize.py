@@ -180,3 +180,24 @@ def test_no_tets_from_ftetwild_is_an_error(monkeypatch):
     points, triangles = _arrays(_ball(8))
     with pytest.raises(jtet.MeshInputError, match=r"no tets.*\(3 open edge"):
         jtet.tetrahedralize((points, triangles[1:]))
+
+
+def test_off_files_with_polygons_comments_and_damage(tmp_path):
+    """A unit cube as an OFF file of 6 quads, with comments and its counts on the header
+    line, reads as the 12 triangles of the cube; files cut short are refused (meshio's
+    reader looped forever on one cut after its header)."""
+    cube = pv.Cube()
+    quads = cube.faces.reshape(-1, 5)[:, 1:]
+    text = "OFF 8 6 0 # counts on the header line\n# a comment\n"
+    text += "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in cube.points.tolist())
+    text += "".join(f"4 {a} {b} {c} {d} 0.5 0.5 0.5\n" for a, b, c, d in quads.tolist())
+    path = tmp_path / "cube.off"
+    path.write_text(text)
+    points, triangles = jtet.read_surface(path)
+    np.testing.assert_array_equal(points, cube.points)
+    assert triangles.shape == (12, 3) and open_edges(triangles) == 0
+    assert _enclosed_volume(points, triangles) == pytest.approx(1.0, rel=1e-12)
+    for cut in ("OFF\n# Creat", "OFF\n8 6 0\n0 0 0\n", "COFF\n", "OFF\n8 6\n" + "1 2\n" * 14):
+        path.write_text(cut)
+        with pytest.raises(jtet.MeshFileError, match="OFF"):
+            jtet.read_surface(path)
