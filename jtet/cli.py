@@ -286,17 +286,21 @@ def cmd_improve(args) -> int:
     return _run_improve(mesh, out, args, str(src))
 
 
+def _batch_plot(plot: str, out: Path) -> Path:
+    """The figure of one file of a batch: ``--plot H.png`` with the output's name
+    added, H_<output stem>.png."""
+    p = Path(plot)
+    return p.with_name(f"{p.stem}_{out.stem}{p.suffix}")
+
+
 def _batch_outputs(args) -> list[tuple[Path, Path]]:
     """(input, output) of every file of ``jtet improve IN... --out-dir DIR``, checked
-    before any run: a known output format, no two inputs to one output, no input
-    overwritten without --overwrite."""
+    before any run: a known output format, no two inputs to one output (nor to one
+    figure, with --plot), no input overwritten without --overwrite."""
     from ._io import output_format
 
-    if args.plot:
-        raise JtetError(
-            "--plot writes one figure; with --out-dir, compare the inputs and outputs "
-            "with jtet stats IN OUT --plot H.png"
-        )
+    if args.plot and not Path(args.plot).parent.is_dir():
+        raise JtetError(f"--plot {args.plot}: {Path(args.plot).parent} is no existing directory")
     outdir = Path(args.out_dir)
     if not outdir.is_dir():
         raise JtetError(f"--out-dir {outdir}: not an existing directory")
@@ -311,12 +315,19 @@ def _batch_outputs(args) -> list[tuple[Path, Path]]:
         if _is_input(src, out) and not args.overwrite:
             raise JtetError(f"{out} is the input file {src}; pass --overwrite to replace it")
         pairs.append((src, out))
-    seen = {}
+    seen, plots = {}, {}
     for src, out in pairs:
         key = out.resolve()
         if key in seen:
             raise JtetError(f"{seen[key]} and {src} would both be written to {out}")
         seen[key] = src
+        if args.plot:
+            plot = _batch_plot(args.plot, out)
+            if plot.resolve() in plots:
+                raise JtetError(
+                    f"{plots[plot.resolve()]} and {src} would both be plotted to {plot}"
+                )
+            plots[plot.resolve()] = src
     return pairs
 
 
@@ -327,7 +338,7 @@ def _improve_batch(args) -> int:
     or written is reported and skipped; Ctrl-C stops the batch after writing the
     current file's best mesh. Exit code: the worst of the files' (130 > 3 > 2 > 0)."""
     from ._io import load
-    from ._report import write_text_atomic
+    from ._report import plot_histograms, write_text_atomic
     from ._stats import text_table
 
     pairs = _batch_outputs(args)
@@ -361,8 +372,15 @@ def _improve_batch(args) -> int:
         )
         reports.append({"input": str(src), "output": str(out) if written else None,
                         **result.as_dict()})  # fmt: skip
+        plot = _batch_plot(args.plot, out) if args.plot else None
+        if plot is not None:
+            plot_histograms(result, plot)
         if not args.quiet:
-            print(f"jtet: {src} -> {out}  ({result.status}, {result.seconds:.1f} s)", flush=True)
+            drawn = f"; {plot}" if plot is not None else ""
+            print(
+                f"jtet: {src} -> {out}{drawn}  ({result.status}, {result.seconds:.1f} s)",
+                flush=True,
+            )
         if code == 130:
             break
     if args.report:
@@ -648,7 +666,12 @@ def build_parser() -> argparse.ArgumentParser:
     pi.add_argument(
         "--report", metavar="R.json", help="write a JSON report (options, stats, history)"
     )
-    pi.add_argument("--plot", metavar="H.png", help="write before/after histograms")
+    pi.add_argument(
+        "--plot",
+        metavar="H.png",
+        help="write before/after histograms (with --out-dir: one figure per file, "
+        "H_<output name>.png)",
+    )
     pi.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
     pi.add_argument("-q", "--quiet", action="store_true")
     pi.set_defaults(func=cmd_improve)

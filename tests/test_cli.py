@@ -601,12 +601,17 @@ def test_batch_improves_every_input_as_one_run_would(small, tmp_path, capsys):
     jtet.save(jtet.demo_mesh("two_regions").replace(region=[7] * 1928), other)
     outdir, report = tmp_path / "out", tmp_path / "all.json"
     outdir.mkdir()
+    plot = outdir / "h.png"
     code = _improve(
-        small, other, "--out-dir", outdir, "--out-ext", "vtu", "--report", report, *QUICK
-    )
+        small, other, "--out-dir", outdir, "--out-ext", "vtu", "--report", report, *QUICK,
+        "--plot", plot,
+    )  # fmt: skip
     cap = capsys.readouterr()
     assert code == 0, cap.err
-    assert sorted(p.name for p in outdir.iterdir()) == ["second.vtu", "two_regions.vtu"]
+    names = ["h_second.png", "h_two_regions.png", "second.vtu", "two_regions.vtu"]
+    assert sorted(p.name for p in outdir.iterdir()) == names
+    assert (outdir / "h_second.png").read_bytes().startswith(PNG_MAGIC)
+    assert f"-> {outdir / 'second.vtu'}; {outdir / 'h_second.png'}" in cap.out
     rows = json.loads(report.read_text())
     assert [r["input"] for r in rows] == [str(small), str(other)]
     for src, row in zip((small, other), rows, strict=True):
@@ -641,7 +646,8 @@ def test_batch_goes_on_after_a_bad_input(small, tmp_path, capsys):
 @pytest.mark.parametrize(
     "extra, reason",
     [
-        (["--out-dir", "{d}/out", "--plot", "{d}/h.png"], "--plot writes one figure"),
+        (["--out-dir", "{d}/out", "--plot", "{d}/no/h.png"], "no existing directory"),
+        (["--out-dir", "{d}/out", "--plot", "{d}/h.png"], "would both be plotted to"),
         (["--out-ext", "msh"], "--out-ext names the outputs of --out-dir"),
         (["{d}/x.vtu"], r"takes IN OUT, or several inputs with --out-dir DIR \(3 path"),
         (["--out-dir", "{d}/missing"], "not an existing directory"),
