@@ -6,14 +6,13 @@ self-intersecting or non-manifold surfaces too. It keeps the output's boundary w
 ``epsilon`` (relative to the bounding box's diagonal) of the input surface and keeps
 what the surface's winding number puts inside. Its output is already optimized for its
 own energy (AMIPS), not for dihedral angles: ``jtet improve`` then raises the worst tets.
-fTetWild runs in a forked child process (``_forked``): it writes a scratch file into its
+fTetWild runs in a child process (``_ftetwild``): it writes a scratch file into its
 working directory (the child's is a temporary one), and a crash of its C++ code on a
 strange surface becomes a clear error instead of taking the caller's process down.
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
 import tempfile
 import warnings
@@ -214,16 +213,59 @@ def open_edges(triangles: np.ndarray) -> int:
     return int((count != 2).sum())
 
 
-def _ftetwild(points, triangles, settings: dict) -> tuple[np.ndarray, np.ndarray]:
-    """fTetWild's (points (n, 3) float64, tets (m, 4) int64), in this process, with a
-    temporary working directory for its scratch file."""
-    import pytetwild
+# The child's program: the surface from surface.npz in its working directory, fTetWild's
+# mesh to tets.npz. It imports NumPy and pytetwild only (not jtet, not JAX).
+_FTETWILD_CHILD = """
+import json, sys
+import numpy as np
+import pytetwild
+surface = np.load("surface.npz")
+points, tets = pytetwild.tetrahedralize(
+    surface["points"], surface["triangles"], vtk_ordering=True, quiet=True,
+    **json.loads(sys.argv[1]),
+)
+np.savez("tets.npz", points=np.asarray(points, np.float64), tets=np.asarray(tets, np.int64))
+"""
 
-    with tempfile.TemporaryDirectory(prefix="jtet-ftetwild-") as tmp, contextlib.chdir(tmp):
-        p, t = pytetwild.tetrahedralize(
-            points, triangles.astype(np.int32), vtk_ordering=True, quiet=True, **settings
+
+def _ftetwild(points, triangles, settings: dict, source: str) -> tuple[np.ndarray, np.ndarray]:
+    """fTetWild's (points (n, 3) float64, tets (m, 4) int64) of the surface, run in a
+    new Python process whose working directory is a temporary one (fTetWild writes a
+    scratch file there).
+
+    A new process, not a fork of this one: fTetWild runs on TBB's thread pool, and a
+    fork of a process whose pool exists (pytetwild called here before) inherits a pool
+    without threads, where the child waited forever (seen in the test suite). It costs
+    ~0.2 s to start.
+
+    Raises:
+        MeshInputError: fTetWild failed or crashed (the message says which).
+    """
+    import json
+    import signal
+    import subprocess
+    import sys
+
+    from ._io import _clean
+
+    with tempfile.TemporaryDirectory(prefix="jtet-ftetwild-") as tmp:
+        np.savez(Path(tmp) / "surface.npz", points=points, triangles=triangles.astype(np.int32))
+        proc = subprocess.run(
+            [sys.executable, "-c", _FTETWILD_CHILD, json.dumps(settings)],
+            cwd=tmp,
+            capture_output=True,
+            text=True,
+            errors="replace",
         )
-    return np.asarray(p, np.float64), np.asarray(t, np.int64).reshape(-1, 4)
+        if proc.returncode == 0:
+            with np.load(Path(tmp) / "tets.npz") as out:
+                return out["points"], out["tets"].reshape(-1, 4)
+    if proc.returncode < 0:
+        how = f"crashed with {signal.Signals(-proc.returncode).name}"
+    else:
+        lines = proc.stderr.strip().splitlines()
+        how = f"failed ({_clean(lines[-1]) if lines else f'exit code {proc.returncode}'})"
+    raise MeshInputError(f"{source}: fTetWild {how} on this surface")
 
 
 def tetrahedralize(
@@ -293,19 +335,7 @@ def tetrahedralize(
         "num_threads": int(threads),
     }
 
-    from ._forked import call_in_child, can_fork
-    from ._io import _reason
-
-    def mesh():
-        try:
-            return _ftetwild(points, triangles, settings)
-        except Exception as e:  # the wrapper's RuntimeError, a bad_alloc, ...
-            raise MeshInputError(f"{source}: fTetWild failed ({_reason(e)})") from None
-
-    def crashed(how: str) -> MeshInputError:
-        return MeshInputError(f"{source}: fTetWild {how} on this surface")
-
-    tet_points, tets = call_in_child(mesh, crashed) if can_fork() else mesh()
+    tet_points, tets = _ftetwild(points, triangles, settings, source)
     if not len(tets):
         raise MeshInputError(
             f"{source}: fTetWild made no tets: does the surface enclose a volume? "

@@ -2,8 +2,6 @@
 the volume a surface bounds, surface files of every format read back as written, and bad
 surfaces, settings and crashes turned into clear errors."""
 
-import os
-
 import numpy as np
 import pytest
 
@@ -144,13 +142,38 @@ def test_unreadable_surface_files(tmp_path):
         jtet.read_surface(damaged)
 
 
-@pytest.mark.skipif(not hasattr(os, "fork"), reason="fTetWild runs in a forked child")
-def test_a_crash_of_ftetwild_is_an_error_and_the_process_lives(monkeypatch):
+@pytest.mark.parametrize(
+    "program, match",
+    [
+        ("import os; os.abort()", "fTetWild crashed with SIGABRT on this surface"),
+        ("raise RuntimeError('no envelope')", r"fTetWild failed \(RuntimeError: no envelope\)"),
+    ],
+)
+def test_a_crash_of_ftetwild_is_an_error_and_the_process_lives(monkeypatch, program, match):
     from jtet import _tetrahedralize
 
-    monkeypatch.setattr(_tetrahedralize, "_ftetwild", lambda *a: os.abort())
-    with pytest.raises(jtet.MeshInputError, match="fTetWild crashed with SIGABRT"):
+    monkeypatch.setattr(_tetrahedralize, "_FTETWILD_CHILD", program)
+    with pytest.raises(jtet.MeshInputError, match=match):
         jtet.tetrahedralize(_ball(8))
+
+
+def test_ftetwild_called_in_this_process_before_does_not_hang_it(tmp_path):
+    """fTetWild's thread pool, started here by a direct pytetwild call (as the
+    experiments' generators do), once made a forked child wait forever."""
+    import subprocess
+    import sys
+
+    program = (
+        "import numpy as np, pyvista as pv, pytetwild, jtet\n"
+        "s = pv.Sphere(theta_resolution=8, phi_resolution=8).triangulate()\n"
+        "p, f = np.asarray(s.points), s.faces.reshape(-1, 4)[:, 1:].astype(np.int32)\n"
+        "pytetwild.tetrahedralize(p, f, edge_length_fac=0.2, quiet=True)\n"
+        "print(jtet.tetrahedralize((p, f), edge_length_fac=0.2).n_tets > 50)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", program], capture_output=True, text=True, timeout=300, cwd=tmp_path
+    )
+    assert done.stdout.strip() == "True", done.stderr
 
 
 def test_command_writes_a_mesh_ready_to_improve(tmp_path, capsys):
