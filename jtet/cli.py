@@ -618,7 +618,8 @@ def _version_line() -> str:
         except metadata.PackageNotFoundError:
             return "missing"
 
-    deps = ", ".join(f"{n} {version(n)}" for n in ("jax", "jaxlib", "numpy", "meshio", "pyvista"))
+    names = ("jax", "jaxlib", "numpy", "meshio", "pyvista", "pytetwild")
+    deps = ", ".join(f"{n} {version(n)}" for n in names)
     return f"jtet {__version__} (Python {platform.python_version()}, {deps})"
 
 

@@ -510,7 +510,7 @@ def test_version(capsys, monkeypatch):
     assert out.count("\n") == 1
     assert out.startswith(f"jtet {jtet.__version__} (Python ")
     assert jtet.__version__ == metadata.version("jtet")
-    for name in ("jax", "numpy", "meshio"):
+    for name in ("jax", "numpy", "meshio", "pytetwild"):
         assert f"{name} {metadata.version(name)}" in out
 
 
