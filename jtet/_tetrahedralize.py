@@ -196,11 +196,19 @@ def check_surface(points, triangles, source: str = "surface") -> tuple[np.ndarra
             f"{source}: triangle vertex ids must be in 0..{len(pts) - 1}, found "
             f"{int(tris.min())}..{int(tris.max())}"
         )
+    from ._driver import MAX_EXTENT, MIN_EXTENT
+
     used = pts[np.unique(tris)]
-    spread = used - used.mean(axis=0)
-    # the smallest singular value against the largest: 0 for points in one plane
-    sv = np.linalg.svd(spread, compute_uv=False)
-    if sv[0] == 0 or sv[-1] <= 1e-12 * sv[0]:
+    extent = float(np.ptp(used, axis=0).max())
+    if not MIN_EXTENT <= extent <= MAX_EXTENT:
+        raise MeshInputError(
+            f"{source}: the surface spans {extent:.3g} length units; jtet needs extents in "
+            f"[{MIN_EXTENT:g}, {MAX_EXTENT:g}] (the mesh's quality is float64): rescale it"
+        )
+    # the smallest singular value against the largest (of the spread scaled to ~1, which
+    # cannot overflow): 0 for points in one plane
+    sv = np.linalg.svd((used - used.mean(axis=0)) / extent, compute_uv=False)
+    if sv[-1] <= 1e-12 * sv[0]:
         raise MeshInputError(f"{source}: all points lie in one plane (or line): no volume")
     return pts, tris
 

@@ -104,6 +104,8 @@ def test_open_edges_counts_border_and_non_manifold_edges():
         (lambda p, t: (p, np.where(t == t.max(), len(p), t)), "vertex ids"),
         (lambda p, t: (p, t[:3]), "at least 4"),
         (lambda p, t: (p * np.array([1.0, 1.0, 0.0]), t), "one plane"),
+        (lambda p, t: (p * 1e300, t), "spans 1e\\+300 length units"),
+        (lambda p, t: (p * 0.0, t), "spans 0 length units"),
         (lambda p, t: (p[:, :2], t), r"\(n, 3\)"),
         (lambda p, t: (p, t.astype(float)), "integer"),
     ],
