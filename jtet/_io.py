@@ -822,13 +822,19 @@ def _mesh_vertices(tets: np.ndarray, vertices, labels, n: int, source: str):
     return ids, np.asarray(labels, np.int64)[ok][first]
 
 
-def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, vertices=None):
+def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, required=None):
     """Like ``grid_to_arrays`` for a ``meshio.Mesh``: tets of every tetra block, region,
     as labelled protected faces the triangles of its triangle blocks and of
     ``triangles`` ((k, 3) ids, (k,) labels: a TetGen ``.face`` file) that are faces of
-    the tets, as protected edges and vertices its line and vertex cells and
-    ``vertices`` ((j,) ids: Medit's ``RequiredVertices``) that are edges and vertices of
-    the tets (``_mesh_cells``, ``_mesh_vertices``)."""
+    the tets, as protected edges and vertices its line and vertex cells that are edges
+    and vertices of the tets (``_mesh_cells``, ``_mesh_vertices``).
+
+    ``required`` (a Medit file's): {"Vertices", "Triangles", "Edges": 0-based ids (k,)
+    of ``RequiredVertices`` (vertex ids) and of ``RequiredTriangles`` / ``RequiredEdges``
+    (ids in its triangle / edge sections), or None}. MMG never changes what these name;
+    jtet keeps a required triangle exactly by protecting its edges and vertices too (a
+    protected face alone may be flipped within a flat patch), a required edge by
+    protecting its vertices too (with ``boundary="slide"`` they could slide)."""
     keep_blocks, bad = [], {}
     for i, block in enumerate(m.cells):
         dim = getattr(block, "dim", 3)
@@ -881,13 +887,41 @@ def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, vertices=No
         tri = np.concatenate([tri, triangles[0]])
         tri_labels = np.concatenate([tri_labels, triangles[1]])
     faces, labels = _mesh_cells(tets, tri, tri_labels, n, source)
-    edges, edge_labels = _mesh_cells(tets, *cells("line", 2), n, source)
+    lines, line_labels = cells("line", 2)
     pins, pin_labels = cells("vertex", 1)
-    if vertices is not None:  # Medit's RequiredVertices: no labels
-        pins = np.concatenate([pins.reshape(-1), vertices])
-        pin_labels = np.concatenate([pin_labels, np.zeros(len(vertices), np.int64)])
+    pins = pins.reshape(-1)
+    if required is not None:  # Medit's Required* sections: no labels of their own
+        kept = _required_cells(tri, tri_labels, lines, line_labels, required, source)
+        extra_lines, extra_labels = kept[0], kept[1]
+        lines = np.concatenate([lines, extra_lines])
+        line_labels = np.concatenate([line_labels, extra_labels])
+        pins = np.concatenate([pins, kept[2]])
+        pin_labels = np.concatenate([pin_labels, np.zeros(len(kept[2]), np.int64)])
+    edges, edge_labels = _mesh_cells(tets, lines, line_labels, n, source)
     pinned, pinned_labels = _mesh_vertices(tets, pins, pin_labels, n, source)
     return points, tets, region, faces, edges, labels, pinned, edge_labels, pinned_labels
+
+
+def _required_cells(tri, tri_labels, lines, line_labels, required: dict, source: str):
+    """(edges (k, 2), their labels (k,), vertices (j,)) that keep a Medit file's required
+    triangles and edges exactly (``_meshio_to_arrays``): the edges of each required
+    triangle, labelled with its reference; the vertices of those and of the required
+    edges; the required vertices. ``MeshInputError`` for an id past its section."""
+    for key, rows in (("Triangles", tri), ("Edges", lines)):
+        ids = required.get(key)
+        if ids is not None and len(ids) and ids.max() >= len(rows):
+            raise MeshInputError(
+                f"{source}: Required{key} lists {key.lower()[:-1]} {int(ids.max()) + 1} of "
+                f"{len(rows)}"
+            )
+    no = np.zeros(0, np.int64)
+    t_ids = no if required.get("Triangles") is None else required["Triangles"]
+    e_ids = no if required.get("Edges") is None else required["Edges"]
+    v_ids = no if required.get("Vertices") is None else required["Vertices"]
+    sides = tri[t_ids][:, [[0, 1], [1, 2], [0, 2]]].reshape(-1, 2)
+    side_labels = np.repeat(tri_labels[t_ids], 3)
+    vertices = np.concatenate([sides.reshape(-1), lines[e_ids].reshape(-1), v_ids])
+    return sides, side_labels, vertices
 
 
 def _tetgen_faces(node: Path) -> tuple[np.ndarray, np.ndarray] | None:
@@ -1092,7 +1126,11 @@ def load(path: str | os.PathLike) -> TetMesh:
             if readable is not None:
                 readable.unlink(missing_ok=True)
         faces = _tetgen_faces(p.with_suffix(".node")) if fmt == "tetgen" else None
-        required = _medit_required(p, "RequiredVertices") if ext == ".mesh" else None
+        required = None
+        if ext == ".mesh":
+            required = {
+                k: _medit_required(p, "Required" + k) for k in ("Vertices", "Triangles", "Edges")
+            }
         arrays = _meshio_to_arrays(m, source, fmt, faces, required)
         if fmt == "gmsh":
             extras = {

@@ -42,9 +42,10 @@ def _section_ids(data, at: int, section: str, path: Path) -> tuple[list[bytes], 
 
 
 def _medit_required(path: Path, section: str) -> np.ndarray | None:
-    """0-based ids (k,) of an ASCII Medit file's ``RequiredVertices`` or
-    ``RequiredTetrahedra`` (``section``: vertices MMG never moves, tets it never
-    changes; meshio skips them), None without one."""
+    """0-based ids (k,) of an ASCII Medit file's ``section``: ``RequiredVertices``,
+    ``RequiredEdges``, ``RequiredTriangles`` or ``RequiredTetrahedra`` (what MMG never
+    moves or changes; meshio skips or refuses them; the ids of the edges, triangles and
+    tets are in the file's sections of those), None without one."""
     import mmap
 
     with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:

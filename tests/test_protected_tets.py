@@ -76,21 +76,61 @@ def test_protected_tets_round_trip(tmp_path, mesh, ext):
 def test_mmg_required_sections_are_read(tmp_path, mesh):
     # meshio 5.3 refuses RequiredTetrahedra, RequiredTriangles and RequiredEdges
     # ("Unknown keyword"): MMG files holding them were unreadable
+    T = mesh.topology
+    faces = np.sort(T.faces[T.boundary_face][:3], axis=1)
+    edges = T.edges[~T.edge_boundary][:2]
     path = tmp_path / "m.mesh"
-    jtet.save(mesh.replace(protected_tets=None), path)
+    jtet.save(mesh.replace(protected_tets=None, protected_faces=faces, protected_edges=edges), path)
     text = path.read_text().replace(
         "\nEnd\n",
-        "\nRequiredTriangles\n1\n1\n\nRequiredEdges\n1\n1\nRequiredTetrahedra\n2\n3 5\n\nEnd\n",
+        "\nRequiredTriangles\n1\n2\n\nRequiredEdges\n1\n1\nRequiredTetrahedra\n2\n3 5\n\nEnd\n",
     )
     path.write_text(text)
     got = jtet.load(path)
     assert _rows(got.protected_tets) == _rows(mesh.tets[[2, 4]])
-    path.write_text(text.replace("RequiredTetrahedra\n2\n3 5", "RequiredTetrahedra\n2\n3 99999"))
-    with pytest.raises(jtet.MeshInputError, match="RequiredTetrahedra lists tet 99999"):
+    # a required triangle keeps its edges and vertices too (a protected face alone may be
+    # flipped within a flat patch), a required edge its vertices
+    tri = np.sort(got.protected_faces, axis=1)
+    second = tri[np.flatnonzero((tri == np.sort(faces[1])).all(axis=1))[0]]
+    sides = {tuple(sorted(e)) for e in second[[[0, 1], [1, 2], [0, 2]]].tolist()}
+    assert sides <= {tuple(e) for e in np.sort(got.protected_edges, axis=1).tolist()}
+    assert set(second.tolist()) | set(edges[0].tolist()) == set(got.protected_vertices.tolist())
+    for bad, match in (
+        ("RequiredTetrahedra\n2\n3 99999", "RequiredTetrahedra lists tet 99999"),
+        ("RequiredTetrahedra\n3\n3 5", "unreadable RequiredTetrahedra"),
+    ):
+        path.write_text(text.replace("RequiredTetrahedra\n2\n3 5", bad))
+        with pytest.raises(jtet.MeshInputError, match=match):
+            jtet.load(path)
+    path.write_text(text.replace("RequiredTriangles\n1\n2", "RequiredTriangles\n1\n4"))
+    with pytest.raises(jtet.MeshInputError, match="RequiredTriangles lists triangle 4 of 3"):
         jtet.load(path)
-    path.write_text(text.replace("RequiredTetrahedra\n2\n3 5", "RequiredTetrahedra\n3\n3 5"))
-    with pytest.raises(jtet.MeshInputError, match="unreadable RequiredTetrahedra"):
-        jtet.load(path)
+
+
+def test_mmg_required_triangles_stay_exactly(tmp_path):
+    """A flat-faced cube whose boundary triangles are all protected faces: improve
+    flips some of them within their facets (coplanar 2-2 flips), unless the file says
+    they are required (MMG's RequiredTriangles), when each stays a face, unmoved."""
+    from helpers import delaunay_mesh
+
+    mesh = delaunay_mesh(150, seed=4, surface_points=120)
+    T = mesh.topology
+    faces = np.sort(T.faces[T.boundary_face], axis=1)
+    path = tmp_path / "cube.mesh"
+    jtet.save(mesh.replace(protected_faces=faces), path)
+    text = path.read_text()
+    ids = "\n".join(str(i + 1) for i in range(len(faces)))
+    required = f"RequiredTriangles\n{len(faces)}\n{ids}\n\nEnd\n"
+    kept = {}
+    for name, body in (("plain", text), ("required", text.replace("\nEnd\n", "\n" + required))):
+        path.write_text(body)
+        before = jtet.load(path)
+        after = jtet.improve(before, ops=("edge", "face"), check=True).mesh
+        Ta = after.topology
+        now = {tuple(f) for f in np.sort(Ta.faces[Ta.boundary_face], axis=1).tolist()}
+        kept[name] = sum(tuple(f) in now for f in faces.tolist())
+    assert kept["required"] == len(faces)
+    assert kept["plain"] < len(faces)  # the reference: without the section they flip
 
 
 @pytest.mark.parametrize("name", ["m.msh", "m.meshb", "m.node"])
