@@ -303,7 +303,10 @@ def tetrahedralize(
             can be repeated.
 
     Returns:
-        The mesh (one region, 0; no protected entities), positively oriented.
+        The mesh, positively oriented, with no protected entities and one region
+        labelled 1: a Gmsh physical volume (solvers that read Gmsh files, dolfinx's
+        among them, take their cells from physical groups, and tag 0 is none), a Medit
+        reference, a TetGen region attribute.
 
     Raises:
         MeshFileError: an unreadable surface file.
@@ -350,4 +353,7 @@ def tetrahedralize(
             f"({open_edges(triangles)} open edge(s))"
         )
     used, tets = np.unique(tets, return_inverse=True)
-    return TetMesh.from_arrays(tet_points[used], tets.reshape(-1, 4), source=f"fTetWild({source})")
+    tets = tets.reshape(-1, 4)
+    return TetMesh.from_arrays(
+        tet_points[used], tets, np.ones(len(tets), np.int64), source=f"fTetWild({source})"
+    )

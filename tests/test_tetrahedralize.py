@@ -30,6 +30,7 @@ def test_cube_surface_gives_a_valid_mesh_of_the_cube():
     points, triangles = _arrays(pv.Cube().triangulate())
     mesh = jtet.tetrahedralize((points, triangles), edge_length_fac=0.2)
     assert mesh.n_tets > 100 and mesh.is_valid().ok
+    assert (mesh.region == 1).all()  # a Gmsh physical volume, unlike 0
     assert (mesh.volumes > 0).all()
     # fTetWild's boundary lies within its envelope, 1e-3 of the diagonal (1.73), of the
     # faces (often exactly on them, not always: its output varies from run to run), so
