@@ -1,4 +1,5 @@
-"""The ``jtet`` command: ``jtet improve``, ``jtet stats``, ``jtet convert``, ``jtet demo``.
+"""The ``jtet`` command: ``jtet improve``, ``jtet stats``, ``jtet convert``,
+``jtet tetrahedralize``, ``jtet demo``.
 
 Exit codes: 0 success (also when ``--time-limit`` or the goals stopped the run: OUT holds
 the best mesh so far); 2 bad input or options (one line on stderr says why); 3 ``--check`` found
@@ -10,6 +11,7 @@ atomically), otherwise nothing was written. OUT is never left partially written.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import os
 import sys
@@ -512,38 +514,35 @@ def cmd_convert(args) -> int:
     return 0
 
 
+@contextlib.contextmanager
 def _ticking(label: str, quiet: bool):
-    """A context that shows ``label`` and the seconds spent on stderr while it lasts
-    (on a terminal; elsewhere one line at the start): work that reports no progress of
-    its own, so a long run does not look hung."""
-    import contextlib
+    """Show ``label`` and the seconds spent on stderr while the block runs (on a
+    terminal; elsewhere one line at the start): for work that reports no progress of
+    its own, so that a long run does not look hung."""
+    if quiet or not sys.stderr.isatty():
+        if not quiet:
+            print(f"{label} ...", file=sys.stderr, flush=True)
+        yield
+        return
     import threading
 
-    @contextlib.contextmanager
-    def tick():
-        if quiet:
-            yield
-            return
-        if not sys.stderr.isatty():
-            print(f"{label} ...", file=sys.stderr, flush=True)
-            yield
-            return
-        t0, stop = time.perf_counter(), threading.Event()
+    t0, stop = time.perf_counter(), threading.Event()
 
-        def show():
-            while not stop.wait(0.5):
-                print(f"\r{label} {time.perf_counter() - t0:6.1f}s", end="", file=sys.stderr)
+    def show(end: str = "") -> None:
+        print(f"\r{label} {time.perf_counter() - t0:6.1f}s", end=end, file=sys.stderr)
 
-        thread = threading.Thread(target=show, daemon=True)
-        thread.start()
-        try:
-            yield
-        finally:
-            stop.set()
-            thread.join()
-            print(f"\r{label} {time.perf_counter() - t0:6.1f}s", file=sys.stderr)
+    def tick() -> None:
+        while not stop.wait(0.5):
+            show()
 
-    return tick()
+    thread = threading.Thread(target=tick, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
+        show("\n")
 
 
 def cmd_tetrahedralize(args) -> int:

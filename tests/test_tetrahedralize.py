@@ -2,6 +2,8 @@
 the volume a surface bounds, surface files of every format read back as written, and bad
 surfaces, settings and crashes turned into clear errors."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -227,3 +229,26 @@ def test_off_files_with_polygons_comments_and_damage(tmp_path):
         path.write_text(cut)
         with pytest.raises(jtet.MeshFileError, match="OFF"):
             jtet.read_surface(path)
+
+
+def test_long_work_shows_its_seconds(monkeypatch):
+    """fTetWild reports no progress: on a terminal the command shows the seconds spent
+    (rewritten in place, ended by a newline); elsewhere one line; -q nothing."""
+    import io
+    import sys
+
+    from jtet.cli import _ticking
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    for stream, quiet, want in (
+        (Terminal(), False, r"^(\rfTetWild +\d+\.\ds)+\n$"),
+        (io.StringIO(), False, r"^fTetWild \.\.\.\n$"),
+        (Terminal(), True, r"^$"),
+    ):
+        monkeypatch.setattr(sys, "stderr", stream)
+        with _ticking("fTetWild", quiet):
+            pass
+        assert re.match(want, stream.getvalue()), repr(stream.getvalue())
