@@ -1301,6 +1301,17 @@ def save(
                 "own keeps them apart: improve --regions)",
                 stacklevel=2,
             )
+        n_unlabelled = int(np.count_nonzero(mesh.region == 0))
+        if n_unlabelled:
+            # physical tag 0 is "in no physical group": Gmsh reads such tets into no
+            # physical volume, and solvers that take cells from physical groups skip them
+            warnings.warn(
+                f"{p}: {n_unlabelled} tet(s) of region 0, which Gmsh files cannot put in a "
+                "physical volume (tag 0 is none): Gmsh and solvers that read cells by "
+                "physical group (dolfinx) will not see them; give them a label of their "
+                "own (TetMesh.replace(region=...))",
+                stacklevel=2,
+            )
         if _lower_blocks(mesh, fmt) and cell_data:
             # meshio 5.3's Gmsh 2.2 reader splits element data over two or more element
             # blocks at element 2 and refuses its own file ("Incompatible cell data"),

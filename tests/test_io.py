@@ -1182,3 +1182,23 @@ def test_damaged_vtk_array_name():
     path = Path(__file__).parent / "data" / "damaged_array_name.vtk"
     with pytest.raises(MeshInputError, match="tet 17 has vertex indices .* out of range"):
         _io.load(path)
+
+
+@pytest.mark.parametrize("label", [0, 1])
+def test_msh_region_0_is_in_no_physical_group(tmp_path, label):
+    """Gmsh reads physical tag 0 as no physical group: the save warns that region 0's
+    tets are invisible to solvers that read cells by physical group, and only then."""
+    gmsh = pytest.importorskip("gmsh")
+    from helpers import gmsh_model
+
+    mesh = jtet.demo_mesh().replace(region=np.full(jtet.demo_mesh().n_tets, label))
+    path = tmp_path / "m.msh"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _io.save(mesh, path)
+    said = [str(w.message) for w in caught if "region 0" in str(w.message)]
+    with gmsh_model():
+        gmsh.open(str(path))
+        groups = gmsh.model.getPhysicalGroups(3)
+    assert groups == ([] if label == 0 else [(3, 1)])
+    assert len(said) == (label == 0) and all(f"{mesh.n_tets} tet(s) of region 0" in m for m in said)
