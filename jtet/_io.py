@@ -829,9 +829,9 @@ def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, required=No
     the tets, as protected edges and vertices its line and vertex cells that are edges
     and vertices of the tets (``_mesh_cells``, ``_mesh_vertices``).
 
-    ``required`` (a Medit file's): {"Vertices", "Triangles", "Edges": 0-based ids (k,)
-    of ``RequiredVertices`` (vertex ids) and of ``RequiredTriangles`` / ``RequiredEdges``
-    (ids in its triangle / edge sections), or None}. MMG never changes what these name;
+    ``required`` (a Medit file's, ``_medit_required``): {"RequiredVertices",
+    "RequiredTriangles", "RequiredEdges": 0-based ids (k,) (vertex ids; ids in its
+    triangle / edge sections), or None}. MMG never changes what these name;
     jtet keeps a required triangle exactly by protecting its edges and vertices too (a
     protected face alone may be flipped within a flat patch), a required edge by
     protecting its vertices too (with ``boundary="slide"`` they could slide)."""
@@ -891,33 +891,34 @@ def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, required=No
     pins, pin_labels = cells("vertex", 1)
     pins = pins.reshape(-1)
     if required is not None:  # Medit's Required* sections: no labels of their own
-        kept = _required_cells(tri, tri_labels, lines, line_labels, required, source)
-        extra_lines, extra_labels = kept[0], kept[1]
-        lines = np.concatenate([lines, extra_lines])
-        line_labels = np.concatenate([line_labels, extra_labels])
-        pins = np.concatenate([pins, kept[2]])
-        pin_labels = np.concatenate([pin_labels, np.zeros(len(kept[2]), np.int64)])
+        sides, side_labels, corners = _required_cells(tri, tri_labels, lines, required, source)
+        lines = np.concatenate([lines, sides])
+        line_labels = np.concatenate([line_labels, side_labels])
+        pins = np.concatenate([pins, corners])
+        pin_labels = np.concatenate([pin_labels, np.zeros(len(corners), np.int64)])
     edges, edge_labels = _mesh_cells(tets, lines, line_labels, n, source)
     pinned, pinned_labels = _mesh_vertices(tets, pins, pin_labels, n, source)
     return points, tets, region, faces, edges, labels, pinned, edge_labels, pinned_labels
 
 
-def _required_cells(tri, tri_labels, lines, line_labels, required: dict, source: str):
+def _required_cells(tri, tri_labels, lines, required: dict, source: str):
     """(edges (k, 2), their labels (k,), vertices (j,)) that keep a Medit file's required
     triangles and edges exactly (``_meshio_to_arrays``): the edges of each required
     triangle, labelled with its reference; the vertices of those and of the required
     edges; the required vertices. ``MeshInputError`` for an id past its section."""
-    for key, rows in (("Triangles", tri), ("Edges", lines)):
-        ids = required.get(key)
-        if ids is not None and len(ids) and ids.max() >= len(rows):
+    none = np.zeros(0, np.int64)
+    t_ids, e_ids, v_ids = (
+        none if required.get(k) is None else required[k]
+        for k in ("RequiredTriangles", "RequiredEdges", "RequiredVertices")
+    )
+    for section, noun, ids, rows in (
+        ("RequiredTriangles", "triangle", t_ids, tri),
+        ("RequiredEdges", "edge", e_ids, lines),
+    ):
+        if len(ids) and ids.max() >= len(rows):
             raise MeshInputError(
-                f"{source}: Required{key} lists {key.lower()[:-1]} {int(ids.max()) + 1} of "
-                f"{len(rows)}"
+                f"{source}: {section} lists {noun} {int(ids.max()) + 1} of {len(rows)}"
             )
-    no = np.zeros(0, np.int64)
-    t_ids = no if required.get("Triangles") is None else required["Triangles"]
-    e_ids = no if required.get("Edges") is None else required["Edges"]
-    v_ids = no if required.get("Vertices") is None else required["Vertices"]
     sides = tri[t_ids][:, [[0, 1], [1, 2], [0, 2]]].reshape(-1, 2)
     side_labels = np.repeat(tri_labels[t_ids], 3)
     vertices = np.concatenate([sides.reshape(-1), lines[e_ids].reshape(-1), v_ids])
@@ -1128,9 +1129,8 @@ def load(path: str | os.PathLike) -> TetMesh:
         faces = _tetgen_faces(p.with_suffix(".node")) if fmt == "tetgen" else None
         required = None
         if ext == ".mesh":
-            required = {
-                k: _medit_required(p, "Required" + k) for k in ("Vertices", "Triangles", "Edges")
-            }
+            kinds = ("Vertices", "Edges", "Triangles", "Tetrahedra")
+            required = _medit_required(p, tuple("Required" + k for k in kinds))
         arrays = _meshio_to_arrays(m, source, fmt, faces, required)
         if fmt == "gmsh":
             extras = {
@@ -1138,7 +1138,9 @@ def load(path: str | os.PathLike) -> TetMesh:
                 "periodic": _gmsh_periodic(m, source),
             }
         if ext == ".mesh":
-            extras["protected_tets"] = _medit_required_tets(p, arrays[1])
+            extras["protected_tets"] = _medit_required_tets(
+                required["RequiredTetrahedra"], arrays[1], p
+            )
     try:
         return TetMesh.from_arrays(*arrays, **extras, source=source)
     except MeshInputError as e:

@@ -1,6 +1,6 @@
 """Medit (``.mesh``) sections of MMG's that meshio 5.3 skips or refuses: the required
-vertices and tets jtet reads and writes itself, and the sections it removes from a
-temporary copy for meshio to read the rest."""
+vertices, edges, triangles and tets jtet reads itself (and the vertices and tets it
+writes), and the sections it removes from a temporary copy for meshio to read the rest."""
 
 from __future__ import annotations
 
@@ -41,18 +41,26 @@ def _section_ids(data, at: int, section: str, path: Path) -> tuple[list[bytes], 
     return [t.group() for t in tokens[1 : count + 1]], end + tokens[count].end()
 
 
-def _medit_required(path: Path, section: str) -> np.ndarray | None:
-    """0-based ids (k,) of an ASCII Medit file's ``section``: ``RequiredVertices``,
-    ``RequiredEdges``, ``RequiredTriangles`` or ``RequiredTetrahedra`` (what MMG never
-    moves or changes; meshio skips or refuses them; the ids of the edges, triangles and
-    tets are in the file's sections of those), None without one."""
+def _medit_required(path: Path, sections: tuple[str, ...]) -> dict[str, np.ndarray | None]:
+    """{section: 0-based ids (k,), or None without it} of an ASCII Medit file's
+    ``sections`` (``RequiredVertices``, ``RequiredEdges``, ``RequiredTriangles``,
+    ``RequiredTetrahedra``: what MMG never moves or changes; meshio skips or refuses
+    them; the ids of the edges, triangles and tets are in the file's sections of
+    those), read from one map of the file."""
     import mmap
 
+    found = {}
     with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
-        at = next(_keyword_positions(data, section), None)
-        if at is None:
-            return None
-        ids, _ = _section_ids(data, at, section, path)
+        for section in sections:
+            at = next(_keyword_positions(data, section), None)
+            found[section] = None if at is None else _section_ids(data, at, section, path)[0]
+    return {
+        section: None if ids is None else _ids(ids, section, path) for section, ids in found.items()
+    }
+
+
+def _ids(ids: list[bytes], section: str, path: Path) -> np.ndarray:
+    """0-based ids (k,) of a section's 1-based id byte strings."""
     try:  # one C-level conversion of the byte strings, not a Python loop over the ids
         values = np.array(ids, dtype=bytes).astype(np.int64) if ids else np.zeros(0, np.int64)
     except ValueError:
@@ -63,8 +71,7 @@ def _medit_required(path: Path, section: str) -> np.ndarray | None:
 
 
 # Medit sections of MMG's that meshio 5.3 refuses ("Unknown keyword"), all a count and as
-# many ids: jtet reads RequiredTetrahedra itself (``_medit_required_tets``); the
-# triangles and edges the others name are protected faces and edges anyway
+# many ids: jtet reads the required tets, triangles and edges itself (``_medit_required``)
 _MESHIO_UNKNOWN_SECTIONS = (
     "RequiredTetrahedra",
     "RequiredTriangles",
@@ -98,10 +105,10 @@ def _medit_without_unknown_sections(path: Path) -> Path | None:
     return Path(name)
 
 
-def _medit_required_tets(path: Path, tets: np.ndarray) -> np.ndarray | None:
+def _medit_required_tets(ids: np.ndarray | None, tets: np.ndarray, path: Path):
     """The tets (k, 4) of ``tets`` (the file's, in its order) that the Medit file's
-    ``RequiredTetrahedra`` lists; None without the section."""
-    ids = _medit_required(path, "RequiredTetrahedra")
+    ``RequiredTetrahedra`` lists (``ids``, from ``_medit_required``); None without the
+    section."""
     if ids is None:
         return None
     if len(ids) and ids.max() >= len(tets):
