@@ -27,6 +27,10 @@ from ._mesh import TetMesh
 #: pyvista); a ``.vtk`` / ``.vtp`` may hold a volume grid, whose boundary is taken.
 SURFACE_EXTENSIONS = (".stl", ".obj", ".ply", ".off", ".vtp", ".vtk")
 
+#: fTetWild's defaults, relative to the surface's bounding box diagonal: the target edge
+#: length and the envelope (shared by ``tetrahedralize`` and ``jtet tetrahedralize``)
+EDGE_LENGTH_FAC, EPSILON = 0.05, 1e-3
+
 
 def _surface_here(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(points, triangles) of the surface file ``path``, read in this process."""
@@ -280,8 +284,8 @@ def tetrahedralize(
     surface,
     *,
     edge_length: float | None = None,
-    edge_length_fac: float = 0.05,
-    epsilon: float = 1e-3,
+    edge_length_fac: float = EDGE_LENGTH_FAC,
+    epsilon: float = EPSILON,
     optimize: bool = True,
     threads: int = 0,
 ) -> TetMesh:

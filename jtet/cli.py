@@ -550,7 +550,6 @@ def cmd_tetrahedralize(args) -> int:
     file bounds, written with the per-tet quality arrays, ready for ``jtet improve``."""
     from ._io import output_format, save
     from ._report import quality_cell_data
-    from ._stats import mesh_stats
     from ._tetrahedralize import open_edges, read_surface, tetrahedralize
 
     src, out = Path(args.surface), Path(args.output)
@@ -580,13 +579,13 @@ def cmd_tetrahedralize(args) -> int:
             optimize=not args.no_optimize,
             threads=args.threads,
         )
-    save(mesh, out, cell_data=quality_cell_data(mesh))
-    if not args.quiet:
-        s = mesh_stats(mesh)
+    cells = quality_cell_data(mesh)
+    save(mesh, out, cell_data=cells)
+    if not args.quiet:  # the dihedral range from the arrays written, not measured again
+        lo, hi = cells["min_dihedral"].min(), cells["max_dihedral"].max()
         print(
             f"jtet: {src} -> {out}  ({mesh.n_tets} tets, {mesh.n_points} points, min / max "
-            f"dihedral {s.min_dihedral:.2f} / {s.max_dihedral:.2f} deg, "
-            f"{time.perf_counter() - t0:.1f} s)"
+            f"dihedral {lo:.2f} / {hi:.2f} deg, {time.perf_counter() - t0:.1f} s)"
         )
         print(f"improve it with: jtet improve {out} {out.with_stem(out.stem + '_improved')}")
     return 0
@@ -721,6 +720,8 @@ def build_parser() -> argparse.ArgumentParser:
     pc.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
     pc.add_argument("-q", "--quiet", action="store_true")
     pc.set_defaults(func=cmd_convert)
+    from ._tetrahedralize import EDGE_LENGTH_FAC, EPSILON
+
     pt = sub.add_parser(
         "tetrahedralize",
         help="mesh the volume a surface file bounds with fTetWild (a mesh to improve)",
@@ -734,17 +735,18 @@ def build_parser() -> argparse.ArgumentParser:
     size.add_argument(
         "--edge-length-fac",
         type=float,
-        default=0.05,
+        default=EDGE_LENGTH_FAC,
         metavar="F",
-        help="target edge length as a fraction of the bounding box diagonal (default 0.05)",
+        help="target edge length as a fraction of the bounding box diagonal "
+        f"(default {EDGE_LENGTH_FAC:g})",
     )
     pt.add_argument(
         "--epsilon",
         type=float,
-        default=1e-3,
+        default=EPSILON,
         metavar="E",
         help="how far the boundary may lie from the surface, as a fraction of the bounding "
-        "box diagonal (default 1e-3)",
+        f"box diagonal (default {EPSILON:g})",
     )
     pt.add_argument(
         "--no-optimize",
