@@ -84,20 +84,18 @@ def _read_off(path: Path) -> tuple[np.ndarray, np.ndarray]:
         sizes = np.array([int(f[0]) for f in faces], np.int64)
         if (sizes < 3).any() or any(len(f) <= k for f, k in zip(faces, sizes, strict=True)):
             raise ValueError("a face with fewer than 3 vertices or fewer ids than its count")
-        ids = [np.array(f[1 : k + 1], dtype=np.int64) for f, k in zip(faces, sizes, strict=True)]
+        flat = np.array(
+            [v for f, k in zip(faces, sizes, strict=True) for v in f[1 : k + 1]], dtype=np.int64
+        )
     except (ValueError, IndexError) as e:
         raise MeshFileError(f"{path}: not a readable OFF file ({e})") from None
-    # a fan of triangles (0, j, j + 1) of each polygon, one array operation per size
-    triangles = [np.zeros((0, 3), np.int64)]
-    for k in np.unique(sizes):
-        polys = np.array([i for i, size in zip(ids, sizes, strict=True) if size == k])
-        j = np.arange(1, k - 1)
-        triangles.append(
-            np.stack(
-                [np.repeat(polys[:, 0], k - 2), polys[:, j].ravel(), polys[:, j + 1].ravel()], 1
-            )
-        )
-    return points, np.concatenate(triangles)
+    # a fan of triangles (0, j, j + 1) of each polygon, in the faces' order: polygon f's
+    # ids start at start[f] in ``flat``, its triangles j = 1 .. sizes[f] - 2
+    start = np.cumsum(sizes) - sizes
+    fans = sizes - 2
+    first = np.repeat(start, fans)
+    j = np.arange(int(fans.sum())) - np.repeat(np.cumsum(fans) - fans, fans) + 1
+    return points, np.stack([flat[first], flat[first + j], flat[first + j + 1]], axis=1)
 
 
 def _read_off_triangles(text: bytes) -> tuple[np.ndarray, np.ndarray] | None:
