@@ -794,14 +794,18 @@ def smooth_pass(
     too_big = cand & (size > capacities[-1])
     cand &= ~too_big
 
-    # priority: quantile level of the star's worst quality (worst first), random within
+    # priority: quantile level of the star's worst quality (worst first), random within.
+    # The random draws go to the vertices of tets, in id order: points no tet uses (kept
+    # as they are) take none, so appending such points changes nothing of the run.
     rng = np.random.default_rng(seed)
     idx = np.flatnonzero(cand)
     level = np.zeros(n)
     if len(idx) and levels > 1:
         cuts = np.quantile(vq[idx], np.linspace(0, 1, levels + 1)[1:-1])
         level[idx] = np.searchsorted(cuts, vq[idx], side="right")
-    priority = level + rng.random(n)
+    used = np.flatnonzero(np.diff(topo.vert_tets_ptr) > 0)
+    priority = level
+    priority[used] += rng.random(len(used))
     sets = independent_sets(cand, topo.edges, priority)
 
     pts = np.array(mesh.points, dtype=np.float64)
