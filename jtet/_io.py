@@ -74,6 +74,7 @@ _READ_FORMATS = {
     ".meshb": "medit",
     ".node": "tetgen",
     ".ele": "tetgen",
+    ".xdmf": "xdmf",
 }
 _FORMAT_NAMES = {
     "vtu": "VTK XML unstructured grid",
@@ -81,6 +82,7 @@ _FORMAT_NAMES = {
     "gmsh": "Gmsh",
     "medit": "Medit",
     "tetgen": "TetGen",
+    "xdmf": "XDMF",
 }
 _KNOWN_EXTENSIONS = ", ".join(_READ_FORMATS)
 
@@ -1112,6 +1114,17 @@ def load(path: str | os.PathLike) -> TetMesh:
     extras = {}
     if fmt in ("vtu", "vtk"):
         arrays, extras = _vtk_file_arrays(p, fmt, source)
+    elif fmt == "xdmf":
+        from ._xdmf import read_xdmf, xdmf_to_meshio
+
+        found = read_xdmf(p, source)
+        arrays = _meshio_to_arrays(xdmf_to_meshio(found), source, fmt)
+        extras = {
+            "label_names": _xdmf_label_names(found["names"], source),
+            "protected_tets": None
+            if found["protected"] is None
+            else found["blocks"][0][1][found["protected"]],
+        }
     else:
         captured = ""
         readable = _medit_without_unknown_sections(p) if ext == ".mesh" else None
@@ -1148,7 +1161,20 @@ def load(path: str | os.PathLike) -> TetMesh:
         raise MeshInputError(msg if msg.startswith(source) else f"{source}: {msg}") from None
 
 
-def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict) -> None:
+def _xdmf_label_names(names, source: str) -> dict:
+    """{(dim, label): name} from an XDMF file's ``[[dim, label, name], ...]``."""
+    try:
+        return {(int(d), int(label)): str(name) for d, label, name in names}
+    except (TypeError, ValueError):
+        raise MeshInputError(f"{source}: damaged label names") from None
+
+
+def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str = "") -> None:
+    if fmt == "xdmf":
+        from ._xdmf import companion, write_xdmf
+
+        write_xdmf(mesh, tmp, companion(tmp), heavy_name, cell_data)
+        return
     if fmt in ("vtu", "vtk"):
         _write_vtk_file(mesh_to_grid(mesh, cell_data), tmp, fmt)
         return
@@ -1203,6 +1229,36 @@ def output_format(path) -> str:
             f"{p}: unknown mesh file extension {ext or '(none)'!r}; jtet writes {_KNOWN_EXTENSIONS}"
         )
     return fmt
+
+
+def written_files(path) -> list[Path]:
+    """The files ``save(mesh, path)`` may write or replace: ``path``; for TetGen the
+    ``.node``, ``.ele`` and ``.face`` files of its name; for XDMF ``path`` and the
+    ``.h5`` file of its name (its heavy data)."""
+    p = Path(path)
+    fmt = output_format(p)
+    if fmt == "tetgen":
+        return [p.with_suffix(s) for s in (".node", ".ele", ".face")]
+    if fmt == "xdmf":
+        from ._xdmf import companion
+
+        return [p, companion(p)]
+    return [p]
+
+
+def read_files(path) -> list[Path]:
+    """The files ``load(path)`` reads: ``path``; for TetGen its ``.node``, ``.ele`` and
+    ``.face`` files; for XDMF the HDF5 and binary files it names too. Unknown
+    extensions: ``[path]``."""
+    p = Path(path)
+    fmt = _READ_FORMATS.get(p.suffix.lower())
+    if fmt == "tetgen":
+        return [p.with_suffix(s) for s in (".node", ".ele", ".face")]
+    if fmt == "xdmf":
+        from ._xdmf import heavy_files
+
+        return [p, *heavy_files(p)]
+    return [p]
 
 
 def new_temp_file(parent: Path, prefix: str, suffix: str) -> Path:
@@ -1295,6 +1351,12 @@ def save(
                 f"not saved: {', '.join(dropped)}",
                 stacklevel=2,
             )
+    elif fmt == "xdmf" and mesh.periodic:
+        warnings.warn(
+            f"{p}: the XDMF format has no periodic links; not saved: "
+            f"{len(mesh.periodic)} periodic link(s)",
+            stacklevel=2,
+        )
     elif fmt == "gmsh":
         if len(mesh.protected_tets):
             warnings.warn(
@@ -1336,7 +1398,7 @@ def save(
                     f"{p}: {what} labels [{lo}, {hi}] do not fit the 32-bit tags of the "
                     f"{_FORMAT_NAMES[fmt]} format"
                 )
-    targets = [p]
+    targets = [p] if fmt != "xdmf" else written_files(p)
     stale = None  # a TetGen .face file of the mesh being replaced, which holds no faces
     if fmt == "tetgen":
         targets = [p.with_suffix(".node"), p.with_suffix(".ele")]
@@ -1360,16 +1422,17 @@ def save(
             temps = [new_temp_file(parent, f".{p.stem}.tmp-", targets[0].suffix)]
         except OSError as e:
             raise MeshFileError(f"{p}: cannot create a file in {parent} ({_reason(e)})") from None
-        if fmt == "tetgen":
+        if fmt in ("tetgen", "xdmf"):
             # meshio writes the .ele next to the .node, with the same stem, and
-            # ``_write_tetgen_faces`` the .face
+            # ``_write_tetgen_faces`` the .face; ``write_xdmf`` the .h5 beside the .xdmf
             temps += [temps[0].with_suffix(s.suffix) for s in targets[1:]]
         try:
-            _write(mesh, temps[0], fmt, cell_data)
+            _write(mesh, temps[0], fmt, cell_data, heavy_name=targets[-1].name)
             for tmp, target in zip(temps, targets, strict=True):
                 if not tmp.is_file():
                     raise MeshFileError(f"{target}: the writer produced no file")
-            for tmp, target in zip(temps, targets, strict=True):
+            # the companion files first: the file that names them is the last to change
+            for tmp, target in reversed(list(zip(temps, targets, strict=True))):
                 move_into_place(tmp, target)
             if stale is not None:
                 try:
