@@ -19,6 +19,7 @@ Temporal collections give their first time step. It runs in a forked child on Li
 from __future__ import annotations
 
 import json
+import re
 import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -233,6 +234,30 @@ def _uniform_grids(parent: ET.Element):
                 yield from _uniform_grids(g)
 
 
+def _part(g: ET.Element, tag: str, domain: ET.Element) -> ET.Element | None:
+    """The ``Topology`` / ``Geometry`` element of grid ``g``: its own, or the one an
+    XInclude in it points at: meshio's time steps name the grid that holds them
+    (``xpointer(//Grid[@Name="mesh"]/*[self::Topology or self::Geometry])``), dolfinx's
+    tag grids take the geometry of the first grid (``xpointer(/Xdmf/Domain/Grid/Geometry)``).
+    Other XPointer expressions are not followed."""
+    own = g.find(tag)
+    if own is not None:
+        return own
+    for inc in g:
+        if not (isinstance(inc.tag, str) and inc.tag.endswith("}include")):
+            continue
+        pointer = inc.get("xpointer") or ""
+        if tag not in pointer and "self::" not in pointer:
+            continue
+        named = re.search(r"@Name=[\"']([^\"']*)[\"']", pointer)
+        for other in domain.iter("Grid"):
+            if other is g or (named and other.get("Name") != named.group(1)):
+                continue
+            if other.find(tag) is not None:
+                return other.find(tag)
+    return None
+
+
 def heavy_files(path: Path) -> list[Path]:
     """The files holding the heavy data of the XDMF file ``path`` (HDF5 and raw binary
     files its data items name), as paths; [] when it cannot be parsed."""
@@ -392,9 +417,9 @@ def _mixed_cells(flat: np.ndarray, what: str, fail) -> list[tuple[str, np.ndarra
     return out
 
 
-def _grid_cells(g: ET.Element, data: _Data, what: str):
+def _grid_cells(g: ET.Element, data: _Data, what: str, domain: ET.Element):
     """The cells of one uniform grid: [(meshio type, (k, nodes) ids, (k,) positions)]."""
-    topo = g.find("Topology")
+    topo = _part(g, "Topology", domain)
     if topo is None:
         raise data.fail(f"{what} has no Topology")
     name = (topo.get("TopologyType") or topo.get("Type") or "").lower()
@@ -419,10 +444,10 @@ def _grid_cells(g: ET.Element, data: _Data, what: str):
     return [(cell_type, cells.astype(np.int64), np.arange(len(cells)))]
 
 
-def _points(g: ET.Element, data: _Data, what: str) -> np.ndarray | None:
-    geo = g.find("Geometry")
+def _points(g: ET.Element, data: _Data, what: str, domain: ET.Element) -> np.ndarray | None:
+    geo = _part(g, "Geometry", domain)
     if geo is None:
-        return None  # dolfinx's tag grids include the mesh's geometry by XInclude
+        return None
     kind = (geo.get("GeometryType") or geo.get("Type") or "XYZ").upper()
     items = geo.findall("DataItem")
     if kind == "XYZ":
@@ -471,7 +496,7 @@ def _read_xdmf_arrays(path: Path, source: str) -> dict:
         parsed = []
         for i, g in enumerate(grids):
             what = f"grid {g.get('Name') or i + 1!r}"
-            cells = _grid_cells(g, data, what)
+            cells = _grid_cells(g, data, what, domain)
             n_cells = sum(len(c[1]) for c in cells)
             parsed.append((g, what, cells, n_cells))
         main = next((p for p in parsed if any(_dimension(c[0]) == 3 for c in p[2])), None)
@@ -479,7 +504,7 @@ def _read_xdmf_arrays(path: Path, source: str) -> dict:
             found = ", ".join(f"{c[0]} x {len(c[1])}" for p in parsed for c in p[2]) or "no cells"
             raise MeshInputError(f"{source}: the mesh has no tetrahedra (only {found})")
         g, what, main_cells, n_main = main
-        points = _points(g, data, what)
+        points = _points(g, data, what, domain)
         if points is None:
             raise data.fail(f"{what} has no Geometry")
         attrs = _attributes(g, data, what, n_main)
@@ -504,7 +529,7 @@ def _read_xdmf_arrays(path: Path, source: str) -> dict:
         for g2, what2, cells2, n2 in parsed:
             if g2 is g or not n2:
                 continue
-            pts2 = _points(g2, data, what2)
+            pts2 = _points(g2, data, what2, domain)
             if pts2 is not None and not (
                 pts2.shape == points.shape and np.array_equal(pts2, points)
             ):

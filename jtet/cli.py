@@ -261,13 +261,40 @@ def _run_improve(mesh, out: Path, args, source: str) -> int:
     return code
 
 
-def _is_input(src: Path, out: Path) -> bool:
-    return src.resolve() == out.resolve() or _same_file(src, out)
+def _input_written(src: Path, out: Path) -> Path | None:
+    """The file of the input ``src`` that saving to ``out`` would replace, or None: the
+    input itself, or one of its companions (a TetGen .node / .ele / .face, the HDF5 file
+    of an XDMF mesh), as ``jtet improve a.node a.ele`` would replace a.node."""
+    from ._io import read_files, written_files
+
+    reads = read_files(src)
+    for w in written_files(out):
+        for r in reads:
+            if w.resolve() == r.resolve() or _same_file(w, r):
+                return w
+    return None
+
+
+def _overwrite_refusal(src: Path, out: Path, overwrite: bool) -> str | None:
+    """Why writing ``out`` is refused (it would replace a file of the input ``src``
+    without ``--overwrite``), or None."""
+    hit = None if overwrite else _input_written(src, out)
+    if hit is None:
+        return None
+    if src.resolve() == out.resolve() or _same_file(src, out):
+        return f"{out} is the input file; pass --overwrite to replace it"
+    if src.resolve() == hit.resolve() or _same_file(src, hit):
+        return f"writing {out} also writes {hit}, the input file; pass --overwrite to replace it"
+    return (
+        f"writing {out} also writes {hit}, which the input {src} reads; pass --overwrite "
+        "to replace it"
+    )
 
 
 def _refuse_input_as_output(src: Path, out: Path, overwrite: bool) -> None:
-    if _is_input(src, out) and not overwrite:
-        raise JtetError(f"{out} is the input file; pass --overwrite to replace it")
+    refusal = _overwrite_refusal(src, out, overwrite)
+    if refusal:
+        raise JtetError(refusal)
 
 
 def cmd_improve(args) -> int:
@@ -314,8 +341,7 @@ def _batch_outputs(args) -> list[tuple[Path, Path]]:
         src = Path(path)
         out = outdir / (src.stem + (ext or src.suffix))
         output_format(out)
-        if _is_input(src, out) and not args.overwrite:
-            raise JtetError(f"{out} is the input file {src}; pass --overwrite to replace it")
+        _refuse_input_as_output(src, out, args.overwrite)
         pairs.append((src, out))
     seen, plots = {}, {}
     for src, out in pairs:
@@ -646,7 +672,7 @@ def build_parser() -> argparse.ArgumentParser:
         "paths",
         nargs="+",
         metavar="IN [OUT]",
-        help="input mesh (.vtu .vtk .msh .mesh .meshb .node/.ele) and output mesh (format "
+        help="input mesh (.vtu .vtk .msh .mesh .meshb .node/.ele .xdmf) and output mesh (format "
         "from the extension; carries per-tet quality arrays); with --out-dir, only inputs",
     )
     pi.add_argument(
@@ -710,7 +736,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="write a mesh in another format, with its regions and labelled surfaces, "
         "curves and points",
     )
-    pc.add_argument("input", help="input mesh (.vtu .vtk .msh .mesh .meshb .node/.ele)")
+    pc.add_argument("input", help="input mesh (.vtu .vtk .msh .mesh .meshb .node/.ele .xdmf)")
     pc.add_argument("output", help="output mesh (format from the extension)")
     pc.add_argument(
         "--quality-arrays",

@@ -17,7 +17,7 @@ from jtet._errors import MeshFileError, MeshInputError
 from jtet._quality import tet_dihedrals
 from jtet._topology import CORNER
 
-FORMATS = ["vtu", "vtk", "msh", "mesh", "meshb", "node", "ele"]
+FORMATS = ["vtu", "vtk", "msh", "mesh", "meshb", "node", "ele", "xdmf"]
 
 # Two positively oriented tets sharing the face (1, 2, 3), written by hand below in
 # every file format (0-based here; files are 1-based).
@@ -63,6 +63,8 @@ def test_round_trip(tmp_path, labelled, ext):
     assert (back.volumes > 0).all()
     tetgen = {"mesh.node", "mesh.ele"} | ({"mesh.face"} if len(labelled.protected_faces) else set())
     expected = tetgen if ext in ("node", "ele") else {path.name}
+    if ext == "xdmf":
+        expected = {path.name, "mesh.h5"}  # its heavy data
     assert {p.name for p in tmp_path.iterdir()} == expected  # no temp files left behind
     assert out.name in expected
 
@@ -99,7 +101,7 @@ def test_msh_keeps_cell_data_and_physical_tags(tmp_path, labelled):
     assert "quality" not in meshio.gmsh.read(path).cell_data
 
 
-@pytest.mark.parametrize("ext", ["msh", "mesh", "meshb", "vtu", "vtk", "node"])
+@pytest.mark.parametrize("ext", ["msh", "mesh", "meshb", "vtu", "vtk", "node", "xdmf"])
 def test_protected_entities_round_trip(tmp_path, labelled, ext):
     """Protected faces, edges and vertices with their labels come back from every format
     that stores them: Gmsh triangles, lines and points tagged with their labels
@@ -138,7 +140,7 @@ def test_protected_entities_round_trip(tmp_path, labelled, ext):
     assert back.protected_vertices.tolist() == ([3, 7, 12] if ext not in ("node", "meshb") else [])
 
 
-@pytest.mark.parametrize("ext", ["msh", "mesh", "vtu", "node"])
+@pytest.mark.parametrize("ext", ["msh", "mesh", "vtu", "node", "xdmf"])
 def test_labelled_protected_faces_round_trip(tmp_path, labelled, ext):
     # Gmsh physical surfaces / Medit triangle references / VTK field data: a Gmsh ->
     # jtet -> solver chain keeps its boundary-condition groups
@@ -1040,16 +1042,16 @@ def test_save_to_unwritable_directory(tmp_path, labelled):
         ro.chmod(0o700)
 
 
-@pytest.mark.parametrize("ext", ["vtu", "msh", "node"])
+@pytest.mark.parametrize("ext", ["vtu", "msh", "node", "xdmf"])
 def test_failed_write_leaves_no_temp_and_keeps_the_old_file(tmp_path, labelled, monkeypatch, ext):
     path = tmp_path / f"keep.{ext}"
     _quiet_save(labelled, path)
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
 
-    def half_written(mesh, tmp, fmt, cell_data):
+    def half_written(mesh, tmp, fmt, cell_data, heavy_name=""):
         tmp.write_bytes(b"partial")
-        if fmt == "tetgen":
-            tmp.with_suffix(".ele").write_bytes(b"partial")
+        if fmt in ("tetgen", "xdmf"):
+            tmp.with_suffix(".ele" if fmt == "tetgen" else ".h5").write_bytes(b"partial")
         raise RuntimeError("disk full")
 
     monkeypatch.setattr(_io, "_write", half_written)

@@ -1,0 +1,264 @@
+"""XDMF meshes (.xdmf + .h5): dolfinx's layout written and read, files of dolfinx, meshio
+and VTK's reader as independent references, bad files refused with clear errors."""
+
+import shutil
+import warnings
+from pathlib import Path
+
+import h5py
+import meshio
+import numpy as np
+import pytest
+from helpers import delaunay_mesh
+
+import jtet
+from jtet._errors import MeshFileError, MeshInputError
+from jtet.cli import main
+
+DATA = Path(__file__).parent / "data"
+
+
+@pytest.fixture(scope="module")
+def labelled():
+    """Three regions by x with names, protected faces / edges / vertices with labels,
+    two protected tets."""
+    m = delaunay_mesh(80, seed=4)
+    region = np.digitize(m.points[m.tets].mean(axis=1)[:, 0], [0.33, 0.66]) + 1
+    T = m.topology
+    faces = T.faces[T.boundary_face][:30]
+    return m.replace(
+        region=region,
+        protected_faces=faces,
+        protected_face_labels=np.arange(len(faces)) % 4 + 5,
+        protected_edges=T.edges[:6],
+        protected_edge_labels=np.arange(6) + 20,
+        protected_vertices=[3, 9],
+        protected_vertex_labels=[31, 32],
+        protected_tets=m.tets[[0, 7]],
+        label_names={(3, 1): "left", (3, 2): "middle", (2, 5): "wall"},
+    )
+
+
+def _save(mesh, path, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return jtet.save(mesh, path, **kw)
+
+
+def _area(points, faces):
+    p = points[faces]
+    return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+
+
+def test_everything_jtet_keeps_comes_back(tmp_path, labelled):
+    path = tmp_path / "m.xdmf"
+    q = labelled.quality()
+    vec = np.arange(3 * labelled.n_tets, dtype=np.float64).reshape(-1, 3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing is left out
+        jtet.save(labelled, path, cell_data={"quality": q, "a/b": vec})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.h5", "m.xdmf"]
+    back = jtet.load(path)
+    for name in ("points", "tets", "region", "protected_faces", "protected_face_labels",
+                 "protected_edges", "protected_edge_labels", "protected_vertices",
+                 "protected_vertex_labels", "protected_tets"):  # fmt: skip
+        np.testing.assert_array_equal(getattr(back, name), getattr(labelled, name), err_msg=name)
+    assert dict(back.label_names) == dict(labelled.label_names)
+    # the per-tet arrays are cell attributes of the "mesh" grid, in the HDF5 file
+    with h5py.File(tmp_path / "m.h5") as f:
+        np.testing.assert_array_equal(f["Mesh/mesh/cell_data/0"][()], q)
+        np.testing.assert_array_equal(f["Mesh/mesh/cell_data/1"][()], vec)
+    text = path.read_text()
+    assert 'Name="quality"' in text and 'Name="a/b"' in text and "m.h5:/Mesh/mesh/topology" in text
+
+
+def test_vtk_reader_sees_the_grids(tmp_path, labelled):
+    """VTK's XDMF reader (ParaView's) is an independent reader of the written file."""
+    import pyvista as pv
+    from vtkmodules.vtkIOXdmf2 import vtkXdmfReader
+
+    path = tmp_path / "m.xdmf"
+    _save(labelled, path, cell_data={"quality": labelled.quality()})
+    reader = vtkXdmfReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    blocks = pv.wrap(reader.GetOutputDataObject(0))
+    names = [blocks.get_block_name(i) for i in range(blocks.n_blocks)]
+    assert names == ["mesh", "cell_tags", "facet_tags", "edge_tags", "vertex_tags"]
+    mesh = blocks["mesh"]
+    assert (mesh.celltypes == 10).all() and mesh.n_cells == labelled.n_tets  # VTK_TETRA
+    np.testing.assert_array_equal(mesh.points, labelled.points)
+    np.testing.assert_array_equal(mesh.cell_data["region"], labelled.region)
+    np.testing.assert_array_equal(mesh.cell_data["quality"], labelled.quality())
+    facets = blocks["facet_tags"]
+    assert (facets.celltypes == 5).all()  # VTK_TRIANGLE
+    np.testing.assert_array_equal(facets.cell_data["facet_tags"], labelled.protected_face_labels)
+
+
+def test_file_written_by_dolfinx():
+    """tests/data/dolfinx_cube.xdmf was written by dolfinx 0.5.2
+    (experiments/dolfinx_xdmf.py --write-fixture): a 4x4x4 unit cube, cell tags 1
+    (x < 0.5) and 2, the exterior facets tagged 1-6 by side. dolfinx renumbers cells and
+    vertices, so the checks are closed forms: each region is half the cube, each side a
+    unit square."""
+    mesh = jtet.load(DATA / "dolfinx_cube.xdmf")
+    assert mesh.n_tets == 384 and mesh.n_points == 125
+    assert mesh.is_valid().ok
+    for label in (1, 2):
+        assert mesh.volumes[mesh.region == label].sum() == pytest.approx(0.5, abs=1e-14)
+    x = mesh.points[mesh.tets].mean(axis=1)[:, 0]
+    assert ((x < 0.5) == (mesh.region == 1)).all()
+    assert len(mesh.protected_faces) == 192  # 6 sides x 16 squares x 2 triangles
+    area = _area(mesh.points, mesh.protected_faces)
+    for side in range(1, 7):
+        assert area[mesh.protected_face_labels == side].sum() == pytest.approx(1.0, abs=1e-14)
+
+
+@pytest.mark.parametrize("data_format", ["XML", "HDF"])
+def test_files_written_by_meshio(tmp_path, labelled, data_format):
+    """meshio writes one grid; with triangles too its topology is Mixed (cell type ids,
+    then nodes) and its cell data runs over all cells: the tets and labelled triangles
+    come back as written."""
+    faces, labels = labelled.protected_faces, labelled.protected_face_labels
+    m = meshio.Mesh(
+        labelled.points,
+        [("tetra", labelled.tets), ("triangle", faces)],
+        cell_data={"gmsh:physical": [labelled.region, labels]},
+    )
+    path = tmp_path / "mixed.xdmf"
+    meshio.xdmf.write(path, m, data_format=data_format)
+    assert 'TopologyType="Mixed"' in path.read_text()
+    back = jtet.load(path)
+    np.testing.assert_array_equal(back.points, labelled.points)
+    np.testing.assert_array_equal(back.tets, labelled.tets)
+    np.testing.assert_array_equal(back.region, labelled.region)
+    np.testing.assert_array_equal(back.protected_faces, labelled.protected_faces)
+    np.testing.assert_array_equal(back.protected_face_labels, labelled.protected_face_labels)
+    # the tets alone: a Tetrahedron topology
+    meshio.xdmf.write(
+        tmp_path / "tets.xdmf", meshio.Mesh(labelled.points, [("tetra", labelled.tets)])
+    )
+    plain = jtet.load(tmp_path / "tets.xdmf")
+    np.testing.assert_array_equal(plain.tets, labelled.tets)
+    assert (plain.region == 0).all()
+
+
+def test_time_series_gives_its_first_step(tmp_path, labelled, monkeypatch):
+    """A temporal collection (meshio's TimeSeriesWriter, solvers' output) holds the mesh
+    once per time step: the first step is read. meshio's steps include the grid that
+    holds the mesh by an XPointer."""
+    monkeypatch.chdir(tmp_path)  # meshio writes the .h5 in the working directory
+    path = tmp_path / "series.xdmf"
+    with meshio.xdmf.TimeSeriesWriter(path) as writer:
+        writer.write_points_cells(labelled.points, [("tetra", labelled.tets)])
+        for t in (0.0, 1.0):
+            writer.write_data(t, cell_data={"region": [labelled.region]})
+    back = jtet.load(path)
+    np.testing.assert_array_equal(back.tets, labelled.tets)
+    np.testing.assert_array_equal(back.region, labelled.region)
+
+
+def test_improve_cli_reads_and_writes_xdmf(tmp_path, labelled):
+    src, out = tmp_path / "in.xdmf", tmp_path / "out.xdmf"
+    _save(labelled, src)
+    assert main(["improve", str(src), str(out), "-q", "--max-passes", "2", "--perturb", "0"]) == 0
+    back = jtet.load(out)
+    assert back.is_valid().ok
+    assert jtet.stats(back).min_dihedral >= jtet.stats(labelled).min_dihedral
+    np.testing.assert_array_equal(back.protected_tets, labelled.protected_tets)
+    for label in (1, 2, 3):  # regions keep their volumes
+        before = labelled.volumes[labelled.region == label].sum()
+        assert back.volumes[back.region == label].sum() == pytest.approx(before, rel=1e-12)
+    with h5py.File(tmp_path / "out.h5") as f:  # the quality arrays for ParaView
+        assert f["Mesh/mesh/cell_data/0"].shape == (back.n_tets,)
+
+
+def test_output_never_replaces_the_inputs_heavy_data(tmp_path, labelled, capsys):
+    """An XDMF input reads its .h5 file: an output whose .h5 is that file is refused
+    without --overwrite, and so is a TetGen output whose .node / .ele is the input's."""
+    src = tmp_path / "a.xdmf"
+    _save(labelled, src)
+    shutil.move(tmp_path / "a.h5", tmp_path / "b.h5")
+    src.write_text(src.read_text().replace("a.h5:", "b.h5:"))
+    before = (tmp_path / "b.h5").read_bytes()
+    assert main(["convert", str(src), str(tmp_path / "b.xdmf")]) == 2
+    err = capsys.readouterr().err
+    assert "also writes" in err and "b.h5" in err and "--overwrite" in err
+    assert (tmp_path / "b.h5").read_bytes() == before and not (tmp_path / "b.xdmf").exists()
+    node = tmp_path / "t.node"
+    _save(labelled, node)
+    before = node.read_bytes()
+    assert main(["improve", str(node), str(tmp_path / "t.ele"), "-q"]) == 2
+    assert "t.node, the input file" in capsys.readouterr().err
+    assert node.read_bytes() == before
+
+
+def _grid(topology: str, nodes: int, cells: str, points: str, dims: str = "3") -> str:
+    return f"""<?xml version="1.0"?>
+<Xdmf Version="3.0"><Domain><Grid Name="g">
+<Topology TopologyType="{topology}" NodesPerElement="{nodes}">
+<DataItem Dimensions="{len(cells.split())}" NumberType="Int" Format="XML">{cells}</DataItem>
+</Topology>
+<Geometry GeometryType="{"XYZ" if dims == "3" else "XY"}">
+<DataItem Dimensions="{len(points.split())}" Format="XML">{points}</DataItem>
+</Geometry></Grid></Domain></Xdmf>"""
+
+
+CUBE = " ".join(f"{x} {y} {z}" for z in (0, 1) for y in (0, 1) for x in (0, 1))
+
+
+@pytest.mark.parametrize(
+    "text, error, match",
+    [
+        ("<Xdmf><Domain><Grid", MeshFileError, "not a readable XDMF file"),
+        ("<html/>", MeshFileError, "no Xdmf / Domain element"),
+        (_grid("Hexahedron", 8, "0 1 3 2 4 5 7 6", CUBE), MeshInputError, "VTK|hexahedron x 1"),
+        (_grid("Tetrahedron_10", 10, " ".join(["0 1 2 4"] * 2 + ["0 1"]), CUBE), MeshInputError,
+         "quadratic"),
+        (_grid("Tetrahedron", 4, "0 1 2 4", "0 0 1 0 0 1 1 1", "2"), MeshInputError, "2-D"),
+        (_grid("Tetrahedron", 4, "0 1 2 9", CUBE), MeshInputError, "out of range"),
+        (_grid("Tetrahedron", 4, "0 1 2", CUBE), MeshFileError, "no whole number"),
+        (_grid("Mixed", 4, "6 0 1 2 4 77 1 2", CUBE), MeshFileError, "unknown cell type 77"),
+        (_grid("Mixed", 4, "6 0 1 2 4 6 1 2", CUBE), MeshFileError, "cut short"),
+        (_grid("Tetrahedron", 4, "0 1 2 x", CUBE), MeshFileError, "not numbers"),
+        (_grid("Triangle", 3, "0 1 2", CUBE), MeshInputError, "no tetrahedra"),
+        (_grid("Tetrahedron", 4, "0 1 2 4", CUBE).replace(
+            'Format="XML">0 1 2 4', 'Format="HDF">nothere.h5:/t'), MeshFileError,
+         "HDF5 file nothere.h5 is missing"),
+        (_grid("Tetrahedron", 4, "0 1 2 4", CUBE).replace('Dimensions="4"', 'Dimensions="2 4"'),
+         MeshFileError, "4 values for Dimensions 2 4"),
+        (_grid("Tetrahedron", 4, "0 1 2 4", CUBE).replace(
+            'Format="XML">0 1 2 4', 'Reference="XML">/Xdmf/Domain/DataItem'), MeshFileError,
+         "not supported"),
+    ],
+)  # fmt: skip
+def test_bad_files_are_refused(tmp_path, text, error, match):
+    path = tmp_path / "bad.xdmf"
+    path.write_text(text)
+    with pytest.raises(error, match=match) as e:
+        jtet.load(path)
+    assert str(path) in str(e.value)
+
+
+def test_damaged_heavy_data_is_refused(tmp_path, labelled):
+    path = tmp_path / "m.xdmf"
+    _save(labelled, path)
+    heavy = tmp_path / "m.h5"
+    data = heavy.read_bytes()
+    heavy.write_bytes(data[: len(data) // 3])  # cut short
+    with pytest.raises(MeshFileError, match=r"m.h5|not a readable"):
+        jtet.load(path)
+    heavy.write_bytes(data)
+    with h5py.File(heavy, "a") as f:
+        del f["Mesh/mesh/topology"]
+    with pytest.raises(MeshFileError, match="no dataset /Mesh/mesh/topology in m.h5"):
+        jtet.load(path)
+    heavy.unlink()
+    with pytest.raises(MeshFileError, match="HDF5 file m.h5 is missing"):
+        jtet.load(path)
+
+
+def test_periodic_links_are_named_as_dropped(tmp_path):
+    m = delaunay_mesh(30, seed=2)
+    with pytest.warns(UserWarning, match="no periodic links; not saved: 1 periodic link"):
+        jtet.save(m.replace(periodic=[(2, (2, 1), None, [[0, 1]])]), tmp_path / "p.xdmf")
