@@ -32,7 +32,7 @@ from pathlib import Path
 
 # surface files (``jtet tetrahedralize``'s input) are read and checked, not loaded
 SURFACES = ("stl", "obj", "ply", "off", "vtp")
-FORMATS = ("vtu", "vtk", "msh", "mesh", "meshb", "node", *SURFACES)
+FORMATS = ("vtu", "vtk", "msh", "mesh", "meshb", "node", "xdmf", *SURFACES)
 BAD_TOKENS = (b"-1", b"0", b"99999999", b"nan", b"1e308", b"abc", b"")
 
 
@@ -121,9 +121,13 @@ def run_format(fmt: str, tries: int, seed: int, keep: Path) -> dict:
         def load(path):
             jtet.load(path).is_valid()
 
-    # TetGen: the .node, the .ele and the .face of the protected faces
-    names = [f"src.{fmt}"] if fmt != "node" else ["src.node", "src.ele", "src.face"]
+    # TetGen: the .node, the .ele and the .face of the protected faces; XDMF: the .xdmf
+    # and its heavy data, the .h5 it names (renamed: the mutated copy's)
+    names = {"node": ["src.node", "src.ele", "src.face"], "xdmf": ["src.xdmf", "src.h5"]}
+    names = names.get(fmt, [f"src.{fmt}"])
     originals = {n: (work / n).read_bytes() for n in names}
+    if fmt == "xdmf":
+        originals["src.xdmf"] = originals["src.xdmf"].replace(b"src.h5:", b"mut.h5:")
     counts = collections.Counter()
     others = collections.Counter()
     for t in range(tries):
