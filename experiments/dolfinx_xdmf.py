@@ -58,9 +58,7 @@ def write_fixture(folder: Path) -> None:
     import numpy as np
     from mpi4py import MPI
 
-    mesh = dolfinx.mesh.create_unit_cube(
-        MPI.COMM_WORLD, 4, 4, 4, dolfinx.mesh.CellType.tetrahedron
-    )
+    mesh = dolfinx.mesh.create_unit_cube(MPI.COMM_WORLD, 4, 4, 4, dolfinx.mesh.CellType.tetrahedron)
     tdim = mesh.topology.dim
     mesh.topology.create_connectivity(tdim - 1, tdim)
     facets = dolfinx.mesh.exterior_facet_indices(mesh.topology)
@@ -145,8 +143,17 @@ def main() -> None:
                 for k, a in found["area"].items()
             )
             rows.append(
-                (name, m.n_tets, found["tets"], len(found["volume"]), len(found["area"]),
-                 vol_err, area_err, seconds, found["version"])  # fmt: skip
+                (
+                    name,
+                    m.n_tets,
+                    found["tets"],
+                    len(found["volume"]),
+                    len(found["area"]),
+                    vol_err,
+                    area_err,
+                    seconds,
+                    found["version"],
+                )  # fmt: skip
             )
     head = ("mesh", "tets (jtet)", "tets (dolfinx)", "regions", "facet tags",
             "max volume diff", "max area diff", "dolfinx read s", "dolfinx")  # fmt: skip

@@ -326,7 +326,7 @@ def _batch_outputs(args) -> list[tuple[Path, Path]]:
     """(input, output) of every file of ``jtet improve IN... --out-dir DIR``, checked
     before any run: a known output format, no two inputs to one output (nor to one
     figure, with --plot), no input overwritten without --overwrite."""
-    from ._io import output_format
+    from ._io import output_format, read_files, written_files
 
     if args.plot and not Path(args.plot).parent.is_dir():
         raise JtetError(f"--plot {args.plot}: {Path(args.plot).parent} is no existing directory")
@@ -344,11 +344,21 @@ def _batch_outputs(args) -> list[tuple[Path, Path]]:
         _refuse_input_as_output(src, out, args.overwrite)
         pairs.append((src, out))
     seen, plots = {}, {}
+    # another input's files too: a run writes its output before the next input is read
+    # (a.xdmf's a.h5 may be the heavy data of the input b.xdmf)
+    reads = {r.resolve(): src for src, _ in pairs for r in read_files(src)}
     for src, out in pairs:
         key = out.resolve()
         if key in seen:
             raise JtetError(f"{seen[key]} and {src} would both be written to {out}")
         seen[key] = src
+        for w in written_files(out):
+            other = reads.get(w.resolve())
+            if other is not None and other != src and not args.overwrite:
+                raise JtetError(
+                    f"writing {out} (the output of {src}) also writes {w}, which the input "
+                    f"{other} reads; pass --overwrite to replace it"
+                )
         if args.plot:
             plot = _batch_plot(args.plot, out)
             if plot.resolve() in plots:

@@ -185,6 +185,19 @@ def test_output_never_replaces_the_inputs_heavy_data(tmp_path, labelled, capsys)
     err = capsys.readouterr().err
     assert "also writes" in err and "b.h5" in err and "--overwrite" in err
     assert (tmp_path / "b.h5").read_bytes() == before and not (tmp_path / "b.xdmf").exists()
+    # a batch: the output of one input would replace the heavy data of another
+    other = tmp_path / "a.vtu"
+    _save(labelled, other)
+    args = ["improve", str(other), str(src), "--out-dir", str(tmp_path / "out"), "-q"]
+    (tmp_path / "out").mkdir()
+    src.write_text(src.read_text().replace("b.h5:", "out/b.h5:"))
+    shutil.move(tmp_path / "b.h5", tmp_path / "out" / "b.h5")
+    other.rename(tmp_path / "b.vtu")
+    args[1] = str(tmp_path / "b.vtu")
+    assert main([*args, "--out-ext", "xdmf"]) == 2
+    err = capsys.readouterr().err
+    assert "(the output of" in err and "which the input" in err and "a.xdmf reads" in err
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["b.h5"]
     node = tmp_path / "t.node"
     _save(labelled, node)
     before = node.read_bytes()
