@@ -1187,8 +1187,11 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str 
         else:
             _meshio_module(fmt).write(str(tmp), m)
     if fmt == "medit" and tmp.suffix.lower() == ".mesh":
+        edge_ids, face_ids = _kept_exactly(mesh)
         sections = {
             "RequiredVertices": mesh.protected_vertices,
+            "RequiredEdges": edge_ids,
+            "RequiredTriangles": face_ids,
             "RequiredTetrahedra": np.flatnonzero(mesh.protected_tet_mask()),
         }
         sections = {k: v for k, v in sections.items() if len(v)}
@@ -1196,6 +1199,26 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str 
             _append_required(tmp, sections)
     if fmt == "tetgen" and len(mesh.protected_faces):
         _write_tetgen_faces(tmp.with_suffix(".face"), mesh)
+
+
+def _kept_exactly(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
+    """Ids (into ``protected_edges`` / ``protected_faces``: a Medit output's ``Edges`` /
+    ``Triangles``) of the protected edges whose vertices are protected too, and of the
+    protected faces whose edges and vertices all are: what ``improve`` keeps exactly as
+    it is, as MMG keeps its required edges and triangles (how jtet reads those
+    sections: ``_required_cells``), so a file read with them writes them back."""
+    from ._topology import row_keys
+
+    pinned = np.zeros(mesh.n_points, bool)
+    pinned[np.asarray(mesh.protected_vertices, np.int64)] = True
+    edges = np.sort(np.asarray(mesh.protected_edges, np.int64).reshape(-1, 2), axis=1)
+    faces = np.sort(np.asarray(mesh.protected_faces, np.int64).reshape(-1, 3), axis=1)
+    edge_ids = np.flatnonzero(pinned[edges].all(axis=1))
+    sides = faces[:, [[0, 1], [1, 2], [0, 2]]].reshape(-1, 2)
+    keys = row_keys(np.concatenate([edges[edge_ids], sides]), mesh.n_points)
+    sides_kept = np.isin(keys[len(edge_ids) :], keys[: len(edge_ids)]).reshape(-1, 3)
+    face_ids = np.flatnonzero(sides_kept.all(axis=1) & pinned[faces].all(axis=1))
+    return edge_ids, face_ids
 
 
 def _write_tetgen_faces(path: Path, mesh: TetMesh) -> None:

@@ -1,11 +1,14 @@
 """TetMesh.protected_tets: tets improve leaves exactly as they are (MMG's
 RequiredTetrahedra), read and written by the Medit and VTK savers."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 import jtet
 from jtet._invariants import InvariantChecker
+from jtet._medit import _medit_required
 from jtet.cli import main
 
 
@@ -131,9 +134,71 @@ def test_mmg_required_triangles_stay_exactly(tmp_path):
         kept[name] = sum(tuple(f) in now for f in faces.tolist())
     assert kept["required"] == len(faces)
     assert kept["plain"] < len(faces)  # the reference: without the section they flip
+    # jtet's own .mesh output says they are required again (and their edges), so MMG
+    # run on it keeps them as well; without the section it lists none
+    out = tmp_path / "out.mesh"
+    jtet.save(after, out)
+    ids = _medit_required(out, ("RequiredTriangles", "RequiredEdges"))
+    written = np.sort(jtet.load(out).protected_faces, axis=1)[ids["RequiredTriangles"]]
+    assert {tuple(f) for f in written.tolist()} == {tuple(f) for f in faces.tolist()}
+    assert len(ids["RequiredEdges"]) == len(after.protected_edges) > 0
+    plain = jtet.load(path).replace(protected_edges=None, protected_vertices=None)
+    jtet.save(plain, out)
+    assert _medit_required(out, ("RequiredTriangles", "RequiredEdges")) == {
+        "RequiredTriangles": None,
+        "RequiredEdges": None,
+    }
 
 
 @pytest.mark.parametrize("name", ["m.msh", "m.meshb", "m.node"])
 def test_formats_without_protected_tets_warn(tmp_path, mesh, name):
     with pytest.warns(UserWarning, match="protected tet"):
         jtet.save(mesh, tmp_path / name)
+
+
+def test_mmg3d_keeps_the_required_triangles_jtet_writes(tmp_path):
+    """MMG itself is the reference for what RequiredTriangles means: mmg3d remeshing
+    jtet's .mesh output (refined to twice as many tets and more) keeps every triangle
+    jtet wrote as required, while it splits most of the other boundary triangles (the
+    sign that it would have changed them). mmg3d is the binary of the pymmg package
+    (experiments extra; the test is skipped without it)."""
+    import importlib.util
+    import subprocess
+
+    from helpers import delaunay_mesh
+
+    spec = importlib.util.find_spec("mmg3d")
+    exe = None if spec is None else Path(spec.origin).parent / "mmg3d_O3"
+    if exe is None or not exe.exists():
+        pytest.skip("mmg3d (pymmg) is not installed")
+    mesh = delaunay_mesh(150, seed=4, surface_points=120)
+    T = mesh.topology
+    faces = np.sort(T.faces[T.boundary_face], axis=1)
+    required = faces[::2]
+    sides = np.sort(required[:, [[0, 1], [1, 2], [0, 2]]].reshape(-1, 2), axis=1)
+    mesh = mesh.replace(
+        protected_faces=faces,
+        protected_edges=np.unique(sides, axis=0),
+        protected_vertices=np.unique(required),
+    )
+    src, out = tmp_path / "in.mesh", tmp_path / "out.mesh"
+    jtet.save(mesh, src)
+    run = subprocess.run(
+        [str(exe), "-in", str(src), "-out", str(out), "-hmax", "0.08", "-v", "-1"],
+        capture_output=True,
+        timeout=120,
+    )
+    assert run.returncode == 0, run.stderr[-500:]
+    remeshed = jtet.load(out)
+    assert remeshed.n_tets > 2 * mesh.n_tets
+
+    def corners(points, tris):
+        # a triangle by its corner coordinates, rounded: mmg3d prints them in ASCII with
+        # fewer digits than float64 holds (the mesh spans 1; its vertices are >= 0.014 apart)
+        return {tuple(sorted(map(tuple, points[t].round(9).tolist()))) for t in tris}
+
+    To = remeshed.topology
+    now = corners(remeshed.points, To.faces[To.boundary_face])
+    assert corners(mesh.points, required) <= now
+    others = corners(mesh.points, faces[1::2])
+    assert len(others & now) < len(others) / 2
