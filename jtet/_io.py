@@ -1396,7 +1396,7 @@ def save(
                 f"{p}: {n_unlabelled} tet(s) of region 0, which Gmsh files cannot put in a "
                 "physical volume (tag 0 is none): Gmsh and solvers that read cells by "
                 "physical group (dolfinx) will not see them; give them a label of their "
-                "own (TetMesh.replace(region=...))",
+                "own (TetMesh.relabel({0: 1}); jtet improve / convert --relabel 0:1)",
                 stacklevel=2,
             )
         if _lower_blocks(mesh, fmt) and cell_data:

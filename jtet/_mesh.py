@@ -380,6 +380,41 @@ class TetMesh:
         object.__setattr__(out, "protected_tets", _readonly(pt))
         return out
 
+    def relabel(self, mapping) -> TetMesh:
+        """A copy whose region labels are renamed by ``mapping`` (old label -> new
+        label, integers); regions not in it keep theirs, two regions given one label
+        become one. The names of Gmsh physical volumes follow their labels (a name moved
+        onto a label that keeps a name of its own is dropped). E.g. ``relabel({0: 1})``
+        puts the tets of a mesh without region labels into region 1, a physical volume
+        of its own in a ``.msh`` output (Gmsh's tag 0 is none).
+
+        Raises:
+            MeshInputError: a label is no integer, or the mesh has no tet of an old label.
+        """
+        try:
+            pairs = {int(a): int(b) for a, b in dict(mapping).items()}
+        except (TypeError, ValueError):
+            raise MeshInputError(
+                f"relabel takes integer labels old -> new, got {mapping!r}"
+            ) from None
+        present = set(np.unique(self.region).tolist())
+        missing = sorted(set(pairs) - present)
+        if missing:
+            raise MeshInputError(
+                f"no tet has region {missing[0]} (the regions are "
+                f"{', '.join(map(str, sorted(present)))})"
+            )
+        old = np.array(sorted(pairs), np.int64)
+        at = np.searchsorted(old, self.region)
+        hit = (at < len(old)) & (old[np.minimum(at, len(old) - 1)] == self.region)
+        new = np.array([pairs[o] for o in old.tolist()], np.int64)
+        region = np.where(hit, new[np.minimum(at, len(old) - 1)], self.region)
+        names = {k: v for k, v in self.label_names.items() if k[0] != 3 or k[1] not in pairs}
+        for (dim, label), name in self.label_names.items():
+            if dim == 3 and label in pairs:
+                names.setdefault((3, pairs[label]), name)
+        return self.replace(region=region, label_names=names)
+
     @staticmethod
     def _labels(region, m: int, what: str = "region labels", item: str = "tet") -> np.ndarray:
         if region is None:

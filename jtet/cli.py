@@ -298,7 +298,6 @@ def _refuse_input_as_output(src: Path, out: Path, overwrite: bool) -> None:
 
 
 def cmd_improve(args) -> int:
-    from ._io import load
 
     if args.out_dir is not None:
         return _improve_batch(args)
@@ -311,7 +310,7 @@ def cmd_improve(args) -> int:
         )
     src, out = (Path(p) for p in args.paths)
     _refuse_input_as_output(src, out, args.overwrite)
-    mesh = load(src)
+    mesh = _read_input(src, args)
     return _run_improve(mesh, out, args, str(src))
 
 
@@ -375,7 +374,6 @@ def _improve_batch(args) -> int:
     as DIR/<input name> (``--out-ext``: another format). An input that cannot be read
     or written is reported and skipped; Ctrl-C stops the batch after writing the
     current file's best mesh. Exit code: the worst of the files' (130 > 3 > 2 > 0)."""
-    from ._io import load
     from ._report import plot_histograms, write_text_atomic
     from ._stats import text_table
 
@@ -384,7 +382,7 @@ def _improve_batch(args) -> int:
     partial = False  # a row shows only the tets a part run could change
     for i, (src, out) in enumerate(pairs):
         try:
-            mesh = load(src)
+            mesh = _read_input(src, args)
             result, code = _improve_and_save(mesh, out, args, f"[{i + 1}/{len(pairs)}] ")
         except JtetError as e:
             print(f"jtet: error: {e}", file=sys.stderr)
@@ -536,13 +534,13 @@ def cmd_convert(args) -> int:
     """``jtet convert IN OUT``: the mesh of IN in the format of OUT's extension, with what
     jtet reads and writes of every format (regions, labelled protected faces, edges and
     vertices: Gmsh physical groups, Medit references, TetGen markers, VTK arrays)."""
-    from ._io import load, output_format, save
+    from ._io import output_format, save
     from ._report import quality_cell_data
 
     src, out = Path(args.input), Path(args.output)
     output_format(out)  # an unknown extension fails before the input is read
     _refuse_input_as_output(src, out, args.overwrite)
-    mesh = load(src)
+    mesh = _read_input(src, args)
     cell_data = quality_cell_data(mesh) if args.quality_arrays else None
     save(mesh, out, cell_data=cell_data)
     if not args.quiet:
@@ -668,6 +666,45 @@ class _VersionAction(argparse.Action):
         parser.exit()
 
 
+def _relabel_pairs(text: str) -> dict[int, int]:
+    """``--relabel OLD:NEW[,OLD:NEW...]`` as {old: new}."""
+    pairs = {}
+    for part in text.split(","):
+        old, sep, new = part.partition(":")
+        try:
+            if not sep:
+                raise ValueError
+            pairs[int(old)] = int(new)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{part!r} is not OLD:NEW (integer region labels, e.g. 0:1)"
+            ) from None
+    return pairs
+
+
+def _add_relabel(p) -> None:
+    p.add_argument(
+        "--relabel",
+        type=_relabel_pairs,
+        metavar="OLD:NEW,...",
+        help="rename region labels after reading (0:1 puts the tets of a mesh without "
+        "labels into region 1: a physical volume of its own in a .msh output)",
+    )
+
+
+def _read_input(src: Path, args):
+    """The mesh of ``src``, its regions renamed by ``--relabel``."""
+    from ._io import load
+
+    mesh = load(src)
+    if getattr(args, "relabel", None):
+        try:
+            mesh = mesh.relabel(args.relabel)
+        except JtetError as e:
+            raise JtetError(f"{src}: --relabel: {e}") from None
+    return mesh
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="jtet",
@@ -707,6 +744,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="write before/after histograms (with --out-dir: one figure per file, "
         "H_<output name>.png)",
     )
+    _add_relabel(pi)
     pi.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
     pi.add_argument("-q", "--quiet", action="store_true")
     pi.set_defaults(func=cmd_improve)
@@ -753,6 +791,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="add the per-tet quality and dihedral arrays (as jtet improve does)",
     )
+    _add_relabel(pc)
     pc.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
     pc.add_argument("-q", "--quiet", action="store_true")
     pc.set_defaults(func=cmd_convert)

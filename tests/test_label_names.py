@@ -153,3 +153,36 @@ def test_cli_regions_by_name(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "no region named 'fluid'" in err and "ball (1), box (2)" in err
     assert not (tmp_path / "c.vtu").exists()
+
+
+def test_relabel_moves_regions_and_their_names(tmp_path, capsys):
+    """``TetMesh.relabel`` / ``--relabel``: an unlabelled mesh (region 0, which Gmsh files
+    cannot hold as a physical volume) gets a label Gmsh itself then reads as a physical
+    volume; regions merge, names follow their labels, unknown labels are refused."""
+    path = tmp_path / "named.msh"
+    _named_ball_in_box(path)
+    mesh = jtet.load(path)
+    merged = mesh.relabel({1: 2})
+    assert set(np.unique(merged.region).tolist()) == {2}
+    assert merged.label_names[(3, 2)] == "box" and (3, 1) not in merged.label_names
+    moved = mesh.relabel({1: 5, 2: 1})
+    np.testing.assert_array_equal(moved.region, np.where(mesh.region == 1, 5, 1))
+    assert moved.label_names[(3, 5)] == "ball" and moved.label_names[(3, 1)] == "box"
+    assert moved.label_names[(2, 10)] == "walls"  # other dimensions keep their names
+    with pytest.raises(jtet.MeshInputError, match="no tet has region 9"):
+        mesh.relabel({9: 1})
+    plain = jtet.demo_mesh()
+    src, out = tmp_path / "plain.vtu", tmp_path / "plain.msh"
+    jtet.save(plain, src)
+    assert main(["convert", str(src), str(out), "--relabel", "0:3", "-q"]) == 0
+    with gmsh_model():  # Gmsh finds every tet in physical volume 3
+        gmsh.open(str(out))
+        tags = gmsh.model.getEntitiesForPhysicalGroup(3, 3)
+        n = sum(len(gmsh.model.mesh.getElements(3, t)[1][0]) for t in tags)
+    assert n == plain.n_tets
+    assert main(["convert", str(src), str(out), "--relabel", "4:3", "-q"]) == 2
+    assert "--relabel: no tet has region 4" in capsys.readouterr().err
+    out2 = tmp_path / "improved.vtu"
+    args = ["improve", str(src), str(out2), "--relabel", "0:2", "--max-passes", "1", "-q"]
+    assert main([*args, "--perturb", "0"]) == 0
+    assert (jtet.load(out2).region == 2).all()
