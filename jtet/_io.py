@@ -535,17 +535,18 @@ def grid_label_names(grid, source: str = "pyvista grid") -> dict:
     return out
 
 
-def _limit_child_memory(path: Path) -> None:
+def _limit_child_memory(*paths: Path) -> None:
     """Cap the address space of the reading child at what it has plus 1 GB plus 100x
-    the file's size (compressed tet meshes inflate 1-5x; VTK holds ~2 copies). Damaged
-    block headers may announce terabytes: VTK then spent 30 s allocating before its
-    abort; with the cap it fails at once."""
+    the size of the files ``paths`` (compressed tet meshes inflate 1-5x; VTK holds ~2
+    copies). Damaged block headers may announce terabytes: VTK then spent 30 s
+    allocating before its abort; with the cap it fails at once."""
     import resource
 
     try:
         with open("/proc/self/status") as f:
             now = next(int(line.split()[1]) * 1024 for line in f if line.startswith("VmSize:"))
-        budget = now + 2**30 + 100 * path.stat().st_size
+        size = sum(p.stat().st_size for p in paths if p.is_file())
+        budget = now + 2**30 + 100 * size
         soft, hard = resource.getrlimit(resource.RLIMIT_AS)
         if hard != resource.RLIM_INFINITY:
             budget = min(budget, hard)

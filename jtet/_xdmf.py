@@ -322,7 +322,7 @@ class _Data:
             except ValueError:
                 raise self.fail(f"{what}: inline data that are not numbers") from None
         elif fmt == "HDF":
-            a = self._hdf(text, what)
+            a = self._hdf(text, what, dims)
         elif fmt == "BINARY":
             a = self._binary(item, text, dtype, dims, what)
         else:
@@ -331,7 +331,7 @@ class _Data:
             raise self.fail(f"{what}: {a.size} values for Dimensions {' '.join(map(str, dims))}")
         return a.reshape(dims) if dims else a.reshape(-1)
 
-    def _hdf(self, text: str, what: str) -> np.ndarray:
+    def _hdf(self, text: str, what: str, dims: tuple) -> np.ndarray:
         import h5py
 
         if ":/" not in text:
@@ -350,9 +350,20 @@ class _Data:
             data = f[dataset]
             if not isinstance(data, h5py.Dataset):
                 raise KeyError(dataset)
+            # the size the file claims is checked before anything is read: a damaged
+            # header may claim terabytes
+            if dims and data.size != int(np.prod(dims)):
+                raise self.fail(
+                    f"{what}: dataset {dataset} of {name} holds {data.size} values for "
+                    f"Dimensions {' '.join(map(str, dims))}"
+                )
             a = data[()]
+        except MeshFileError:
+            raise
         except KeyError:
             raise self.fail(f"{what}: no dataset {dataset} in {name}") from None
+        except MemoryError:
+            raise self.fail(f"{what}: dataset {dataset} of {name} is too large to read") from None
         except (OSError, ValueError, TypeError) as e:
             raise self.fail(f"{what}: dataset {dataset} of {name} is unreadable ({e})") from None
         a = np.asarray(a)
@@ -588,11 +599,19 @@ def read_xdmf(path: Path, source: str) -> dict:
 
     if not can_fork():
         return _read_xdmf_arrays(path, source)
+    import h5py  # noqa: F401  (imported once here, not in every child)
+
+    from ._io import _limit_child_memory
+
+    def read() -> dict:
+        # a damaged HDF5 header may claim terabytes: the cap makes that a quick failure
+        _limit_child_memory(path, *heavy_files(path))
+        return _read_xdmf_arrays(path, source)
 
     def crashed(how: str) -> MeshFileError:
         return MeshFileError(f"{source}: not a readable XDMF file (the reader {how}: damaged data)")
 
-    return call_in_child(lambda: _read_xdmf_arrays(path, source), crashed)
+    return call_in_child(read, crashed)
 
 
 def xdmf_to_meshio(found: dict):

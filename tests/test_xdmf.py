@@ -266,6 +266,17 @@ def test_damaged_heavy_data_is_refused(tmp_path, labelled):
         del f["Mesh/mesh/topology"]
     with pytest.raises(MeshFileError, match="no dataset /Mesh/mesh/topology in m.h5"):
         jtet.load(path)
+    # a dataset that claims 3.2 TB (chunked, never written: the file stays small) is
+    # refused at once, whether Dimensions says so too or not
+    with h5py.File(heavy, "a") as f:
+        f.create_dataset("Mesh/mesh/topology", shape=(10**11, 4), dtype=np.int64, chunks=True)
+    with pytest.raises(MeshFileError, match=f"holds {4 * 10**11} values for Dimensions"):
+        jtet.load(path)
+    text = path.read_text()
+    path.write_text(text.replace(f'"{labelled.n_tets} 4"', f'"{10**11} 4"', 1))
+    with pytest.raises(MeshFileError, match="too large to read|unreadable"):
+        jtet.load(path)
+    path.write_text(text)
     heavy.unlink()
     with pytest.raises(MeshFileError, match="HDF5 file m.h5 is missing"):
         jtet.load(path)
