@@ -19,6 +19,7 @@ Temporal collections give their first time step. It runs in a forked child on Li
 from __future__ import annotations
 
 import json
+import math
 import re
 import warnings
 import xml.etree.ElementTree as ET
@@ -311,9 +312,11 @@ class _Data:
         number = (item.get("NumberType") or item.get("DataType") or "Float").lower()
         if number not in _NUMBER_TYPES:
             raise self.fail(f"{what}: unknown NumberType {number!r}")
-        precision = int(item.get("Precision") or (1 if "char" in number else 4))
-        if precision not in (1, 2, 4, 8):
-            raise self.fail(f"{what}: bad Precision {precision}")
+        precision = item.get("Precision") or ("1" if "char" in number else "4")
+        if precision not in ("1", "2", "4", "8"):
+            raise self.fail(f"{what}: bad Precision {precision!r}")
+        if number == "float" and precision == "1":
+            raise self.fail(f"{what}: bad Precision 1 for Float numbers")
         dtype = np.dtype(f"{_NUMBER_TYPES[number]}{precision}")
         text = (item.text or "").strip()
         if fmt == "XML":
@@ -327,7 +330,7 @@ class _Data:
             a = self._binary(item, text, dtype, dims, what)
         else:
             raise self.fail(f"{what}: data format {fmt!r} is not supported (XML, HDF, Binary)")
-        if dims and a.size != int(np.prod(dims)):
+        if dims and a.size != math.prod(dims):
             raise self.fail(f"{what}: {a.size} values for Dimensions {' '.join(map(str, dims))}")
         return a.reshape(dims) if dims else a.reshape(-1)
 
@@ -352,7 +355,7 @@ class _Data:
                 raise KeyError(dataset)
             # the size the file claims is checked before anything is read: a damaged
             # header may claim terabytes
-            if dims and data.size != int(np.prod(dims)):
+            if dims and data.size != math.prod(dims):
                 raise self.fail(
                     f"{what}: dataset {dataset} of {name} holds {data.size} values for "
                     f"Dimensions {' '.join(map(str, dims))}"
@@ -378,7 +381,7 @@ class _Data:
         endian = (item.get("Endian") or "Native").lower()
         if endian in ("big", "little"):
             dtype = dtype.newbyteorder(">" if endian == "big" else "<")
-        count = int(np.prod(dims)) if dims else -1
+        count = math.prod(dims) if dims else -1
         try:
             seek = int(item.get("Seek") or 0)
             a = np.fromfile(path, dtype=dtype, count=count, offset=seek)
@@ -443,6 +446,8 @@ def _grid_cells(g: ET.Element, data: _Data, what: str, domain: ET.Element):
     nodes = _NODES[cell_type]
     per = topo.get("NodesPerElement")
     if cell_type in ("vertex", "line") and per is not None:
+        if not per.strip().isdigit():
+            raise data.fail(f"{what}: bad NodesPerElement {per!r}")
         nodes = int(per)
         if nodes != _NODES[cell_type]:
             return []  # poly-lines / poly-vertices of several nodes: no edges / vertices

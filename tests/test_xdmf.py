@@ -240,6 +240,9 @@ CUBE = " ".join(f"{x} {y} {z}" for z in (0, 1) for y in (0, 1) for x in (0, 1))
          "HDF5 file nothere.h5 is missing"),
         (_grid("Tetrahedron", 4, "0 1 2 4", CUBE).replace('Dimensions="4"', 'Dimensions="2 4"'),
          MeshFileError, "4 values for Dimensions 2 4"),
+        (_grid("Tetrahedron", 4, "0 1 2 4", CUBE).replace('Format="XML">0 0 0',
+         'Precision="z" Format="XML">0 0 0'), MeshFileError, "bad Precision 'z'"),
+        (_grid("Polyline", "x", "0 1", CUBE), MeshFileError, "bad NodesPerElement 'x'"),
         (_grid("Tetrahedron", 4, "0 1 2 4", CUBE).replace(
             'Format="XML">0 1 2 4', 'Reference="XML">/Xdmf/Domain/DataItem'), MeshFileError,
          "not supported"),
