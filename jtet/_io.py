@@ -308,6 +308,8 @@ def _check_cell_data(mesh: TetMesh, cell_data: dict | None) -> dict:
                 f"cell_data[{name!r}] has shape {a.shape}; "
                 f"it needs one value per tet ({mesh.n_tets})"
             )
+        if a.dtype.kind not in "biuf":
+            raise MeshInputError(f"cell_data[{name!r}] holds {a.dtype} values, not numbers")
         out[name] = a
     return out
 

@@ -113,7 +113,7 @@ def _dimension(cell_type: str) -> int:
 
 
 def _number_type(a: np.ndarray) -> dict:
-    kind = {"f": "Float", "i": "Int", "u": "UInt", "b": "UChar"}[a.dtype.kind]
+    kind = {"f": "Float", "i": "Int", "u": "UInt"}[a.dtype.kind]
     if a.dtype.itemsize == 1 and kind in ("Int", "UInt"):
         kind = "Char" if kind == "Int" else "UChar"
     return {"NumberType": kind, "Precision": str(a.dtype.itemsize)}
@@ -170,6 +170,7 @@ def write_xdmf(mesh, xdmf: Path, heavy: Path, heavy_name: str, cell_data: dict) 
     # dataset names by position: an array's name may hold "/"
     for i, (name, values) in enumerate(cell_data.items()):
         a = np.asarray(values)
+        a = a.astype(np.uint8) if a.dtype == bool else a  # HDF5 has no bool type
         datasets[f"Mesh/mesh/cell_data/{i}"] = a.reshape(len(a), -1) if a.ndim > 2 else a
         attribute(main, name, f"Mesh/mesh/cell_data/{i}")
     cell_tags = grid(TAG_GRIDS[3], "Tetrahedron", 4, "Mesh/mesh/topology")

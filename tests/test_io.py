@@ -206,6 +206,9 @@ def test_mesh_to_grid_rejects_bad_cell_data(labelled):
         _io.mesh_to_grid(labelled, {"q": np.zeros(labelled.n_tets + 1)})
     with pytest.raises(MeshInputError, match="region"):
         _io.mesh_to_grid(labelled, {"region": labelled.region})
+    with pytest.raises(MeshInputError, match="holds <U1 values, not numbers"):
+        _io.save(labelled, "never.xdmf", cell_data={"name": np.array(["a"] * labelled.n_tets)})
+    assert not Path("never.xdmf").exists()
 
 
 def test_from_pyvista_wraps_vtk_and_meshio_objects():
