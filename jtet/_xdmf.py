@@ -561,7 +561,7 @@ def _read_xdmf_arrays(path: Path, source: str) -> dict:
                 if t != "tetra":
                     blocks.append((t, c, lab))
                 elif lab is not None and region is None:  # dolfinx's cell tags
-                    region = _tag_region(tets, c, lab, source, what2)
+                    region = _tag_region(tets, c, lab, len(points), source, what2)
     finally:
         data.close()
     blocks.insert(0, ("tetra", tets, region))
@@ -575,28 +575,26 @@ def _read_xdmf_arrays(path: Path, source: str) -> dict:
     return {"points": points, "blocks": blocks, "protected": protected, "names": names}
 
 
-def _tag_region(tets: np.ndarray, tagged: np.ndarray, labels: np.ndarray, source, what):
+def _tag_region(
+    tets: np.ndarray, tagged: np.ndarray, labels: np.ndarray, n_points: int, source, what
+):
     """Region of each tet from a cell-tags grid (dolfinx meshtags: the tagged tets by
-    their vertices, in any order and vertex order): its label, 0 for untagged tets."""
-    from ._topology import row_keys
+    their vertices, in any order and vertex order): its label, 0 for untagged tets;
+    None when the tets hold ids out of range (``from_arrays`` reports them)."""
+    from ._topology import match_rows
 
-    n = int(max(tets.max(initial=-1), tagged.max(initial=-1))) + 1
-    if tagged.min(initial=0) < 0:
-        raise MeshInputError(f"{source}: {what} has negative node ids")
-    keys = row_keys(np.sort(tets, axis=1), n)
-    tag_keys = row_keys(np.sort(tagged, axis=1), n)
-    order = np.argsort(tag_keys, kind="stable")
-    at = np.searchsorted(tag_keys[order], keys)
-    at = np.minimum(at, len(order) - 1)
-    hit = tag_keys[order][at] == keys
-    region = np.zeros(len(tets), np.int64)
-    region[hit] = labels[order[at[hit]]]
-    stray = len(tagged) - int(np.isin(tag_keys, keys).sum())
+    if len(tets) and (tets.min() < 0 or tets.max() >= n_points):
+        return None
+    inside = (tagged.min(axis=1) >= 0) & (tagged.max(axis=1) < n_points)
+    tagged, labels = tagged[inside], labels[inside]
+    at = match_rows(tagged, tets, n_points)
+    region = np.where(at >= 0, labels[np.maximum(at, 0)] if len(labels) else 0, 0)
+    stray = int((~inside).sum()) + int((match_rows(tets, tagged, n_points) < 0).sum())
     if stray:
         warnings.warn(
             f"{source}: {stray} tet(s) of {what} are not tets of the mesh; ignored", stacklevel=3
         )
-    return region
+    return region.astype(np.int64)
 
 
 def read_xdmf(path: Path, source: str) -> dict:

@@ -289,3 +289,43 @@ def test_periodic_links_are_named_as_dropped(tmp_path):
     m = delaunay_mesh(30, seed=2)
     with pytest.warns(UserWarning, match="no periodic links; not saved: 1 periodic link"):
         jtet.save(m.replace(periodic=[(2, (2, 1), None, [[0, 1]])]), tmp_path / "p.xdmf")
+
+
+def test_cell_tags_in_any_order_on_a_large_vertex_numbering(tmp_path, labelled):
+    """dolfinx lists its cell tags in its own order, each tet's vertices in any order,
+    and may tag only some tets: they are matched to the mesh's tets by their vertex
+    sets, the others get region 0. With 70k points (ids past the range where a tet's
+    four ids make one exact int64 key) the match must still pair each tagged tet with
+    its own (it paired ranks among different sets of tets)."""
+    import xml.etree.ElementTree as ET
+
+    from helpers import shifted
+
+    mesh = shifted(labelled.replace(label_names={}, protected_tets=None))
+    path = tmp_path / "m.xdmf"
+    _save(mesh, path)
+    rng = np.random.default_rng(0)
+    order = rng.permutation(mesh.n_tets)[: 3 * mesh.n_tets // 4]
+    tagged = np.array(
+        [np.roll(t, k) for t, k in zip(mesh.tets[order], rng.integers(0, 4, len(order)))]
+    )
+    with h5py.File(tmp_path / "m.h5", "a") as f:
+        f["MeshTags/cell_tags/topology"] = tagged
+        f["MeshTags/cell_tags/Values"] = mesh.region[order].astype(np.int32)
+    tree = ET.parse(path)
+    grids = {g.get("Name"): g for g in tree.getroot().iter("Grid")}
+    grids["mesh"].remove(grids["mesh"].find("Attribute[@Name='region']"))
+    cell_tags = grids["cell_tags"]
+    topology = cell_tags.find("Topology/DataItem")
+    topology.text = "m.h5:/MeshTags/cell_tags/topology"
+    topology.attrib["Dimensions"] = f"{len(order)} 4"
+    item = cell_tags.find("Attribute/DataItem")
+    item.text, item.attrib["Precision"] = "m.h5:/MeshTags/cell_tags/Values", "4"
+    item.attrib["Dimensions"] = str(len(order))
+    tree.write(path)
+    back = jtet.load(path)
+    np.testing.assert_array_equal(back.tets, mesh.tets)
+    expected = np.zeros(mesh.n_tets, np.int64)
+    expected[order] = mesh.region[order]
+    np.testing.assert_array_equal(back.region, expected)
+    assert len(np.unique(back.region)) == 4
