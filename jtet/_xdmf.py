@@ -281,11 +281,13 @@ def heavy_files(path: Path) -> list[Path]:
 
 
 class _Data:
-    """Reads data items, keeping each HDF5 file open once."""
+    """Reads data items, keeping each HDF5 file open once and each dataset read once
+    (jtet's and dolfinx's tag grids point at the mesh's geometry and topology)."""
 
     def __init__(self, base: Path, source: str):
         self.base, self.source = base, source
         self.files: dict[Path, object] = {}
+        self.read_before: dict[tuple[Path, str], np.ndarray] = {}
 
     def close(self) -> None:
         for f in self.files.values():
@@ -349,6 +351,8 @@ class _Data:
                 self.files[path] = h5py.File(path, "r")
             except OSError as e:
                 raise self.fail(f"{name}: not a readable HDF5 file ({e})") from None
+        if (path, dataset) in self.read_before:
+            return self.read_before[path, dataset]
         f = self.files[path]
         try:
             data = f[dataset]
@@ -373,6 +377,8 @@ class _Data:
         a = np.asarray(a)
         if a.dtype.kind not in "fiub":
             raise self.fail(f"{what}: dataset {dataset} of {name} holds no numbers")
+        a.flags.writeable = False  # shared by every data item naming it
+        self.read_before[path, dataset] = a
         return a
 
     def _binary(self, item, text: str, dtype, dims, what: str) -> np.ndarray:
