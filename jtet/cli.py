@@ -589,6 +589,10 @@ def cmd_tetrahedralize(args) -> int:
     src, out = Path(args.surface), Path(args.output)
     output_format(out)  # an unknown extension fails before the work
     _refuse_input_as_output(src, out, args.overwrite)
+    if args.options and not args.improve:
+        raise JtetError("--options sets the optimizer's options: it needs --improve")
+    if args.improve:
+        _options_from(args)  # bad options fail before fTetWild's work
     t0 = time.perf_counter()
     points, triangles = read_surface(src)
     if not args.quiet:
@@ -613,6 +617,14 @@ def cmd_tetrahedralize(args) -> int:
             optimize=not args.no_optimize,
             threads=args.threads,
         )
+    if args.improve:
+        if not args.quiet:
+            print(
+                f"jtet: fTetWild: {mesh.n_tets} tets, {mesh.n_points} points in "
+                f"{time.perf_counter() - t0:.1f} s; improving them",
+                file=sys.stderr,
+            )
+        return _run_improve(mesh, out, args, f"{src} (fTetWild)")
     cells = quality_cell_data(mesh)
     save(mesh, out, cell_data=cells)
     if not args.quiet:  # the dihedral range from the arrays written, not measured again
@@ -831,9 +843,21 @@ def build_parser() -> argparse.ArgumentParser:
     pt.add_argument(
         "--threads", type=int, default=0, metavar="N", help="fTetWild's threads (0: all cores)"
     )
+    pt.add_argument(
+        "--improve",
+        action="store_true",
+        help="improve fTetWild's mesh with jtet (its default options, or --options) and write "
+        "the improved mesh: one command from a surface to a good tet mesh",
+    )
+    pt.add_argument(
+        "--options",
+        metavar="FILE",
+        help="with --improve: the optimizer's options from a JSON / YAML file (as jtet improve "
+        "--options)",
+    )
     pt.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
     pt.add_argument("-q", "--quiet", action="store_true")
-    pt.set_defaults(func=cmd_tetrahedralize)
+    pt.set_defaults(func=cmd_tetrahedralize, report=None, plot=None)
     pd = sub.add_parser("demo", help="improve the embedded demo mesh and write its outputs")
     pd.add_argument(
         "--out", default="jtet-demo-out", help="output directory (default: ./jtet-demo-out)"

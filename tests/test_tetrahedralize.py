@@ -200,6 +200,30 @@ def test_command_writes_a_mesh_ready_to_improve(tmp_path, capsys):
     assert "jtet tetrahedralize" in capsys.readouterr().err
 
 
+def test_command_improves_with_improve(tmp_path, capsys):
+    """--improve: one command from a surface to an improved mesh, with the optimizer's
+    summary (fTetWild's mesh before, jtet's after: the worst angle never drops)."""
+    src, out = tmp_path / "ball.stl", tmp_path / "ball.msh"
+    _ball().save(str(src))
+    opts = tmp_path / "opts.yaml"
+    opts.write_text("perturb: 0\nmax_passes: 3\n")
+    args = ["tetrahedralize", str(src), str(out), "--edge-length", "0.15", "-q"]
+    assert main([*args[:-1], "--improve", "--options", str(opts)]) == 0
+    printed = capsys.readouterr().out
+    row = next(line for line in printed.splitlines() if line.startswith("min dihedral"))
+    before, after = map(float, row.split()[-2:])
+    assert after >= before
+    mesh = jtet.load(out)
+    assert mesh.is_valid().ok and (mesh.region == 1).all()
+    assert jtet.stats(mesh).min_dihedral == pytest.approx(after, abs=1e-3)
+    # options without --improve, and bad options, fail before fTetWild's work
+    assert main([*args, "--options", str(opts)]) == 2
+    assert "needs --improve" in capsys.readouterr().err
+    opts.write_text("perturb: -1\n")
+    assert main([*args, "--improve", "--options", str(opts)]) == 2
+    assert "perturb must be >= 0" in capsys.readouterr().err
+
+
 def test_no_tets_from_ftetwild_is_an_error(monkeypatch):
     from jtet import _tetrahedralize
 
