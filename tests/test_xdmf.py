@@ -143,6 +143,30 @@ def test_files_written_by_meshio(tmp_path, labelled, data_format):
     assert (plain.region == 0).all()
 
 
+def test_files_written_by_vtk(tmp_path, labelled):
+    """VTK's XDMF writer (ParaView's "Xdmf" writer, XDMF 2.2): tets and triangles in one
+    Mixed topology, the region as a cell attribute."""
+    import pyvista as pv
+    from vtkmodules.vtkIOXdmf2 import vtkXdmfWriter
+
+    faces = labelled.protected_faces
+    grid = pv.UnstructuredGrid(
+        {pv.CellType.TETRA: labelled.tets, pv.CellType.TRIANGLE: faces}, labelled.points
+    )
+    grid.cell_data["region"] = np.concatenate([labelled.region, labelled.protected_face_labels])
+    writer = vtkXdmfWriter()
+    writer.SetFileName(str(tmp_path / "vtk.xdmf"))
+    writer.SetInputData(grid)
+    writer.Write()
+    assert 'TopologyType="Mixed"' in (tmp_path / "vtk.xdmf").read_text()
+    back = jtet.load(tmp_path / "vtk.xdmf")
+    np.testing.assert_array_equal(back.points, labelled.points)
+    np.testing.assert_array_equal(back.tets, labelled.tets)
+    np.testing.assert_array_equal(back.region, labelled.region)
+    np.testing.assert_array_equal(back.protected_faces, labelled.protected_faces)
+    np.testing.assert_array_equal(back.protected_face_labels, labelled.protected_face_labels)
+
+
 def test_time_series_gives_its_first_step(tmp_path, labelled, monkeypatch):
     """A temporal collection (meshio's TimeSeriesWriter, solvers' output) holds the mesh
     once per time step: the first step is read. meshio's steps include the grid that
