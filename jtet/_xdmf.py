@@ -348,7 +348,9 @@ class _Data:
             if not path.is_file():
                 raise self.fail(f"{what}: the HDF5 file {name} is missing")
             try:
-                self.files[path] = h5py.File(path, "r")
+                # no HDF5 file lock: reading needs none, and taking one fails on
+                # file systems without locks (NFS, some containers)
+                self.files[path] = h5py.File(path, "r", locking=False)
             except OSError as e:
                 raise self.fail(f"{name}: not a readable HDF5 file ({e})") from None
         if (path, dataset) in self.read_before:
