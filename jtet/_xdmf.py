@@ -10,10 +10,12 @@ topology dataset, so the file holds the points and tets once. The names of Gmsh 
 groups go to an ``Information`` element, the protected tets to a ``protected`` attribute.
 
 ``read_xdmf`` reads that layout, dolfinx's (``tests/data/dolfinx_cube.xdmf`` was written by
-dolfinx 0.5.2) and meshio's (one grid, ``Mixed`` topology when it has several cell
-types), with heavy data inline (``XML``), in HDF5 files (``HDF``) or raw (``Binary``).
-Temporal collections give their first time step. It runs in a forked child on Linux
-(``_forked``): a crash of the HDF5 library on a damaged file becomes an error.
+dolfinx 0.5.2: its tag grids list cells in their own order, matched to the mesh's by
+their vertices), meshio's and VTK's (one grid, ``Mixed`` topology when it has several
+cell types), with heavy data inline (``XML``), in HDF5 files (``HDF``) or raw
+(``Binary``). Temporal collections give their first time step. It runs in a forked child
+on Linux (``_forked``) whose memory is capped: a crash of the HDF5 library on a damaged
+file, or a header claiming terabytes, becomes an error.
 """
 
 from __future__ import annotations
