@@ -79,12 +79,19 @@ def start(opts) -> Helper | None:
         return _shared
 
 
+# the parent's helper processes, as forked children inherited them: kept referenced, as
+# a ``Popen`` object that is dropped while its process runs warns "subprocess ... is
+# still running" (the CLI printed it at each read in a forked child after a run)
+_parents_helpers: list = []
+
+
 def _leave_to_parent() -> None:
     """In a forked child: the parent's helper answers the parent's threads, none of which
     came along. The child forgets it (and must not kill it at exit) and may start its own."""
     global _shared, _lock
     if _shared is not None:
         _shared.alive = False
+        _parents_helpers.append(_shared.proc)
         _shared.proc = None  # close() at the child's exit leaves the process alone
         _shared = None
     _lock = threading.Lock()  # it may have been held by a thread that did not come along
