@@ -1102,6 +1102,8 @@ def load(path: str | os.PathLike) -> TetMesh:
         hint = ""
         if ext in SURFACE_EXTENSIONS:
             hint = " (a surface: mesh the volume it bounds with jtet tetrahedralize)"
+        elif ext in (".h5", ".hdf5"):
+            hint = " (HDF5 data of an XDMF mesh: read the .xdmf file that names it)"
         raise MeshFileError(
             f"{p}: unknown mesh file extension {ext or '(none)'!r}; jtet reads "
             f"{_KNOWN_EXTENSIONS}{hint}"

@@ -280,6 +280,12 @@ def test_bad_files_are_refused(tmp_path, text, error, match):
     assert str(path) in str(e.value)
 
 
+def test_h5_file_given_as_the_mesh_names_the_xdmf(tmp_path, labelled):
+    _save(labelled, tmp_path / "m.xdmf")
+    with pytest.raises(MeshFileError, match="read the .xdmf file that names it"):
+        jtet.load(tmp_path / "m.h5")
+
+
 def test_damaged_heavy_data_is_refused(tmp_path, labelled):
     path = tmp_path / "m.xdmf"
     _save(labelled, path)
