@@ -662,7 +662,7 @@ def _version_line() -> str:
         except metadata.PackageNotFoundError:
             return "missing"
 
-    names = ("jax", "jaxlib", "numpy", "meshio", "pyvista", "pytetwild")
+    names = ("jax", "jaxlib", "numpy", "meshio", "pyvista", "pytetwild", "h5py")
     deps = ", ".join(f"{n} {version(n)}" for n in names)
     return f"jtet {__version__} (Python {platform.python_version()}, {deps})"
 
