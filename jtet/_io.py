@@ -1079,7 +1079,9 @@ def load(path: str | os.PathLike) -> TetMesh:
     Formats by extension: ``.vtu``, ``.vtk`` (VTK), ``.msh`` (Gmsh 2.2 / 4.1; physical
     tags -> region), ``.mesh`` / ``.meshb`` (Medit; references -> region), ``.node`` /
     ``.ele`` (TetGen, both files next to each other; first element attribute -> region;
-    the ``.face`` file, if there is one, with its facet markers). Triangles that are faces
+    the ``.face`` file, if there is one, with its facet markers), ``.xdmf`` (dolfinx's,
+    meshio's, VTK's and jtet's; cell tags or a region attribute -> region, facet tags ->
+    labelled protected faces). Triangles that are faces
     of the tets become protected faces, labelled by their physical tags / references /
     markers; lines and points (Medit: ``Edges``, ``RequiredVertices``) that are edges and
     vertices of the tets become protected edges and vertices. A globally reversed
@@ -1338,8 +1340,9 @@ def save(
     (``.mesh`` only). ``.node`` / ``.ele`` (TetGen, both files are written; region ->
     element attribute) store the region, and the protected faces with their labels as
     boundary markers in a ``.face`` file beside them (an old ``.face`` of that name is
-    replaced or, for a mesh without protected faces, removed). What a format cannot
-    store is dropped with a warning.
+    replaced or, for a mesh without protected faces, removed). ``.xdmf`` (with its heavy
+    data in the ``.h5`` file of the same name) stores everything but periodic links, in
+    dolfinx's layout (``_xdmf``). What a format cannot store is dropped with a warning.
 
     The file is written to a temporary file in the same directory and moved into place, so
     ``path`` is either the complete new file or left untouched.
