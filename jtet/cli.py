@@ -298,7 +298,6 @@ def _refuse_input_as_output(src: Path, out: Path, overwrite: bool) -> None:
 
 
 def cmd_improve(args) -> int:
-
     if args.out_dir is not None:
         return _improve_batch(args)
     if args.out_ext is not None:
