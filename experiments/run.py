@@ -9,7 +9,8 @@
 Configs live in ``configs/`` (see ``experiments/README.md``). Each run writes into its Hydra
 run directory (``outputs/runs/...`` or ``outputs/sweeps/<time>/<job number>``):
 
-- ``improved.vtu``: the improved mesh with per-tet quality arrays (``save_mesh``),
+- ``improved.vtu``: the improved mesh with per-tet quality arrays (``save_mesh``; another
+  format with ``mesh_format``, e.g. ``mesh_format=xdmf`` for dolfinx, ``msh`` for Gmsh),
 - ``input.vtu``: the generated input mesh (``save_input``),
 - ``report.json``: jtet's JSON report (options, statistics before / after, history),
 - ``history.csv``: one row per operation of each pass,
@@ -46,6 +47,7 @@ import meshgen  # noqa: E402
 
 import jtet  # noqa: E402
 from jtet import _helper_process  # noqa: E402
+from jtet._io import output_format  # noqa: E402
 from jtet._report import quality_cell_data, write_report, write_text_atomic  # noqa: E402
 
 config_schema.register()
@@ -111,6 +113,8 @@ def run(cfg: DictConfig, out: Path, choices: dict) -> dict:
     opts = config_schema.to_options(cfg.optimizer)
     params = mesh_params(cfg)
     meshgen.check(cfg.mesh.generator, params)
+    ext = "." + str(cfg.get("mesh_format", "vtu")).lstrip(".")
+    output_format(out / f"improved{ext}")  # an unknown format fails before the work
     row: dict = {
         **{g: choices.get(g) for g in GROUPS},
         "mesh_name": cfg.mesh.name,
@@ -131,7 +135,7 @@ def run(cfg: DictConfig, out: Path, choices: dict) -> dict:
         mesh = meshgen.generate(cfg.mesh.generator, params)
         row["mesh_seconds"] = time.perf_counter() - t0
         if cfg.save_input:
-            jtet.save(mesh, out / "input.vtu", cell_data=quality_cell_data(mesh))
+            jtet.save(mesh, out / f"input{ext}", cell_data=quality_cell_data(mesh))
         result = jtet.improve(mesh, opts)
         report = result.mesh.is_valid()
         row.update(
@@ -146,7 +150,8 @@ def run(cfg: DictConfig, out: Path, choices: dict) -> dict:
             regions=int(len(set(result.mesh.region.tolist()))),
         )
         if cfg.save_mesh:
-            jtet.save(result.mesh, out / "improved.vtu", cell_data=quality_cell_data(result.mesh))
+            cells = quality_cell_data(result.mesh)
+            jtet.save(result.mesh, out / f"improved{ext}", cell_data=cells)
         write_report(result, out / "report.json")
         write_text_atomic(out / "history.csv", history_csv(result.history))
         if cfg.plot:

@@ -382,12 +382,17 @@ def test_sweep_2x2_basic_launcher_and_reproducible(tmp_path):
             "mesh=tiny_two_regions",
             "quality=radius_ratio",
             "hydra/launcher=basic",
+            "mesh_format=xdmf",
             f"hydra.run.dir={single}",
         ],
         cwd=tmp_path,
         env=helper_on,
     )
     again = json.loads((single / "metrics.json").read_text())
+    # the improved mesh in the format asked for: XDMF and its heavy data, for dolfinx
+    improved = jtet.load(single / "improved.xdmf")
+    assert (single / "improved.h5").is_file() and not (single / "improved.vtu").exists()
+    assert jtet.stats(improved).min_dihedral == pytest.approx(again["min_dihedral_after"])
     first = rows["tiny_two_regions/radius_ratio"]
     same = {k: v for k, v in first.items() if k not in TIMING_KEYS}
     assert {k: v for k, v in again.items() if k not in TIMING_KEYS} == same
@@ -422,13 +427,17 @@ def test_sweep_parallel_launchers(tmp_path, launcher):
     _aggregate(sweep, 4)
 
 
-def test_run_rejects_a_typo_before_working(tmp_path):
+@pytest.mark.parametrize(
+    "override, says",
+    [("optimizer.max_rng=5", "max_rng"), ("mesh_format=stl", "unknown mesh file extension")],
+)
+def test_run_rejects_a_typo_before_working(tmp_path, override, says):
     proc = subprocess.run(
         [
             sys.executable,
             str(EXPERIMENTS / "run.py"),
             "mesh=tiny_cube",
-            "optimizer.max_rng=5",
+            override,
             f"hydra.run.dir={tmp_path / 'run'}",
         ],
         cwd=tmp_path,
@@ -437,7 +446,7 @@ def test_run_rejects_a_typo_before_working(tmp_path):
         timeout=300,
     )
     assert proc.returncode != 0
-    assert "max_rng" in proc.stderr
+    assert says in proc.stderr
     assert not (tmp_path / "run" / "metrics.json").exists()
 
 
