@@ -75,6 +75,7 @@ _READ_FORMATS = {
     ".node": "tetgen",
     ".ele": "tetgen",
     ".xdmf": "xdmf",
+    ".inp": "abaqus",
 }
 _FORMAT_NAMES = {
     "vtu": "VTK XML unstructured grid",
@@ -83,6 +84,7 @@ _FORMAT_NAMES = {
     "medit": "Medit",
     "tetgen": "TetGen",
     "xdmf": "XDMF",
+    "abaqus": "Abaqus input",
 }
 _KNOWN_EXTENSIONS = ", ".join(_READ_FORMATS)
 
@@ -1121,6 +1123,8 @@ def load(path: str | os.PathLike) -> TetMesh:
     extras = {}
     if fmt in ("vtu", "vtk"):
         arrays, extras = _vtk_file_arrays(p, fmt, source)
+    elif fmt == "abaqus":
+        arrays, extras = _abaqus_arrays(p, source)
     elif fmt == "xdmf":
         from ._xdmf import read_xdmf, xdmf_to_meshio
 
@@ -1168,6 +1172,20 @@ def load(path: str | os.PathLike) -> TetMesh:
         raise MeshInputError(msg if msg.startswith(source) else f"{source}: {msg}") from None
 
 
+def _abaqus_arrays(path: Path, source: str):
+    """``from_arrays``' arguments and extras of an Abaqus input file (``_abaqus``): its
+    surfaces' and triangle elements' faces of the tets as labelled protected faces, its
+    line elements' edges as protected edges."""
+    from ._abaqus import read_inp
+
+    points, tets, region, faces, face_labels, lines, line_labels, names = read_inp(path, source)
+    n = len(points)
+    faces, face_labels = _mesh_cells(tets, faces, face_labels, n, source)
+    edges, edge_labels = _mesh_cells(tets, lines, line_labels, n, source)
+    arrays = (points, tets, region, faces, edges, face_labels, None, edge_labels, None)
+    return arrays, {"label_names": names}
+
+
 def _xdmf_label_names(names, source: str) -> dict:
     """{(dim, label): name} from an XDMF file's ``[[dim, label, name], ...]``."""
     try:
@@ -1177,6 +1195,11 @@ def _xdmf_label_names(names, source: str) -> dict:
 
 
 def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str = "") -> None:
+    if fmt == "abaqus":
+        from ._abaqus import write_inp
+
+        write_inp(mesh, tmp)
+        return
     if fmt == "xdmf":
         from ._xdmf import companion, write_xdmf
 
@@ -1358,24 +1381,26 @@ def save(
     ext = p.suffix.lower()
     fmt = output_format(p)
     cell_data = _check_cell_data(mesh, cell_data)
-    if fmt in ("medit", "tetgen"):
+    if fmt in ("medit", "tetgen", "abaqus"):
         dropped = list(cell_data)
         if len(dropped) > 4:
             dropped = [f"{len(dropped)} cell arrays ({', '.join(dropped[:3])}, ...)"]
-        if fmt == "tetgen" and len(mesh.protected_edges):
+        if fmt in ("tetgen", "abaqus") and len(mesh.protected_edges):
             dropped.append("protected edges")
-        if len(mesh.protected_vertices) and (fmt == "tetgen" or ext == ".meshb"):
+        if len(mesh.protected_vertices) and (fmt in ("tetgen", "abaqus") or ext == ".meshb"):
             dropped.append("protected vertices")
-        if len(mesh.label_names):
+        if len(mesh.label_names) and fmt != "abaqus":
             dropped.append(f"{len(mesh.label_names)} label name(s) (Gmsh physical names)")
         if mesh.periodic:
             dropped.append(f"{len(mesh.periodic)} periodic link(s)")
-        if len(mesh.protected_tets) and (fmt == "tetgen" or ext == ".meshb"):
+        if len(mesh.protected_tets) and ext != ".mesh":
             dropped.append("protected tets")
         if dropped:
             stored = {
                 ".mesh": "region labels and protected faces, edges, vertices and tets",
                 ".meshb": "region labels and protected faces and edges",
+                ".inp": "regions (element sets, with their names) and protected faces "
+                "(element-face surfaces)",
             }.get(ext, "region labels and protected faces")
             warnings.warn(
                 f"{p}: the {_FORMAT_NAMES[fmt]} format stores only the {stored}; "

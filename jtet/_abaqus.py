@@ -1,0 +1,402 @@
+"""Abaqus / CalculiX input files (``.inp``): the mesh part of a flat input file.
+
+``write_inp`` writes the nodes, the tets as ``C3D4`` elements in one ``*ELEMENT`` block
+per region (its element set named after the region: a Gmsh physical name, else
+``REGION<label>``), and each label of the protected faces as an element-face
+``*SURFACE`` (what ``*DSLOAD`` / ``*DLOAD`` pressure loads and contact use) with a node
+set ``<surface>_NODES`` of its vertices (what ``*BOUNDARY`` uses). Element ``i + 1`` is
+tet ``i``, node ``j + 1`` point ``j``. Comment lines ``** jtet region <label> <set>`` and
+``** jtet surface <label> <name>`` keep the labels for the way back.
+
+``read_inp`` reads such files and those of Gmsh, meshio and CalculiX's pre-processor:
+``*NODE``, ``*ELEMENT`` (tets; triangles and lines as candidate protected faces and
+edges), ``*ELSET`` / ``*NSET`` (ids, ``GENERATE`` ranges, other sets' names) and
+element-face ``*SURFACE``. Regions come from the element sets holding tets (without the
+comments: the sets named by ``*ELSET`` first, then those of ``*ELEMENT`` lines, a tet
+in several taking the first; a set holding every tet is no region when there are
+others). Material, step and load sections are skipped. Parts, instances and
+``*INCLUDE`` are refused: an assembly's node ids are local to its parts.
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import MeshFileError, MeshInputError
+
+# Abaqus numbers a C3D4's faces S1 (nodes 1 2 3), S2 (1 4 2), S3 (2 4 3), S4 (3 4 1);
+# by the local vertex each face leaves out (jtet's TET_FACES order): 3 -> S1, 2 -> S2,
+# 0 -> S3, 1 -> S4
+FACE_NODES = np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]])
+_S_OF_OPPOSITE = np.array([3, 4, 2, 1])  # S number of the face opposite local vertex j
+
+# element types by the cells they are (Abaqus and CalculiX names; a trailing H, T, R,
+# ... of the linear ones is a formulation, not a shape)
+_TETS = re.compile(r"^C3D4[A-Z]*$")
+_TRIANGLES = re.compile(r"^(S3|S3R|STRI3|CPS3|CPE3|CAX3|M3D3|SFM3D3|R3D3|DS3|F3D3)[A-Z]*$")
+_LINES = re.compile(r"^(T3D2|B31|B21|T2D2|R3D2|SPRINGA|DCOUP3D)[A-Z]*$")
+_OTHER_SOLIDS = re.compile(r"^(C3D|DC3D|AC3D)(\d+)")
+
+
+def _set_name(name: str, taken: set) -> str:
+    """An Abaqus name of ``name``: letters, digits and underscores, starting with a
+    letter, at most 80 characters, not in ``taken``."""
+    clean = re.sub(r"[^A-Za-z0-9_]", "_", name)
+    if not clean[:1].isalpha():
+        clean = "S_" + clean
+    clean = clean[:72]
+    out, k = clean, 1
+    while out.upper() in taken:
+        k += 1
+        out = f"{clean}_{k}"
+    taken.add(out.upper())
+    return out
+
+
+def _rows(table: np.ndarray, fmt: str) -> str:
+    """The rows of ``table`` formatted by ``fmt`` (one row), in one C-level operation."""
+    if not len(table):
+        return ""
+    return (fmt * len(table)) % tuple(table.ravel().tolist())
+
+
+def _id_lines(ids: np.ndarray) -> str:
+    """1-based ids, 16 to a line (Abaqus reads at most 16 per data line)."""
+    ids = np.asarray(ids, np.int64)
+    full = len(ids) // 16 * 16
+    text = _rows(ids[:full].reshape(-1, 16), ", ".join(["%d"] * 16) + "\n")
+    if full < len(ids):
+        text += ", ".join(map(str, ids[full:].tolist())) + "\n"
+    return text
+
+
+def write_inp(mesh, path: Path) -> None:
+    """Write ``mesh`` as the Abaqus / CalculiX input file ``path`` (see the module)."""
+    from . import __version__
+
+    taken: set = set()
+    names = mesh.label_names
+    regions = np.unique(mesh.region)
+    region_sets = {
+        int(r): _set_name(names.get((3, int(r)), f"REGION{r}".replace("-", "M")), taken)
+        for r in regions
+    }
+    face_labels = np.unique(mesh.protected_face_labels)
+    surfaces = {
+        int(k): _set_name(names.get((2, int(k)), f"SURFACE{k}".replace("-", "M")), taken)
+        for k in face_labels
+    }
+    out = [f"** written by jtet {__version__}\n"]
+    out += [f"** jtet region {r} {s}\n" for r, s in region_sets.items()]
+    out += [f"** jtet surface {k} {s}\n" for k, s in surfaces.items()]
+    out.append(f"*HEADING\njtet mesh: {mesh.n_points} nodes, {mesh.n_tets} C3D4 elements\n")
+    ids = np.arange(1, mesh.n_points + 1, dtype=np.float64)[:, None]
+    out.append("*NODE\n")
+    # 16 significant digits, as Gmsh writes them: CalculiX refuses a number of 17 digits
+    # with an exponent ("1.3601257419226798e-06"), and 16 keep each coordinate to within
+    # a relative 1e-16 (an ulp or two)
+    out.append(_rows(np.hstack([ids, mesh.points]), "%d, %.16g, %.16g, %.16g\n"))
+    table = np.column_stack([np.arange(1, mesh.n_tets + 1), mesh.tets + 1])
+    for r, name in region_sets.items():
+        out.append(f"*ELEMENT, TYPE=C3D4, ELSET={name}\n")
+        out.append(_rows(table[mesh.region == r], "%d, %d, %d, %d, %d\n"))
+    if len(mesh.protected_faces):
+        tet, opposite = _face_owners(mesh)
+        side = _S_OF_OPPOSITE[opposite]
+        for k, name in surfaces.items():
+            mine = mesh.protected_face_labels == k
+            lines = []
+            for s in range(1, 5):
+                elements = tet[mine & (side == s)] + 1
+                if len(elements):
+                    out.append(f"*ELSET, ELSET={name}_S{s}\n" + _id_lines(elements))
+                    lines.append(f"{name}_S{s}, S{s}\n")
+            out.append(f"*SURFACE, NAME={name}, TYPE=ELEMENT\n" + "".join(lines))
+            nodes = np.unique(mesh.protected_faces[mine]) + 1
+            out.append(f"*NSET, NSET={name}_NODES\n" + _id_lines(nodes))
+    path.write_text("".join(out))
+
+
+def _face_owners(mesh) -> tuple[np.ndarray, np.ndarray]:
+    """For each protected face, a tet that has it and the local vertex it leaves out."""
+    from ._topology import TET_FACES, match_rows
+
+    faces = mesh.tets[:, TET_FACES].reshape(-1, 3)  # face j of tet t: row 4 t + j
+    at = match_rows(faces, mesh.protected_faces, mesh.n_points)
+    if (at < 0).any():  # TetMesh checks its protected faces: cannot happen
+        raise MeshInputError("a protected face is no face of a tet")
+    return at // 4, at % 4
+
+
+# ---------------------------------------------------------------------------------------
+# reading
+
+
+def _sections(text: str, source: str):
+    """(keyword, {parameter: value}, data lines) of each keyword line of the file, and
+    the ``** jtet`` comments."""
+    comments = re.findall(r"^\*\* jtet (region|surface) (-?\d+) (\S+)[ \t]*\r?$", text, re.M)
+    out = []
+    head, params, data = None, {}, []
+    for line in text.splitlines():
+        if line.startswith("**") or not line.strip():
+            continue
+        if line.startswith("*"):
+            if head is not None:
+                out.append((head, params, data))
+            parts = [p.strip() for p in line[1:].split(",")]
+            head = parts[0].upper()
+            params = {}
+            for p in parts[1:]:
+                key, _, value = p.partition("=")
+                params[key.strip().upper()] = value.strip()
+            data = []
+        elif head is not None:
+            data.append(line)
+        else:
+            raise MeshFileError(
+                f"{source}: not a readable Abaqus input file (data before any keyword)"
+            )
+    if head is not None:
+        out.append((head, params, data))
+    return out, comments
+
+
+def _numbers(lines: list[str], width: int, what: str, source: str, kind=np.float64):
+    """The data lines' numbers as a (k, width) array (commas or blanks between)."""
+    tokens = ",".join(lines).replace(",", " ").split()
+    try:
+        values = np.array(tokens, dtype=np.float64)
+    except ValueError:
+        raise MeshFileError(f"{source}: {what}: data that are not numbers") from None
+    if len(values) % width or len(values) // width != len(lines):
+        raise MeshFileError(
+            f"{source}: {what}: {len(values)} numbers on {len(lines)} lines, not {width} a line"
+        )
+    values = values.reshape(-1, width)
+    if kind is np.int64:
+        if not (np.isfinite(values).all() and (values == np.round(values)).all()):
+            raise MeshFileError(f"{source}: {what}: ids that are not integers")
+        return values.astype(np.int64)
+    return values
+
+
+def _set_ids(lines: list[str], generate: bool, sets: dict, what: str, source: str) -> np.ndarray:
+    """The ids of a set's data lines: ids, ``GENERATE`` triples, or names of sets."""
+    tokens = ",".join(lines).replace(",", " ").split()
+    if generate:
+        try:
+            triples = np.array(tokens, dtype=np.int64).reshape(-1, 3)
+        except ValueError:
+            raise MeshFileError(f"{source}: {what}: GENERATE needs start, end, step") from None
+        if (triples[:, 2] <= 0).any() or (triples[:, 1] - triples[:, 0] > 10**9).any():
+            raise MeshFileError(f"{source}: {what}: bad GENERATE range")
+        return np.concatenate([np.arange(a, b + 1, s) for a, b, s in triples.tolist()] or [[]])
+    out = []
+    numeric = [t for t in tokens if t.lstrip("-").isdigit()]
+    out.append(np.array(numeric, dtype=np.int64))
+    for name in (t for t in tokens if not t.lstrip("-").isdigit()):
+        if name.upper() not in sets:
+            raise MeshInputError(f"{source}: {what} names the unknown set {name!r}")
+        out.append(sets[name.upper()][1])
+    return np.concatenate(out).astype(np.int64)
+
+
+def read_inp(path: Path, source: str):
+    """The arrays of ``TetMesh.from_arrays`` (and label names) of the Abaqus input file
+    ``path``: (points, tets, region, faces, face labels, edges, edge labels, names)
+    with faces / edges as candidate rows for ``_mesh_cells``."""
+    from ._io import _non_tet_message
+
+    try:
+        text = path.read_text(errors="replace")
+    except OSError as e:
+        raise MeshFileError(f"{source}: cannot read the file ({e.strerror or e})") from None
+    sections, comments = _sections(text, source)
+    heads = {h for h, _, _ in sections}
+    for bad in ("PART", "INSTANCE", "ASSEMBLY", "INCLUDE"):
+        if bad in heads:
+            raise MeshInputError(
+                f"{source}: *{bad} is not supported: jtet reads flat input files (export "
+                "the mesh without parts and assemblies, or with its includes merged)"
+            )
+    node_blocks, elements = [], {"tet": [], "triangle": [], "line": []}
+    others: dict[str, int] = {}
+    sets: dict[str, tuple[str, np.ndarray, int]] = {}  # NAME -> (name, element ids, order)
+    surfaces: list[tuple[str, list[str]]] = []
+    order = 0
+    for head, params, data in sections:
+        if head == "NODE" and data:
+            node_blocks.append(data)
+        elif head == "ELEMENT" and data:
+            etype = params.get("TYPE", "").upper()
+            kind = (
+                "tet" if _TETS.match(etype) else "triangle" if _TRIANGLES.match(etype)
+                else "line" if _LINES.match(etype) else None
+            )  # fmt: skip
+            if kind is None:
+                if _OTHER_SOLIDS.match(etype):
+                    others[etype] = others.get(etype, 0) + len(data)
+                continue
+            width = {"tet": 5, "triangle": 4, "line": 3}[kind]
+            rows = _numbers(data, width, f"*ELEMENT, TYPE={etype}", source, np.int64)
+            elements[kind].append(rows)
+            if params.get("ELSET"):
+                name = params["ELSET"]
+                # an *ELEMENT set ranks after every *ELSET (10**9 + order)
+                prev = sets.get(name.upper(), (name, np.zeros(0, np.int64), 10**9 + order))
+                sets[name.upper()] = (name, np.concatenate([prev[1], rows[:, 0]]), prev[2])
+                order += 1
+        elif head == "ELSET" and params.get("ELSET"):
+            name = params["ELSET"]
+            ids = _set_ids(data, "GENERATE" in params, sets, f"*ELSET {name}", source)
+            prev = sets.get(name.upper(), (name, np.zeros(0, np.int64), order))
+            sets[name.upper()] = (name, np.concatenate([prev[1], ids]), prev[2])
+            order += 1
+        elif head == "SURFACE" and params.get("TYPE", "ELEMENT").upper() == "ELEMENT":
+            surfaces.append((params.get("NAME", f"SURFACE{len(surfaces) + 1}"), data))
+    if others:
+        raise MeshInputError(
+            _non_tet_message(
+                source, list(others), list(others.values()), any("10" in t for t in others)
+            )
+        )
+    if not node_blocks:
+        raise MeshInputError(f"{source}: the file has no *NODE section")
+    widths = {len(b[0].replace(",", " ").split()) for b in node_blocks}
+    if widths == {3}:
+        raise MeshInputError(f"{source}: the points are 2-D; jtet needs a 3-D tet mesh")
+    nodes = np.concatenate([_numbers(b, 4, "*NODE", source) for b in node_blocks])
+    node_ids = nodes[:, 0]
+    if not (node_ids == np.round(node_ids)).all():
+        raise MeshFileError(f"{source}: *NODE: ids that are not integers")
+    node_ids = node_ids.astype(np.int64)
+    order_ids = np.argsort(node_ids, kind="stable")
+    sorted_ids = node_ids[order_ids]
+    if len(sorted_ids) > 1 and (np.diff(sorted_ids) == 0).any():
+        dup = int(sorted_ids[np.flatnonzero(np.diff(sorted_ids) == 0)[0]])
+        raise MeshInputError(f"{source}: node {dup} is defined twice")
+
+    def index_of(ids: np.ndarray, what: str) -> np.ndarray:
+        at = np.minimum(np.searchsorted(sorted_ids, ids), len(sorted_ids) - 1)
+        bad = sorted_ids[at] != ids
+        if bad.any():
+            raise MeshInputError(
+                f"{source}: {what} names node {int(ids[bad][0])}, which no *NODE defines"
+            )
+        return order_ids[at]
+
+    tet_rows = np.concatenate(elements["tet"] or [np.zeros((0, 5), np.int64)])
+    if not len(tet_rows):
+        found = {k: sum(len(r) for r in v) for k, v in elements.items() if v}
+        only = ", ".join(f"{k} x {n}" for k, n in found.items()) or "no elements"
+        raise MeshInputError(f"{source}: the mesh has no tetrahedra (only {only})")
+    # tets in element-id order (jtet's files: element i + 1 is tet i, whatever the blocks)
+    tet_rows = tet_rows[np.argsort(tet_rows[:, 0], kind="stable")]
+    if len(tet_rows) > 1 and (np.diff(tet_rows[:, 0]) == 0).any():
+        dup = int(tet_rows[np.flatnonzero(np.diff(tet_rows[:, 0]) == 0)[0], 0])
+        raise MeshInputError(f"{source}: element {dup} is defined twice")
+    tets = index_of(tet_rows[:, 1:], "a C3D4 element")
+    region, names = _regions(tet_rows[:, 0], sets, comments, source)
+    faces, face_labels = _surfaces(tet_rows, tets, surfaces, sets, comments, names, source)
+    start = int(face_labels.max(initial=0))
+    extra_faces, extra_labels = _element_cells(
+        elements["triangle"], sets, index_of, names, 2, start
+    )
+    lines, line_labels = _element_cells(elements["line"], sets, index_of, names, 1, 0)
+    faces = np.concatenate([faces, extra_faces])
+    face_labels = np.concatenate([face_labels, extra_labels])
+    return nodes[:, 1:], tets, region, faces, face_labels, lines, line_labels, names
+
+
+def _members(element_ids: np.ndarray, set_ids: np.ndarray) -> np.ndarray:
+    """(k,) bool: which of ``element_ids`` the set holds."""
+    return np.isin(element_ids, set_ids)
+
+
+def _regions(tet_ids, sets, comments, source):
+    """Region label of each tet and the names of the labels (see the module)."""
+    region = np.zeros(len(tet_ids), np.int64)
+    names: dict = {}
+    labelled = [(int(label), name) for kind, label, name in comments if kind == "region"]
+    if labelled:
+        for label, name in labelled:
+            if name.upper() in sets:
+                region[_members(tet_ids, sets[name.upper()][1])] = label
+                if not re.fullmatch(r"REGION-?M?\d+", name):
+                    names[(3, label)] = name
+        return region, names
+    held = [
+        (rank, name, mask)
+        for name, ids, rank in sets.values()
+        if (mask := _members(tet_ids, ids)).any()
+    ]
+    if len(held) > 1:  # a set of every tet ("EALL") says nothing of regions
+        held = [h for h in held if not h[2].all()] or held[:1]
+    done = np.zeros(len(tet_ids), bool)
+    label = 0
+    for _, name, mask in sorted(held, key=lambda h: h[0]):
+        if (mask & ~done).any():  # a set whose tets all went to earlier sets is no region
+            label += 1
+            region[mask & ~done] = label
+            names[(3, label)] = name
+            done |= mask
+    return region, names
+
+
+def _surfaces(tet_rows, tets, surfaces, sets, comments, names, source):
+    """Faces (k, 3) and labels (k,) of the element-face surfaces."""
+    labels = {name.upper(): int(label) for kind, label, name in comments if kind == "surface"}
+    next_label = max([0, *labels.values()]) + 1
+    all_faces, all_labels = [np.zeros((0, 3), np.int64)], [np.zeros(0, np.int64)]
+    element_ids = tet_rows[:, 0]
+    order = np.argsort(element_ids, kind="stable")
+    for name, data in surfaces:
+        label = labels.get(name.upper())
+        if label is None:
+            label, next_label = next_label, next_label + 1
+        if not re.fullmatch(r"SURFACE-?M?\d+", name):
+            names[(2, label)] = name
+        for line in data:
+            parts = [p.strip() for p in line.split(",")]
+            if len(parts) < 2 or not re.fullmatch(r"[Ss][1-4]", parts[1]):
+                warnings.warn(f"{source}: *SURFACE {name}: line {line!r} skipped", stacklevel=4)
+                continue
+            ref, face = parts[0], int(parts[1][1]) - 1
+            if ref.lstrip("-").isdigit():
+                ids = np.array([int(ref)], np.int64)
+            elif ref.upper() in sets:
+                ids = sets[ref.upper()][1]
+            else:
+                raise MeshInputError(f"{source}: *SURFACE {name} names the unknown set {ref!r}")
+            at = np.minimum(np.searchsorted(element_ids[order], ids), len(order) - 1)
+            hit = element_ids[order][at] == ids
+            rows = tets[order[at[hit]]]
+            all_faces.append(rows[:, FACE_NODES[face]])
+            all_labels.append(np.full(int(hit.sum()), label, np.int64))
+    return np.concatenate(all_faces), np.concatenate(all_labels)
+
+
+def _element_cells(blocks, sets, index_of, names, dim, start):
+    """Triangle / line elements (k, 3 or 2) with labels from the first set holding them,
+    numbered from ``start`` + 1 (after the surfaces' labels)."""
+    width = dim + 1
+    if not blocks:
+        return np.zeros((0, width), np.int64), np.zeros(0, np.int64)
+    rows = np.concatenate(blocks)
+    cells = index_of(rows[:, 1:], "an element")
+    labels = np.zeros(len(rows), np.int64)
+    label = start
+    done = np.zeros(len(rows), bool)
+    for name, ids, _ in sorted(sets.values(), key=lambda s: s[2]):
+        mask = _members(rows[:, 0], ids) & ~done
+        if mask.any():
+            label += 1
+            labels[mask] = label
+            names[(dim, label)] = name
+            done |= mask
+    return cells, labels

@@ -1,0 +1,205 @@
+"""Abaqus / CalculiX input files (.inp): written and read back, the element-face
+surfaces checked against the Abaqus face table, files of Gmsh and meshio read, bad
+files refused. (experiments/calculix_inp.py runs CalculiX itself on jtet's files.)"""
+
+import re
+import warnings
+
+import meshio
+import numpy as np
+import pytest
+from helpers import delaunay_mesh
+
+import jtet
+from jtet._errors import MeshFileError, MeshInputError
+from jtet.cli import main
+
+# The Abaqus manual's C3D4 faces, by 1-based element node: S1 1-2-3, S2 1-4-2,
+# S3 2-4-3, S4 3-4-1 (typed here from the manual, not taken from jtet)
+ABAQUS_C3D4_FACES = {1: (1, 2, 3), 2: (1, 4, 2), 3: (2, 4, 3), 4: (3, 4, 1)}
+
+
+@pytest.fixture(scope="module")
+def labelled():
+    m = delaunay_mesh(120, seed=6, surface_points=80)
+    T = m.topology
+    faces = T.faces[T.boundary_face]
+    centre = m.points[faces].mean(axis=1)
+    labels = np.where(np.isclose(centre[:, 0], 1), 7, np.where(np.isclose(centre[:, 0], 0), 8, 9))
+    region = np.digitize(m.points[m.tets].mean(axis=1)[:, 2], [0.5]) + 1
+    return m.replace(
+        region=region,
+        protected_faces=faces,
+        protected_face_labels=labels,
+        label_names={(3, 1): "lower half", (2, 7): "load"},
+    )
+
+
+def _save(mesh, path, **kw):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return jtet.save(mesh, path, **kw)
+
+
+def test_round_trip(tmp_path, labelled):
+    path = tmp_path / "m.inp"
+    _save(labelled, path)
+    back = jtet.load(path)
+    # 16 significant digits (CalculiX refuses 17 with an exponent): within 2 ulp
+    np.testing.assert_allclose(back.points, labelled.points, rtol=0, atol=4e-16)
+    for name in ("tets", "region", "protected_faces", "protected_face_labels"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(labelled, name), err_msg=name)
+    # names become Abaqus names (letters, digits, underscores)
+    assert dict(back.label_names) == {(3, 1): "lower_half", (2, 7): "load"}
+    text = path.read_text()
+    assert "*ELEMENT, TYPE=C3D4, ELSET=lower_half" in text and "ELSET=REGION2" in text
+    assert "*SURFACE, NAME=load, TYPE=ELEMENT" in text and "*NSET, NSET=load_NODES" in text
+
+
+def test_surfaces_follow_the_abaqus_face_table(tmp_path, labelled):
+    """Each element-face set of a written surface names, through the manual's face
+    table, exactly the protected faces of that label, and every face number occurs."""
+    path = tmp_path / "m.inp"
+    _save(labelled, path)
+    text = path.read_text()
+    elements = {}
+    for block in re.findall(r"\*ELEMENT, TYPE=C3D4[^\n]*\n((?:\d[^\n]*\n)+)", text):
+        for line in block.splitlines():
+            e, *nodes = map(int, line.split(","))
+            elements[e] = nodes
+    sets = {
+        name: [int(v) for v in body.replace(",", " ").split()]
+        for name, body in re.findall(r"\*ELSET, ELSET=(\S+)\n((?:[\d, ]+\n)+)", text)
+    }
+    seen = set()
+    for label in (7, 8, 9):
+        name = "load" if label == 7 else f"SURFACE{label}"
+        body = re.search(rf"\*SURFACE, NAME={name}, TYPE=ELEMENT\n((?:\S+, S\d\n)+)", text)
+        found = set()
+        for line in body.group(1).splitlines():
+            elset, side = (p.strip() for p in line.split(","))
+            k = int(side[1])
+            seen.add(k)
+            for e in sets[elset]:
+                nodes = elements[e]
+                found.add(tuple(sorted(nodes[i - 1] - 1 for i in ABAQUS_C3D4_FACES[k])))
+        mine = labelled.protected_faces[labelled.protected_face_labels == label]
+        assert found == {tuple(sorted(f)) for f in mine.tolist()}
+    assert seen == {1, 2, 3, 4}
+
+
+def test_file_written_by_gmsh(tmp_path):
+    """Gmsh writes physical volumes and surfaces as element sets (*ELSET) beside its
+    entities' sets: the regions and the labelled surface match Gmsh's own .msh."""
+    gmsh = pytest.importorskip("gmsh")
+    from helpers import gmsh_model
+
+    with gmsh_model():
+        box = gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
+        ball = gmsh.model.occ.addSphere(0.5, 0.5, 0.5, 0.25)
+        gmsh.model.occ.fragment([(3, box)], [(3, ball)])
+        gmsh.model.occ.synchronize()
+        vols = sorted(t for _, t in gmsh.model.getEntities(3))
+        inner = min(vols, key=lambda v: gmsh.model.occ.getMass(3, v))
+        outer = max(vols, key=lambda v: gmsh.model.occ.getMass(3, v))
+        gmsh.model.addPhysicalGroup(3, [inner], 1, "ball")
+        gmsh.model.addPhysicalGroup(3, [outer], 2, "box")
+        walls = [t for _, t in gmsh.model.getBoundary([(3, outer)], oriented=False)]
+        gmsh.model.addPhysicalGroup(2, walls, 10, "walls")
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.25)
+        gmsh.model.mesh.generate(3)
+        gmsh.write(str(tmp_path / "g.inp"))
+        gmsh.write(str(tmp_path / "g.msh"))
+    inp, msh = jtet.load(tmp_path / "g.inp"), jtet.load(tmp_path / "g.msh")
+    np.testing.assert_array_equal(inp.tets, msh.tets)
+    assert {v: k for k, v in inp.label_names.items() if k[0] == 3} == {
+        "ball": (3, 1),
+        "box": (3, 2),
+    }
+    for name in ("ball", "box"):
+        label_inp = next(k[1] for k, v in inp.label_names.items() if v == name)
+        label_msh = next(k[1] for k, v in msh.label_names.items() if v == name)
+        assert inp.volumes[inp.region == label_inp].sum() == pytest.approx(
+            msh.volumes[msh.region == label_msh].sum(), rel=1e-12
+        )
+    assert {tuple(f) for f in inp.protected_faces.tolist()} == {
+        tuple(f) for f in msh.protected_faces.tolist()
+    }
+    assert set(inp.protected_face_labels.tolist()) == {1}
+    assert inp.label_names[(2, 1)] == "walls"
+
+
+def test_file_written_by_meshio(tmp_path, labelled):
+    m = meshio.Mesh(
+        labelled.points,
+        [("tetra", labelled.tets)],
+        cell_sets={
+            "low": [np.flatnonzero(labelled.region == 1)],
+            "high": [np.flatnonzero(labelled.region == 2)],
+        },
+    )
+    meshio.abaqus.write(tmp_path / "m.inp", m)
+    back = jtet.load(tmp_path / "m.inp")
+    np.testing.assert_array_equal(back.tets, labelled.tets)
+    low = next(k[1] for k, v in back.label_names.items() if v == "low")
+    np.testing.assert_array_equal(back.region == low, labelled.region == 1)
+
+
+def test_improve_cli(tmp_path, labelled):
+    src, out = tmp_path / "in.inp", tmp_path / "out.inp"
+    _save(labelled, src)
+    assert main(["improve", str(src), str(out), "-q", "--max-passes", "2", "--perturb", "0"]) == 0
+    back = jtet.load(out)
+    assert back.is_valid().ok
+    assert jtet.stats(back).min_dihedral >= jtet.stats(labelled).min_dihedral - 1e-9
+    assert (back.region != 0).all() and len(back.protected_faces)
+
+
+NODES = "*NODE\n1, 0, 0, 0\n2, 1, 0, 0\n3, 0, 1, 0\n4, 0, 0, 1\n5, 1, 1, 1\n"
+
+
+@pytest.mark.parametrize(
+    "text, error, match",
+    [
+        (NODES + "*ELEMENT, TYPE=C3D8\n1, 1, 2, 3, 4, 5, 1, 2, 3\n", MeshInputError, "C3D8 x 1"),
+        (NODES + "*ELEMENT, TYPE=C3D10\n1, 1, 2, 3, 4, 5, 1, 2, 3, 4, 5\n", MeshInputError,
+         "quadratic"),
+        ("*PART, NAME=P1\n" + NODES, MeshInputError, r"\*PART is not supported"),
+        (NODES + "*ELEMENT, TYPE=C3D4\n1, 1, 2, 3, 9\n", MeshInputError, "node 9, which no"),
+        (NODES + "*ELEMENT, TYPE=C3D4\n1, 1, 2, x, 4\n", MeshFileError, "not numbers"),
+        ("*NODE\n1, 0, 0\n2, 1, 0\n", MeshInputError, "2-D"),
+        (NODES + "1, 0, 0, 0\n*ELEMENT, TYPE=C3D4\n1, 1, 2, 3, 4\n", MeshInputError,
+         "node 1 is defined twice"),
+        (NODES + "*ELEMENT, TYPE=C3D4\n1, 1, 2, 3, 4\n*SURFACE, NAME=S\nNOPE, S1\n",
+         MeshInputError, "unknown set 'NOPE'"),
+        (NODES + "*ELEMENT, TYPE=CPS3\n1, 1, 2, 3\n", MeshInputError, "no tetrahedra"),
+        ("1, 0, 0, 0\n", MeshFileError, "data before any keyword"),
+        ("*HEADING\nonly a heading\n", MeshInputError, "no \\*NODE"),
+    ],
+)  # fmt: skip
+def test_bad_files_are_refused(tmp_path, text, error, match):
+    path = tmp_path / "bad.inp"
+    path.write_text(text)
+    with pytest.raises(error, match=match) as e:
+        jtet.load(path)
+    assert str(path) in str(e.value)
+
+
+def test_sets_by_range_and_by_name(tmp_path):
+    """``*ELSET, GENERATE`` ranges and sets made of other sets' names, and a set of
+    every tet (CalculiX's "Eall"), which is no region when there are others."""
+    text = (
+        NODES
+        + "*ELEMENT, TYPE=C3D4, ELSET=EALL\n1, 1, 2, 3, 4\n2, 2, 3, 4, 5\n"
+        + "*ELSET, ELSET=FIRST, GENERATE\n1, 1, 1\n*ELSET, ELSET=ALSO\nFIRST\n"
+        + "*ELSET, ELSET=SECOND\n2\n*SURFACE, NAME=TOP, TYPE=ELEMENT\nFIRST, S1\n"
+    )
+    path = tmp_path / "sets.inp"
+    path.write_text(text)
+    m = jtet.load(path)
+    assert m.region.tolist() == [1, 2]  # ALSO adds no tet: no region of its own
+    assert {k: v for k, v in m.label_names.items() if k[0] == 3} == {
+        (3, 1): "FIRST",
+        (3, 2): "SECOND",
+    }
+    assert m.protected_faces.tolist() == [[0, 1, 2]] and m.label_names[(2, 1)] == "TOP"
