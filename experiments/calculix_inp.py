@@ -91,10 +91,20 @@ def main() -> None:
                 total = (Path(tmp) / "deck.dat").read_text().strip().splitlines()[-1].split()
                 force = np.array(total, float) if not errors else np.full(3, np.nan)
                 rows.append(
-                    (name, mesh.n_tets, " ".join(sides), loaded, expected, force,
-                     len(errors), seconds)  # fmt: skip
+                    (
+                        name,
+                        mesh.n_tets,
+                        " ".join(sides),
+                        loaded,
+                        expected,
+                        force,
+                        len(errors),
+                        seconds,
+                    )  # fmt: skip
                 )
-    print("| mesh | tets | faces used | loaded | expected fx | ccx fx, fy, fz | ccx errors | ccx s |")
+    print(
+        "| mesh | tets | faces used | loaded | expected fx | ccx fx, fy, fz | ccx errors | ccx s |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for name, n, sides, loaded, expected, f, errors, s in rows:
         print(
