@@ -137,45 +137,44 @@ def _face_owners(mesh) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _sections(text: str, source: str):
-    """(keyword, {parameter: value}, data lines) of each keyword line of the file, and
-    the ``** jtet`` comments."""
-    comments = re.findall(r"^\*\* jtet (region|surface) (-?\d+) (\S+)[ \t]*\r?$", text, re.M)
+    """(keyword, {parameter: value}, data block) of each keyword line of the file, and
+    the ``** jtet`` comments. Regular expressions find the lines (C-level: a 1M-tet
+    file has millions), a data block is the text up to the next keyword."""
+    first = re.search(r"(?mi)^\*NODE", text)  # jtet writes its comments before the nodes
+    top = text if first is None else text[: first.start()]
+    comments = re.findall(r"(?m)^\*\* jtet (region|surface) (-?\d+) (\S+)[ \t]*\r?$", top)
+    body = re.sub(r"(?m)^(\*\*.*|[ \t\r]*)(\n|$)", "", text)  # comment and blank lines
+    keywords = list(re.finditer(r"(?m)^\*.*$", body))
+    lead = body[: keywords[0].start()] if keywords else body
+    if lead.strip():
+        raise MeshFileError(f"{source}: not a readable Abaqus input file (data before any keyword)")
     out = []
-    head, params, data = None, {}, []
-    for line in text.splitlines():
-        if line.startswith("**") or not line.strip():
-            continue
-        if line.startswith("*"):
-            if head is not None:
-                out.append((head, params, data))
-            parts = [p.strip() for p in line[1:].split(",")]
-            head = parts[0].upper()
-            params = {}
-            for p in parts[1:]:
-                key, _, value = p.partition("=")
-                params[key.strip().upper()] = value.strip()
-            data = []
-        elif head is not None:
-            data.append(line)
-        else:
-            raise MeshFileError(
-                f"{source}: not a readable Abaqus input file (data before any keyword)"
-            )
-    if head is not None:
-        out.append((head, params, data))
+    for k, m in enumerate(keywords):
+        parts = [p.strip() for p in m.group()[1:].split(",")]
+        params = {}
+        for p in parts[1:]:
+            key, _, value = p.partition("=")
+            params[key.strip().upper()] = value.strip()
+        stop = keywords[k + 1].start() if k + 1 < len(keywords) else len(body)
+        out.append((parts[0].upper(), params, body[m.end() + 1 : stop]))
     return out, comments
 
 
-def _numbers(lines: list[str], width: int, what: str, source: str, kind=np.float64):
-    """The data lines' numbers as a (k, width) array (commas or blanks between)."""
-    tokens = ",".join(lines).replace(",", " ").split()
+def _line_count(block: str) -> int:
+    return block.count("\n") + (1 if block and not block.endswith("\n") else 0)
+
+
+def _numbers(block: str, width: int, what: str, source: str, kind=np.float64):
+    """The data block's numbers as a (k, width) array (commas or blanks between)."""
+    tokens = block.replace(",", " ").split()
     try:
         values = np.array(tokens, dtype=np.float64)
     except ValueError:
         raise MeshFileError(f"{source}: {what}: data that are not numbers") from None
-    if len(values) % width or len(values) // width != len(lines):
+    lines = _line_count(block)
+    if len(values) % width or len(values) // width != lines:
         raise MeshFileError(
-            f"{source}: {what}: {len(values)} numbers on {len(lines)} lines, not {width} a line"
+            f"{source}: {what}: {len(values)} numbers on {lines} lines, not {width} a line"
         )
     values = values.reshape(-1, width)
     if kind is np.int64:
@@ -185,9 +184,9 @@ def _numbers(lines: list[str], width: int, what: str, source: str, kind=np.float
     return values
 
 
-def _set_ids(lines: list[str], generate: bool, sets: dict, what: str, source: str) -> np.ndarray:
-    """The ids of a set's data lines: ids, ``GENERATE`` triples, or names of sets."""
-    tokens = ",".join(lines).replace(",", " ").split()
+def _set_ids(block: str, generate: bool, sets: dict, what: str, source: str) -> np.ndarray:
+    """The ids of a set's data block: ids, ``GENERATE`` triples, or names of sets."""
+    tokens = block.replace(",", " ").split()
     if generate:
         try:
             triples = np.array(tokens, dtype=np.int64).reshape(-1, 3)
@@ -196,9 +195,12 @@ def _set_ids(lines: list[str], generate: bool, sets: dict, what: str, source: st
         if (triples[:, 2] <= 0).any() or (triples[:, 1] - triples[:, 0] > 10**9).any():
             raise MeshFileError(f"{source}: {what}: bad GENERATE range")
         return np.concatenate([np.arange(a, b + 1, s) for a, b, s in triples.tolist()] or [[]])
-    out = []
+    try:  # ids only: one C-level conversion
+        return np.array(tokens, dtype=np.int64)
+    except ValueError:
+        pass
     numeric = [t for t in tokens if t.lstrip("-").isdigit()]
-    out.append(np.array(numeric, dtype=np.int64))
+    out = [np.array(numeric, dtype=np.int64)]
     for name in (t for t in tokens if not t.lstrip("-").isdigit()):
         if name.upper() not in sets:
             raise MeshInputError(f"{source}: {what} names the unknown set {name!r}")
@@ -230,9 +232,9 @@ def read_inp(path: Path, source: str):
     surfaces: list[tuple[str, list[str]]] = []
     order = 0
     for head, params, data in sections:
-        if head == "NODE" and data:
+        if head == "NODE" and data.strip():
             node_blocks.append(data)
-        elif head == "ELEMENT" and data:
+        elif head == "ELEMENT" and data.strip():
             etype = params.get("TYPE", "").upper()
             kind = (
                 "tet" if _TETS.match(etype) else "triangle" if _TRIANGLES.match(etype)
@@ -240,7 +242,7 @@ def read_inp(path: Path, source: str):
             )  # fmt: skip
             if kind is None:
                 if _OTHER_SOLIDS.match(etype):
-                    others[etype] = others.get(etype, 0) + len(data)
+                    others[etype] = others.get(etype, 0) + _line_count(data)
                 continue
             width = {"tet": 5, "triangle": 4, "line": 3}[kind]
             rows = _numbers(data, width, f"*ELEMENT, TYPE={etype}", source, np.int64)
@@ -267,7 +269,7 @@ def read_inp(path: Path, source: str):
         )
     if not node_blocks:
         raise MeshInputError(f"{source}: the file has no *NODE section")
-    widths = {len(b[0].replace(",", " ").split()) for b in node_blocks}
+    widths = {len(b.split("\n", 1)[0].replace(",", " ").split()) for b in node_blocks}
     if widths == {3}:
         raise MeshInputError(f"{source}: the points are 2-D; jtet needs a 3-D tet mesh")
     nodes = np.concatenate([_numbers(b, 4, "*NODE", source) for b in node_blocks])
@@ -281,7 +283,11 @@ def read_inp(path: Path, source: str):
         dup = int(sorted_ids[np.flatnonzero(np.diff(sorted_ids) == 0)[0]])
         raise MeshInputError(f"{source}: node {dup} is defined twice")
 
+    numbered = sorted_ids[0] == 1 and sorted_ids[-1] == len(sorted_ids)  # 1..n: no search
+
     def index_of(ids: np.ndarray, what: str) -> np.ndarray:
+        if numbered and len(ids) and ids.min() >= 1 and ids.max() <= len(sorted_ids):
+            return order_ids[ids - 1]
         at = np.minimum(np.searchsorted(sorted_ids, ids), len(sorted_ids) - 1)
         bad = sorted_ids[at] != ids
         if bad.any():
@@ -361,7 +367,7 @@ def _surfaces(tet_rows, tets, surfaces, sets, comments, names, source):
             label, next_label = next_label, next_label + 1
         if not re.fullmatch(r"SURFACE-?M?\d+", name):
             names[(2, label)] = name
-        for line in data:
+        for line in data.splitlines():
             parts = [p.strip() for p in line.split(",")]
             if len(parts) < 2 or not re.fullmatch(r"[Ss][1-4]", parts[1]):
                 warnings.warn(f"{source}: *SURFACE {name}: line {line!r} skipped", stacklevel=4)
