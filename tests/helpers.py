@@ -108,6 +108,31 @@ def shifted(mesh: "jtet.TetMesh", offset: int = 70_000) -> "jtet.TetMesh":
     )
 
 
+def named_ball_in_box(*paths, save_all_entities=False, names=True):
+    """A ball (physical volume 1 "ball") in a box (2 "box"), the box's walls as physical
+    surface 10 "walls", meshed once and written to each of ``paths`` (.msh 2.2 / 4.1,
+    .inp, ...; the format from the extension)."""
+    with gmsh_model() as gmsh:
+        box = gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
+        ball = gmsh.model.occ.addSphere(0.5, 0.5, 0.5, 0.25)
+        gmsh.model.occ.fragment([(3, box)], [(3, ball)])
+        gmsh.model.occ.synchronize()
+        vols = sorted(t for _, t in gmsh.model.getEntities(3))
+        inner = min(vols, key=lambda v: gmsh.model.occ.getMass(3, v))
+        outer = max(vols, key=lambda v: gmsh.model.occ.getMass(3, v))
+        if not save_all_entities:
+            gmsh.model.addPhysicalGroup(3, [inner], 1, "ball" if names else "")
+            gmsh.model.addPhysicalGroup(3, [outer], 2, "box" if names else "")
+        walls = [t for _, t in gmsh.model.getBoundary([(3, outer)], oriented=False)]
+        walls = [t for t in walls if gmsh.model.occ.getMass(2, t) > 0.9]  # the six squares
+        gmsh.model.addPhysicalGroup(2, walls, 10, "walls" if names else "")
+        if save_all_entities:
+            gmsh.option.setNumber("Mesh.SaveAll", 1)
+        gmsh_mesh_and_write(gmsh, paths[0], 0.2)
+        for path in paths[1:]:
+            gmsh.write(str(path))
+
+
 def shared_mesh_path(name: str) -> Path:
     """Path of the reference mesh ``name`` in ``shared/meshes`` next to the checkout; the
     calling test is skipped when that directory is not there."""

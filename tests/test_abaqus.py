@@ -91,25 +91,9 @@ def test_surfaces_follow_the_abaqus_face_table(tmp_path, labelled):
 def test_file_written_by_gmsh(tmp_path):
     """Gmsh writes physical volumes and surfaces as element sets (*ELSET) beside its
     entities' sets: the regions and the labelled surface match Gmsh's own .msh."""
-    gmsh = pytest.importorskip("gmsh")
-    from helpers import gmsh_model
+    from helpers import named_ball_in_box
 
-    with gmsh_model():
-        box = gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
-        ball = gmsh.model.occ.addSphere(0.5, 0.5, 0.5, 0.25)
-        gmsh.model.occ.fragment([(3, box)], [(3, ball)])
-        gmsh.model.occ.synchronize()
-        vols = sorted(t for _, t in gmsh.model.getEntities(3))
-        inner = min(vols, key=lambda v: gmsh.model.occ.getMass(3, v))
-        outer = max(vols, key=lambda v: gmsh.model.occ.getMass(3, v))
-        gmsh.model.addPhysicalGroup(3, [inner], 1, "ball")
-        gmsh.model.addPhysicalGroup(3, [outer], 2, "box")
-        walls = [t for _, t in gmsh.model.getBoundary([(3, outer)], oriented=False)]
-        gmsh.model.addPhysicalGroup(2, walls, 10, "walls")
-        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.25)
-        gmsh.model.mesh.generate(3)
-        gmsh.write(str(tmp_path / "g.inp"))
-        gmsh.write(str(tmp_path / "g.msh"))
+    named_ball_in_box(tmp_path / "g.msh", tmp_path / "g.inp")
     inp, msh = jtet.load(tmp_path / "g.inp"), jtet.load(tmp_path / "g.msh")
     np.testing.assert_array_equal(inp.tets, msh.tets)
     assert {v: k for k, v in inp.label_names.items() if k[0] == 3} == {

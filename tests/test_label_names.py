@@ -5,34 +5,12 @@ import pickle
 
 import numpy as np
 import pytest
-from helpers import gmsh_mesh_and_write, gmsh_model
+from helpers import gmsh_model, named_ball_in_box
 
 import jtet
 from jtet.cli import main
 
 gmsh = pytest.importorskip("gmsh")
-
-
-def _named_ball_in_box(path, save_all_entities=False, names=True):
-    """A ball (physical volume 1 "ball") in a box (2 "box"), the box's walls as physical
-    surface 10 "walls"; a 2.2 or 4.1 .msh file at ``path``."""
-    with gmsh_model():
-        box = gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
-        ball = gmsh.model.occ.addSphere(0.5, 0.5, 0.5, 0.25)
-        gmsh.model.occ.fragment([(3, box)], [(3, ball)])
-        gmsh.model.occ.synchronize()
-        vols = sorted(t for _, t in gmsh.model.getEntities(3))
-        inner = min(vols, key=lambda v: gmsh.model.occ.getMass(3, v))
-        outer = max(vols, key=lambda v: gmsh.model.occ.getMass(3, v))
-        if not save_all_entities:
-            gmsh.model.addPhysicalGroup(3, [inner], 1, "ball" if names else "")
-            gmsh.model.addPhysicalGroup(3, [outer], 2, "box" if names else "")
-        walls = [t for _, t in gmsh.model.getBoundary([(3, outer)], oriented=False)]
-        walls = [t for t in walls if gmsh.model.occ.getMass(2, t) > 0.9]  # the six squares
-        gmsh.model.addPhysicalGroup(2, walls, 10, "walls" if names else "")
-        if save_all_entities:
-            gmsh.option.setNumber("Mesh.SaveAll", 1)
-        gmsh_mesh_and_write(gmsh, path, 0.2)
 
 
 def _gmsh_names(path):
@@ -46,7 +24,7 @@ NAMES = {(2, 10): "walls", (3, 1): "ball", (3, 2): "box"}
 
 def test_names_round_trip_through_improve_and_formats(tmp_path):
     src = tmp_path / "in.msh"
-    _named_ball_in_box(src)
+    named_ball_in_box(src)
     mesh = jtet.load(src)
     assert dict(mesh.label_names) == NAMES
     assert sorted(set(mesh.region.tolist())) == [1, 2]
@@ -69,14 +47,14 @@ def test_names_of_entity_tags_are_not_taken(tmp_path):
     # Mesh.SaveAll without physical volumes: the regions are the volume entities, which
     # the names of physical groups do not name; the surfaces' physical names stay
     src = tmp_path / "all.msh"
-    _named_ball_in_box(src, save_all_entities=True)
+    named_ball_in_box(src, save_all_entities=True)
     mesh = jtet.load(src)
     assert all(dim == 2 for dim, _ in mesh.label_names)
 
 
 def test_medit_and_tetgen_outputs_warn_that_names_are_dropped(tmp_path):
     src = tmp_path / "in.msh"
-    _named_ball_in_box(src)
+    named_ball_in_box(src)
     mesh = jtet.load(src)
     for name in ("o.mesh", "o.node"):
         with pytest.warns(UserWarning, match=r"3 label name\(s\)"):
@@ -85,7 +63,7 @@ def test_medit_and_tetgen_outputs_warn_that_names_are_dropped(tmp_path):
 
 def test_stats_by_region_shows_the_names(tmp_path, capsys):
     src = tmp_path / "in.msh"
-    _named_ball_in_box(src)
+    named_ball_in_box(src)
     assert main(["stats", str(src), "--by-region"]) == 0
     head = capsys.readouterr().out.splitlines()[1]
     assert "region 1 (ball)" in head and "region 2 (box)" in head
@@ -130,7 +108,7 @@ def test_damaged_vtk_names_are_ignored_with_a_warning(tmp_path):
 
 def test_cli_regions_by_name(tmp_path, capsys):
     src = tmp_path / "in.msh"
-    _named_ball_in_box(src)
+    named_ball_in_box(src)
     by_name, by_label = tmp_path / "a.vtu", tmp_path / "b.vtu"
     assert (
         main(["improve", str(src), str(by_name), "--regions", "ball", "--ops", "edge", "-q"]) == 0
@@ -160,7 +138,7 @@ def test_relabel_moves_regions_and_their_names(tmp_path, capsys):
     cannot hold as a physical volume) gets a label Gmsh itself then reads as a physical
     volume; regions merge, names follow their labels, unknown labels are refused."""
     path = tmp_path / "named.msh"
-    _named_ball_in_box(path)
+    named_ball_in_box(path)
     mesh = jtet.load(path)
     merged = mesh.relabel({1: 2})
     assert set(np.unique(merged.region).tolist()) == {2}
