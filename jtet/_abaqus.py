@@ -232,6 +232,16 @@ def read_inp(path: Path, source: str):
     surfaces: list[tuple[str, list[str]]] = []
     order = 0
     for head, params, data in sections:
+        if head in ("NODE", "ELEMENT", "ELSET", "NSET") and "INPUT" in params:
+            raise MeshInputError(
+                f"{source}: *{head} with INPUT= (data in another file) is not supported"
+            )
+        if head == "NODE" and params.get("SYSTEM", "R").upper() != "R":
+            # cylindrical / spherical coordinates would be read as x, y, z
+            raise MeshInputError(
+                f"{source}: *NODE, SYSTEM={params['SYSTEM']} is not supported (rectangular "
+                "coordinates only)"
+            )
         if head == "NODE" and data.strip():
             node_blocks.append(data)
         elif head == "ELEMENT" and data.strip():

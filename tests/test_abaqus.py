@@ -159,6 +159,8 @@ NODES = "*NODE\n1, 0, 0, 0\n2, 1, 0, 0\n3, 0, 1, 0\n4, 0, 0, 1\n5, 1, 1, 1\n"
         (NODES + "*ELEMENT, TYPE=CPS3\n1, 1, 2, 3\n", MeshInputError, "no tetrahedra"),
         ("1, 0, 0, 0\n", MeshFileError, "data before any keyword"),
         ("*HEADING\nonly a heading\n", MeshInputError, "no \\*NODE"),
+        ("*NODE, SYSTEM=C\n1, 1, 0, 0\n", MeshInputError, "SYSTEM=C is not supported"),
+        ("*NODE, INPUT=nodes.inp\n", MeshInputError, "INPUT= .* is not supported"),
     ],
 )  # fmt: skip
 def test_bad_files_are_refused(tmp_path, text, error, match):
