@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ._errors import MeshFileError, MeshInputError
+from ._io import format_rows
 
 # Abaqus numbers a C3D4's faces S1 (nodes 1 2 3), S2 (1 4 2), S3 (2 4 3), S4 (3 4 1);
 # by the local vertex each face leaves out (jtet's TET_FACES order): 3 -> S1, 2 -> S2,
@@ -57,18 +58,11 @@ def _set_name(name: str, taken: set) -> str:
     return out
 
 
-def _rows(table: np.ndarray, fmt: str) -> str:
-    """The rows of ``table`` formatted by ``fmt`` (one row), in one C-level operation."""
-    if not len(table):
-        return ""
-    return (fmt * len(table)) % tuple(table.ravel().tolist())
-
-
 def _id_lines(ids: np.ndarray) -> str:
     """1-based ids, 16 to a line (Abaqus reads at most 16 per data line)."""
     ids = np.asarray(ids, np.int64)
     full = len(ids) // 16 * 16
-    text = _rows(ids[:full].reshape(-1, 16), ", ".join(["%d"] * 16) + "\n")
+    text = format_rows(ids[:full].reshape(-1, 16), ", ".join(["%d"] * 16) + "\n")
     if full < len(ids):
         text += ", ".join(map(str, ids[full:].tolist())) + "\n"
     return text
@@ -99,11 +93,11 @@ def write_inp(mesh, path: Path) -> None:
     # 16 significant digits, as Gmsh writes them: CalculiX refuses a number of 17 digits
     # with an exponent ("1.3601257419226798e-06"), and 16 keep each coordinate to within
     # a relative 1e-16 (an ulp or two)
-    out.append(_rows(np.hstack([ids, mesh.points]), "%d, %.16g, %.16g, %.16g\n"))
+    out.append(format_rows(np.hstack([ids, mesh.points]), "%d, %.16g, %.16g, %.16g\n"))
     table = np.column_stack([np.arange(1, mesh.n_tets + 1), mesh.tets + 1])
     for r, name in region_sets.items():
         out.append(f"*ELEMENT, TYPE=C3D4, ELSET={name}\n")
-        out.append(_rows(table[mesh.region == r], "%d, %d, %d, %d, %d\n"))
+        out.append(format_rows(table[mesh.region == r], "%d, %d, %d, %d, %d\n"))
     if len(mesh.protected_faces):
         tet, opposite = _face_owners(mesh)
         side = _S_OF_OPPOSITE[opposite]
