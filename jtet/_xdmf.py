@@ -262,6 +262,12 @@ def _part(g: ET.Element, tag: str, domain: ET.Element) -> ET.Element | None:
     return None
 
 
+def _hdf_parts(text: str) -> tuple[str, str] | None:
+    """(file, /dataset) of an HDF data item's text ``FILE:/DATASET``, or None."""
+    at = text.find(":/")
+    return None if at < 0 else (text[:at], text[at + 1 :])
+
+
 def heavy_files(path: Path) -> list[Path]:
     """The files holding the heavy data of the XDMF file ``path`` (HDF5 and raw binary
     files its data items name), as paths; [] when it cannot be parsed."""
@@ -275,7 +281,7 @@ def heavy_files(path: Path) -> list[Path]:
         if fmt in ("HDF", "BINARY") and item.text:
             name = item.text.strip()
             if fmt == "HDF":
-                name = name[: name.find(":/")] if ":/" in name else name
+                name = (_hdf_parts(name) or (name, ""))[0]
             p = path.parent / name
             if p not in out:
                 out.append(p)
@@ -342,9 +348,10 @@ class _Data:
     def _hdf(self, text: str, what: str, dims: tuple) -> np.ndarray:
         import h5py
 
-        if ":/" not in text:
+        parts = _hdf_parts(text)
+        if parts is None:
             raise self.fail(f"{what}: HDF data item {text!r} is not FILE:/DATASET")
-        name, dataset = text[: text.find(":/")], text[text.find(":/") + 1 :]
+        name, dataset = parts
         path = self.base / name
         if path not in self.files:
             if not path.is_file():
@@ -449,6 +456,8 @@ def _grid_cells(g: ET.Element, data: _Data, what: str, domain: ET.Element):
         raise data.fail(f"{what} has no Topology")
     name = (topo.get("TopologyType") or topo.get("Type") or "").lower()
     flat = data.read(topo.find("DataItem"), f"{what} topology")
+    if flat.dtype.kind == "f" and not (np.isfinite(flat).all() and (flat == np.round(flat)).all()):
+        raise MeshInputError(f"{data.source}: {what} holds node ids that are not integers")
     if name == "mixed":
         return _mixed_cells(flat, what, data.fail)
     cell_type = _TOPOLOGIES.get(name)
@@ -465,9 +474,6 @@ def _grid_cells(g: ET.Element, data: _Data, what: str, domain: ET.Element):
     if flat.size % nodes:
         raise data.fail(f"{what}: {flat.size} node ids are no whole number of {name} cells")
     cells = np.asarray(flat).reshape(-1, nodes)
-    if cells.dtype.kind == "f":
-        if not (np.isfinite(cells).all() and (cells == np.round(cells)).all()):
-            raise MeshInputError(f"{data.source}: {what} holds node ids that are not integers")
     return [(cell_type, cells.astype(np.int64), np.arange(len(cells)))]
 
 

@@ -267,6 +267,8 @@ CUBE = " ".join(f"{x} {y} {z}" for z in (0, 1) for y in (0, 1) for x in (0, 1))
         (_grid("Tetrahedron", 4, "0 1 2 4", CUBE).replace('Format="XML">0 0 0',
          'Precision="z" Format="XML">0 0 0'), MeshFileError, "bad Precision 'z'"),
         (_grid("Polyline", "x", "0 1", CUBE), MeshFileError, "bad NodesPerElement 'x'"),
+        (_grid("Mixed", 4, "6 0 1 2 4.5", CUBE).replace('NumberType="Int" ', ""),
+         MeshInputError, "node ids that are not integers"),
         (_grid("Tetrahedron", 4, "0 1 2 4", CUBE).replace(
             'Format="XML">0 1 2 4', 'Reference="XML">/Xdmf/Domain/DataItem'), MeshFileError,
          "not supported"),
