@@ -193,9 +193,10 @@ def _set_ids(block: str, generate: bool, sets: dict, what: str, source: str) -> 
         return np.array(tokens, dtype=np.int64)
     except ValueError:
         pass
-    numeric = [t for t in tokens if t.lstrip("-").isdigit()]
-    out = [np.array(numeric, dtype=np.int64)]
-    for name in (t for t in tokens if not t.lstrip("-").isdigit()):
+    tokens = np.array(tokens)
+    numeric = np.char.isdigit(np.char.lstrip(tokens, "-"))
+    out = [tokens[numeric].astype(np.int64)]
+    for name in tokens[~numeric].tolist():
         if name.upper() not in sets:
             raise MeshInputError(f"{source}: {what} names the unknown set {name!r}")
         out.append(sets[name.upper()][1])
@@ -323,11 +324,6 @@ def read_inp(path: Path, source: str):
     return nodes[:, 1:], tets, region, faces, face_labels, lines, line_labels, names
 
 
-def _members(element_ids: np.ndarray, set_ids: np.ndarray) -> np.ndarray:
-    """(k,) bool: which of ``element_ids`` the set holds."""
-    return np.isin(element_ids, set_ids)
-
-
 def _regions(tet_ids, sets, comments, source):
     """Region label of each tet and the names of the labels (see the module)."""
     region = np.zeros(len(tet_ids), np.int64)
@@ -336,14 +332,14 @@ def _regions(tet_ids, sets, comments, source):
     if labelled:
         for label, name in labelled:
             if name.upper() in sets:
-                region[_members(tet_ids, sets[name.upper()][1])] = label
+                region[np.isin(tet_ids, sets[name.upper()][1])] = label
                 if not re.fullmatch(r"REGION-?M?\d+", name):
                     names[(3, label)] = name
         return region, names
     held = [
         (rank, name, mask)
         for name, ids, rank in sets.values()
-        if (mask := _members(tet_ids, ids)).any()
+        if (mask := np.isin(tet_ids, ids)).any()
     ]
     if len(held) > 1:  # a set of every tet ("EALL") says nothing of regions
         held = [h for h in held if not h[2].all()] or held[:1]
@@ -358,36 +354,50 @@ def _regions(tet_ids, sets, comments, source):
     return region, names
 
 
+# a surface's data line: an element id or an element set, then the face S1-S4
+_SURFACE_LINE = re.compile(r"(?m)^[ \t]*([^,\s]+)[ \t]*,[ \t]*[Ss]([1-4])[ \t]*(?:,.*)?\r?$")
+
+
 def _surfaces(tet_rows, tets, surfaces, sets, comments, names, source):
-    """Faces (k, 3) and labels (k,) of the element-face surfaces."""
+    """Faces (k, 3) and labels (k,) of the element-face surfaces. ``tet_rows`` are in
+    element-id order. A surface may list every face's element (CalculiX's do): its lines
+    are matched by one regular expression and looked up together."""
     labels = {name.upper(): int(label) for kind, label, name in comments if kind == "surface"}
     next_label = max([0, *labels.values()]) + 1
     all_faces, all_labels = [np.zeros((0, 3), np.int64)], [np.zeros(0, np.int64)]
     element_ids = tet_rows[:, 0]
-    order = np.argsort(element_ids, kind="stable")
     for name, data in surfaces:
         label = labels.get(name.upper())
         if label is None:
             label, next_label = next_label, next_label + 1
         if not re.fullmatch(r"SURFACE-?M?\d+", name):
             names[(2, label)] = name
-        for line in data.splitlines():
-            parts = [p.strip() for p in line.split(",")]
-            if len(parts) < 2 or not re.fullmatch(r"[Ss][1-4]", parts[1]):
-                warnings.warn(f"{source}: *SURFACE {name}: line {line!r} skipped", stacklevel=4)
-                continue
-            ref, face = parts[0], int(parts[1][1]) - 1
-            if ref.lstrip("-").isdigit():
-                ids = np.array([int(ref)], np.int64)
-            elif ref.upper() in sets:
-                ids = sets[ref.upper()][1]
-            else:
+        pairs = _SURFACE_LINE.findall(data)
+        skipped = _line_count(data) - len(pairs)
+        if skipped:
+            warnings.warn(
+                f"{source}: *SURFACE {name}: {skipped} line(s) that are no 'element or set, "
+                "S1-S4' skipped",
+                stacklevel=4,
+            )
+        if not pairs:
+            continue
+        refs, sides = np.array(pairs).T
+        numeric = np.char.isdigit(np.char.lstrip(refs, "-"))
+        ids = [refs[numeric].astype(np.int64)]
+        faces = [sides[numeric].astype(np.int64) - 1]
+        for ref, side in zip(refs[~numeric].tolist(), sides[~numeric].tolist(), strict=True):
+            if ref.upper() not in sets:
                 raise MeshInputError(f"{source}: *SURFACE {name} names the unknown set {ref!r}")
-            at = np.minimum(np.searchsorted(element_ids[order], ids), len(order) - 1)
-            hit = element_ids[order][at] == ids
-            rows = tets[order[at[hit]]]
-            all_faces.append(rows[:, FACE_NODES[face]])
-            all_labels.append(np.full(int(hit.sum()), label, np.int64))
+            members = sets[ref.upper()][1]
+            ids.append(members)
+            faces.append(np.full(len(members), int(side) - 1, np.int64))
+        ids, faces = np.concatenate(ids), np.concatenate(faces)
+        at = np.minimum(np.searchsorted(element_ids, ids), len(element_ids) - 1)
+        hit = element_ids[at] == ids
+        rows = tets[at[hit]]
+        all_faces.append(np.take_along_axis(rows, FACE_NODES[faces[hit]], axis=1))
+        all_labels.append(np.full(int(hit.sum()), label, np.int64))
     return np.concatenate(all_faces), np.concatenate(all_labels)
 
 
@@ -403,7 +413,7 @@ def _element_cells(blocks, sets, index_of, names, dim, start):
     label = start
     done = np.zeros(len(rows), bool)
     for name, ids, _ in sorted(sets.values(), key=lambda s: s[2]):
-        mask = _members(rows[:, 0], ids) & ~done
+        mask = np.isin(rows[:, 0], ids) & ~done
         if mask.any():
             label += 1
             labels[mask] = label

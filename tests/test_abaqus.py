@@ -179,13 +179,22 @@ def test_sets_by_range_and_by_name(tmp_path):
         + "*ELEMENT, TYPE=C3D4, ELSET=EALL\n1, 1, 2, 3, 4\n2, 2, 3, 4, 5\n"
         + "*ELSET, ELSET=FIRST, GENERATE\n1, 1, 1\n*ELSET, ELSET=ALSO\nFIRST\n"
         + "*ELSET, ELSET=SECOND\n2\n*SURFACE, NAME=TOP, TYPE=ELEMENT\nFIRST, S1\n"
+        # a surface listing its elements one by one (CalculiX writes them so), and a
+        # line that is neither: S3 of element 2 (nodes 2 3 4 5) is nodes 2-4-3 -> 3 5 4
+        + "*SURFACE, NAME=SIDE, TYPE=ELEMENT\n2, S3\noops\n"
     )
     path = tmp_path / "sets.inp"
     path.write_text(text)
-    m = jtet.load(path)
+    with pytest.warns(UserWarning, match=r"SIDE: 1 line\(s\) .* skipped"):
+        m = jtet.load(path)
+    side = next(k[1] for k, v in m.label_names.items() if v == "SIDE")
+    assert np.sort(m.protected_faces[m.protected_face_labels == side], axis=1).tolist() == [
+        [2, 3, 4]
+    ]
     assert m.region.tolist() == [1, 2]  # ALSO adds no tet: no region of its own
     assert {k: v for k, v in m.label_names.items() if k[0] == 3} == {
         (3, 1): "FIRST",
         (3, 2): "SECOND",
     }
-    assert m.protected_faces.tolist() == [[0, 1, 2]] and m.label_names[(2, 1)] == "TOP"
+    top = m.protected_faces[m.protected_face_labels == 1]
+    assert top.tolist() == [[0, 1, 2]] and m.label_names[(2, 1)] == "TOP"
