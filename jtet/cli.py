@@ -261,6 +261,12 @@ def _run_improve(mesh, out: Path, args, source: str) -> int:
     return code
 
 
+def _same_path(a: Path, b: Path) -> bool:
+    """Whether ``a`` and ``b`` name one file: one resolved path, or one existing file
+    (a hard link)."""
+    return a.resolve() == b.resolve() or _same_file(a, b)
+
+
 def _input_written(src: Path, out: Path) -> Path | None:
     """The file of the input ``src`` that saving to ``out`` would replace, or None: the
     input itself, or one of its companions (a TetGen .node / .ele / .face, the HDF5 file
@@ -268,33 +274,25 @@ def _input_written(src: Path, out: Path) -> Path | None:
     from ._io import read_files, written_files
 
     reads = read_files(src)
-    for w in written_files(out):
-        for r in reads:
-            if w.resolve() == r.resolve() or _same_file(w, r):
-                return w
-    return None
-
-
-def _overwrite_refusal(src: Path, out: Path, overwrite: bool) -> str | None:
-    """Why writing ``out`` is refused (it would replace a file of the input ``src``
-    without ``--overwrite``), or None."""
-    hit = None if overwrite else _input_written(src, out)
-    if hit is None:
-        return None
-    if src.resolve() == out.resolve() or _same_file(src, out):
-        return f"{out} is the input file; pass --overwrite to replace it"
-    if src.resolve() == hit.resolve() or _same_file(src, hit):
-        return f"writing {out} also writes {hit}, the input file; pass --overwrite to replace it"
-    return (
-        f"writing {out} also writes {hit}, which the input {src} reads; pass --overwrite "
-        "to replace it"
-    )
+    return next((w for w in written_files(out) for r in reads if _same_path(w, r)), None)
 
 
 def _refuse_input_as_output(src: Path, out: Path, overwrite: bool) -> None:
-    refusal = _overwrite_refusal(src, out, overwrite)
-    if refusal:
-        raise JtetError(refusal)
+    """Refuse (``JtetError``) to write ``out`` where it would replace a file of the input
+    ``src``, unless ``overwrite``."""
+    hit = None if overwrite else _input_written(src, out)
+    if hit is None:
+        return
+    if _same_path(src, out):
+        raise JtetError(f"{out} is the input file; pass --overwrite to replace it")
+    if _same_path(src, hit):
+        raise JtetError(
+            f"writing {out} also writes {hit}, the input file; pass --overwrite to replace it"
+        )
+    raise JtetError(
+        f"writing {out} also writes {hit}, which the input {src} reads; pass --overwrite "
+        "to replace it"
+    )
 
 
 def cmd_improve(args) -> int:
