@@ -155,9 +155,9 @@ def run(cfg: DictConfig, out: Path, choices: dict) -> dict:
         write_report(result, out / "report.json")
         write_text_atomic(out / "history.csv", history_csv(result.history))
         if cfg.plot:
-            from jtet._report import plot_histograms
+            from jtet._report import plot_run
 
-            plot_histograms(result, out / "histograms.png")
+            plot_run(result, out / "histograms.png")
     except Exception as e:
         # a failed run is a row too (status "error"), so one bad configuration does not
         # sink a whole sweep; fail_fast=true re-raises instead

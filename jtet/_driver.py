@@ -297,6 +297,15 @@ class ImproveResult:
         table = format_table(*stats, time_s=self.seconds, labels=labels)
         return "\n".join([table, *(f"note: {n}" for n in self.notes)])
 
+    def plot(self, path, measure: str | None = None) -> None:
+        """Write the run's figure to ``path`` (PNG / PDF / SVG by its suffix; what
+        ``jtet improve --plot`` draws): before / after histograms of dihedral angles and
+        of ``measure`` (default: the optimized quality), and the smallest and largest
+        dihedral angle after each operation against the seconds spent."""
+        from ._report import plot_run
+
+        plot_run(self, path, measure)
+
     def as_dict(self) -> dict:
         return {
             "status": self.status,

@@ -49,11 +49,95 @@ def write_report(result, path: str | os.PathLike) -> None:
     write_text_atomic(path, json.dumps(result.as_dict(), indent=1))
 
 
-def plot_histograms(result, path: str | os.PathLike, measure: str | None = None) -> None:
-    """Before/after histograms of dihedral angles and of the optimized quality (PNG/PDF/SVG)
-    of an ``ImproveResult``."""
+def plot_run(result, path: str | os.PathLike, measure: str | None = None) -> None:
+    """The figure of an ``ImproveResult`` (PNG/PDF/SVG, written atomically): before /
+    after histograms of dihedral angles and of the optimized quality and, below them,
+    the run (``history_curve``): the smallest and largest dihedral angle after each
+    operation against the seconds spent in operations, as Stellar's papers plot
+    quality against time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     measure = measure or (result.options.quality if result.options else "min_sine")
-    plot_stats([result.stats_before, result.stats_after], path, ("before", "after"), measure)
+    stats, labels = [result.stats_before, result.stats_after], ["before", "after"]
+    _check_measure(stats, labels, measure)
+    # a regions / protected-tets run's history is about the tets it could change
+    before = result.selected_stats[0] if result.selected_stats else result.stats_before
+    curve = history_curve(result.history, before)
+    if curve is None:  # no operation ran (a goal held from the start, max_passes 0)
+        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+    else:
+        fig = plt.figure(figsize=(11, 7.5), constrained_layout=True)
+        grid = fig.add_gridspec(2, 2, height_ratios=(1, 0.9))
+        ax1, ax2 = fig.add_subplot(grid[0, 0]), fig.add_subplot(grid[0, 1])
+        _draw_run(fig.add_subplot(grid[1, :]), curve)
+    _draw_histograms(ax1, ax2, stats, labels, measure)
+    _save_figure(fig, path)
+
+
+#: how each operation's points are drawn in the run panel
+_OP_MARKERS = {"edge": "o", "face": "s", "smooth": "^", "perturb": "D"}
+
+
+def history_curve(history: list[dict], before) -> dict[str, np.ndarray] | None:
+    """The run of an ``ImproveResult`` as curves, one point per history entry plus the
+    start: ``seconds`` (m+1,) cumulative seconds spent in operations (0 at the start),
+    ``min_dihedral`` and ``max_dihedral`` (m+1,) degrees of the mesh after each entry
+    (the input's first, from ``before``: its ``MeshStats``), ``op`` (m,) the entry's
+    operation, ``kept`` (m,) whether it changed the mesh (a perturbation attempt that
+    kept nothing, a pass without a success: False). None for an empty history.
+    """
+    if not history:
+        return None
+    seconds = np.array([float(e.get("seconds", 0.0)) for e in history])
+    return {
+        "seconds": np.concatenate([[0.0], np.cumsum(seconds)]),
+        "min_dihedral": np.array(
+            [before.min_dihedral, *(e["min_dihedral"] for e in history)], np.float64
+        ),
+        "max_dihedral": np.array(
+            [before.max_dihedral, *(e["max_dihedral"] for e in history)], np.float64
+        ),
+        "op": np.array([str(e.get("op", "")) for e in history]),
+        "kept": np.array([int(e.get("successes", 0)) > 0 for e in history]),
+    }
+
+
+def _draw_run(ax, curve: dict[str, np.ndarray]) -> None:
+    """The run panel: smallest dihedral angle (left axis) and largest (right axis) after
+    each operation; filled markers changed the mesh, hollow ones did not."""
+    t = curve["seconds"]
+    right = ax.twinx()
+    for axis, key, colour in ((ax, "min_dihedral", "tab:blue"), (right, "max_dihedral", "tab:red")):
+        axis.step(t, curve[key], where="post", color=colour, lw=1.2)
+        for op, marker in _OP_MARKERS.items():
+            for kept in (True, False):
+                at = np.flatnonzero((curve["op"] == op) & (curve["kept"] == kept)) + 1
+                if len(at):
+                    axis.scatter(
+                        t[at],
+                        curve[key][at],
+                        marker=marker,
+                        s=22,
+                        color=colour,
+                        facecolors=colour if kept else "none",
+                        zorder=3,
+                        label=op if (kept and key == "min_dihedral") else None,
+                    )
+        axis.set_ylabel(f"{key.replace('_', ' ')} (degrees)", color=colour)
+        axis.tick_params(axis="y", colors=colour)
+    perturb = np.flatnonzero(curve["op"] == "perturb")
+    if len(perturb):  # the climb converged here; the perturbation rounds follow
+        ax.axvline(t[perturb[0]], color="grey", ls=":", lw=1)
+    ax.set_xlabel("seconds in operations (cumulative)")
+    ax.set_title(
+        f"the run: smallest {curve['min_dihedral'][0]:.1f} -> {curve['min_dihedral'][-1]:.1f}, "
+        f"largest {curve['max_dihedral'][0]:.1f} -> {curve['max_dihedral'][-1]:.1f} degrees "
+        "(hollow: no change; dotted: perturbation rounds)"
+    )
+    ax.legend(loc="center right", fontsize="small")
 
 
 # before / after keep the colours of the improve plot; further meshes take matplotlib's
@@ -81,11 +165,21 @@ def plot_stats(
         raise ValueError("plot_stats needs at least one MeshStats")
     labels = list(labels or [])[: len(stats)]
     labels += [f"mesh {i + 1}" for i in range(len(labels), len(stats))]
+    _check_measure(stats, labels, measure)
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+    _draw_histograms(ax1, ax2, stats, labels, measure)
+    _save_figure(fig, path)
+
+
+def _check_measure(stats, labels, measure: str) -> None:
     missing = [lb for s, lb in zip(stats, labels, strict=True) if measure not in s.quality_hist]
     if missing:
         raise ValueError(f"the statistics of {', '.join(missing)} hold no {measure!r}")
+
+
+def _draw_histograms(ax1, ax2, stats, labels, measure: str) -> None:
+    """Dihedral angles in ``ax1``, ``measure`` in ``ax2``: one outline per mesh."""
     colours = [_COLOURS[i % len(_COLOURS)] for i in range(len(stats))]
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
     edges = np.linspace(0.0, 180.0, len(stats[0].dihedral_hist) + 1)
     for s, label, colour in zip(stats, labels, colours, strict=True):
         legend = f"{label}: {s.min_dihedral:.1f}-{s.max_dihedral:.1f}"
@@ -119,6 +213,12 @@ def plot_stats(
         else f"{measure} (worst)"
     )
     ax2.legend()
+
+
+def _save_figure(fig, path: str | os.PathLike) -> None:
+    """Write ``fig`` to ``path`` atomically and close it (also when writing fails)."""
+    import matplotlib.pyplot as plt
+
     path = Path(path)
     tmp = None
     try:

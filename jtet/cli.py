@@ -243,7 +243,7 @@ def _improve_and_save(mesh, out: Path, args, prefix: str = ""):
 
 
 def _run_improve(mesh, out: Path, args, source: str) -> int:
-    from ._report import plot_histograms, write_report
+    from ._report import plot_run, write_report
 
     result, code = _improve_and_save(mesh, out, args)
     if code == 3:
@@ -251,7 +251,7 @@ def _run_improve(mesh, out: Path, args, source: str) -> int:
     if args.report:
         write_report(result, args.report)
     if args.plot:
-        plot_histograms(result, args.plot)
+        plot_run(result, args.plot)
     if not args.quiet:
         print(f"jtet: {source} -> {out}  ({result.status}, {result.seconds:.1f} s)")
         print(result.summary())
@@ -371,7 +371,7 @@ def _improve_batch(args) -> int:
     as DIR/<input name> (``--out-ext``: another format). An input that cannot be read
     or written is reported and skipped; Ctrl-C stops the batch after writing the
     current file's best mesh. Exit code: the worst of the files' (130 > 3 > 2 > 0)."""
-    from ._report import plot_histograms, write_text_atomic
+    from ._report import plot_run, write_text_atomic
     from ._stats import text_table
 
     pairs = _batch_outputs(args)
@@ -407,7 +407,7 @@ def _improve_batch(args) -> int:
                         **result.as_dict()})  # fmt: skip
         plot = _batch_plot(args.plot, out) if args.plot else None
         if plot is not None:
-            plot_histograms(result, plot)
+            plot_run(result, plot)
         if not args.quiet:
             drawn = f"; {plot}" if plot is not None else ""
             print(
@@ -750,8 +750,8 @@ def build_parser() -> argparse.ArgumentParser:
     pi.add_argument(
         "--plot",
         metavar="H.png",
-        help="write before/after histograms (with --out-dir: one figure per file, "
-        "H_<output name>.png)",
+        help="write a figure: before/after histograms and the angles after each "
+        "operation against time (with --out-dir: one figure per file, H_<output name>.png)",
     )
     _add_relabel(pi)
     pi.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")

@@ -292,7 +292,7 @@ def test_interrupted_plot_leaves_no_temporary_file(tmp_path, monkeypatch, mesh):
 
     monkeypatch.setattr(_report.os, "replace", interrupt)
     with pytest.raises(KeyboardInterrupt):
-        _report.plot_histograms(result, tmp_path / "h.png")
+        _report.plot_run(result, tmp_path / "h.png")
     assert list(tmp_path.iterdir()) == []
 
 

@@ -227,3 +227,40 @@ def test_cli_stats_by_region(tmp_path, capsys):
     head = capsys.readouterr().out.splitlines()[2]
     # (the same name twice: the paths as given are the labels)
     assert head.count(f"{path}: region 1") == 2 and head.count(": region 2") == 2
+
+
+def test_history_curve_follows_the_run(tmp_path):
+    """The run panel's points are the history's: cumulative seconds (NumPy's cumsum),
+    the input's angles first and the output's last (the history tracks the measures the
+    statistics recompute: equal to rounding)."""
+    from jtet._report import history_curve
+
+    mesh = delaunay_mesh(120, seed=3)
+    result = jtet.improve(mesh, max_passes=3, perturb=1)
+    curve = history_curve(result.history, result.stats_before)
+    n = len(result.history)
+    assert n > 0 and all(len(curve[k]) == n + 1 for k in ("seconds", "min_dihedral"))
+    np.testing.assert_allclose(
+        curve["seconds"][1:], np.cumsum([e["seconds"] for e in result.history])
+    )
+    assert curve["min_dihedral"][0] == result.stats_before.min_dihedral
+    assert curve["max_dihedral"][0] == result.stats_before.max_dihedral
+    assert curve["min_dihedral"][-1] == pytest.approx(result.stats_after.min_dihedral, abs=1e-9)
+    assert curve["max_dihedral"][-1] == pytest.approx(result.stats_after.max_dihedral, abs=1e-9)
+    assert list(curve["op"]) == [e["op"] for e in result.history]
+    assert list(curve["kept"]) == [e["successes"] > 0 for e in result.history]
+    result.plot(tmp_path / "run.png")
+    assert (tmp_path / "run.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_figure_of_a_run_without_operations(tmp_path):
+    """A goal that holds from the start runs no operation: the figure has the
+    histograms alone."""
+    from jtet._report import history_curve, plot_run
+
+    result = jtet.improve(grid_mesh(2), goal_min_dihedral=1.0)
+    assert result.status == "goal reached" and result.history == []
+    assert history_curve(result.history, result.stats_before) is None
+    plot_run(result, tmp_path / "run.svg")
+    assert b"<svg" in (tmp_path / "run.svg").read_bytes()[:400]
+    assert [p.name for p in tmp_path.iterdir()] == ["run.svg"]
