@@ -32,7 +32,7 @@ import numpy as np
 
 import jtet
 
-SHAPES = ("cube", "sphere", "torus", "holeplate", "box_with_hole")
+SHAPES = ("cube", "sphere", "torus", "holeplate", "box_with_hole", "bracket")
 
 
 # ---------------------------------------------------------------------------------------
@@ -76,9 +76,40 @@ def _gmsh_add_shape(shape: str) -> list[tuple[int, int]]:
         box = occ.addBox(0, 0, 0, 2, 1, 1)
         ball = occ.addSphere(0.7, 0.5, 0.5, 0.3)
         out, _ = occ.cut([(3, box)], [(3, ball)])
+    elif shape == "bracket":  # a CAD-like part: _bracket
+        out = _bracket()
     else:
         raise ValueError(f"unknown shape {shape!r}; choose from {list(SHAPES)}")
     occ.synchronize()
+    return out
+
+
+def _bracket() -> list[tuple[int, int]]:
+    """An L-bracket, the kind of part a CAD export gives: a 2 x 1 x 0.2 base and a
+    0.25 x 1 x 1 wall, their inner corner filleted (radius 0.15: curved faces meeting
+    flat ones tangentially), two holes through the base (radii 0.15, 0.1) and one
+    through the wall (radius 0.2)."""
+    import gmsh
+
+    occ = gmsh.model.occ
+    fused, _ = occ.fuse(
+        [(3, occ.addBox(0, 0, 0, 2, 1, 0.2))], [(3, occ.addBox(0, 0, 0.2, 0.25, 1, 1))]
+    )
+    occ.synchronize()
+
+    def inner_corner(tag: int) -> bool:  # the edge along y at x = 0.25, z = 0.2
+        x0, _, z0, x1, _, z1 = gmsh.model.getBoundingBox(1, tag)
+        off = max(abs(x0 - 0.25), abs(x1 - 0.25), abs(z0 - 0.2), abs(z1 - 0.2))
+        return off < 1e-6  # OCC pads bounding boxes by ~1e-7
+
+    corner = [t for _, t in gmsh.model.getEntities(1) if inner_corner(t)]
+    filleted = occ.fillet([fused[0][1]], corner, [0.15])
+    holes = [
+        (3, occ.addCylinder(1.0, 0.5, -0.1, 0, 0, 0.5, 0.15)),
+        (3, occ.addCylinder(1.6, 0.5, -0.1, 0, 0, 0.5, 0.1)),
+        (3, occ.addCylinder(-0.1, 0.5, 0.8, 0.5, 0, 0, 0.2)),
+    ]
+    out, _ = occ.cut(filleted, holes)
     return out
 
 

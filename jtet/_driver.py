@@ -295,7 +295,8 @@ class ImproveResult:
             stats += tuple(self.selected_stats)
             labels += (f"before ({which})", f"after ({which})")
         table = format_table(*stats, time_s=self.seconds, labels=labels)
-        return "\n".join([table, *(f"note: {n}" for n in self.notes)])
+        phases = _phases(self.history)
+        return "\n".join([table, *phases, *(f"note: {n}" for n in self.notes)])
 
     def plot(self, path, measure: str | None = None) -> None:
         """Write the run's figure to ``path`` (PNG / PDF / SVG by its suffix; what
@@ -324,6 +325,32 @@ class ImproveResult:
                 else {}
             ),
         }
+
+
+def _phases(history: list[dict]) -> list[str]:
+    """Lines for ``summary()``: what the climb and the perturbation rounds each took and
+    gave (seconds of their operations; the smallest dihedral angle after them), so that
+    a user sees whether the rounds (``--perturb``) are worth their time on a mesh."""
+    if not history:
+        return []
+    kicks = [e for e in history if e["op"] == "perturb"]
+    climb = history[: history.index(kicks[0])] if kicks else history
+    lines = []
+    if climb:
+        passes = len({e["pass"] for e in climb})
+        lines.append(
+            f"climb: {passes} pass{'es' if passes != 1 else ''} in "
+            f"{sum(e['seconds'] for e in climb):.2f} s, min dihedral -> "
+            f"{climb[-1]['min_dihedral']:.2f} deg"
+        )
+    if kicks:
+        kept = sum(e["successes"] > 0 for e in kicks)
+        lines.append(
+            f"perturbation rounds: {kept} of {len(kicks)} kicks kept in "
+            f"{sum(e['seconds'] for e in kicks):.2f} s, min dihedral -> "
+            f"{kicks[-1]['min_dihedral']:.2f} deg"
+        )
+    return lines
 
 
 def improve(

@@ -183,6 +183,30 @@ def test_demo_as_dict_and_summary(demo_run):
     assert f"{r.stats_after.min_dihedral:.3f}" in s
 
 
+def test_summary_splits_the_climb_from_the_rounds(demo_run):
+    """The phase lines add up the history's own entries: the climb is everything before
+    the first perturbation attempt."""
+    _, _, r = demo_run
+    ops = [e["op"] for e in r.history]
+    first = ops.index("perturb")
+    assert set(ops[first:]) == {"perturb"}
+    climb, kicks = r.history[:first], r.history[first:]
+    lines = r.summary().splitlines()
+    passes = len({e["pass"] for e in climb})
+    assert (
+        f"climb: {passes} passes in {sum(e['seconds'] for e in climb):.2f} s, "
+        f"min dihedral -> {climb[-1]['min_dihedral']:.2f} deg"
+    ) in lines
+    kept = sum(e["successes"] > 0 for e in kicks)
+    assert (
+        f"perturbation rounds: {kept} of {len(kicks)} kicks kept in "
+        f"{sum(e['seconds'] for e in kicks):.2f} s, min dihedral -> "
+        f"{r.stats_after.min_dihedral:.2f} deg"
+    ) in lines
+    none = jtet.improve(grid_mesh(2), goal_min_dihedral=1.0)
+    assert none.history == [] and "climb" not in none.summary()
+
+
 def test_callback_receives_every_entry_in_order(demo_run):
     _, seen, r = demo_run
     assert len(seen) == len(r.history)
