@@ -891,8 +891,9 @@ def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, required=No
     n = len(points)
     tri, tri_labels = cells("triangle", 3)
     if triangles is not None:
-        tri = np.concatenate([tri, triangles[0]])
-        tri_labels = np.concatenate([tri_labels, triangles[1]])
+        listed, markers = _tetgen_facets(tets, *triangles, n)
+        tri = np.concatenate([tri, listed])
+        tri_labels = np.concatenate([tri_labels, markers])
     faces, labels = _mesh_cells(tets, tri, tri_labels, n, source)
     lines, line_labels = cells("line", 2)
     pins, pin_labels = cells("vertex", 1)
@@ -906,6 +907,30 @@ def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, required=No
     edges, edge_labels = _mesh_cells(tets, lines, line_labels, n, source)
     pinned, pinned_labels = _mesh_vertices(tets, pins, pin_labels, n, source)
     return points, tets, region, faces, edges, labels, pinned, edge_labels, pinned_labels
+
+
+def _tetgen_facets(tets: np.ndarray, faces: np.ndarray, markers: np.ndarray, n: int):
+    """(faces (k, 3), markers (k,)) of a TetGen ``.face`` file that lie on facets, which
+    jtet protects: all of them, unless the file lists every face of the mesh (``tetgen
+    -f``). Then its inner faces (of two tets) with marker 0, TetGen's mark of a face on
+    no facet, are left out: protected, they would keep every flip from running."""
+    m = len(tets)
+    # a mesh has at least 2m faces ((4m + boundary faces) / 2): a shorter file lists
+    # only facets, as TetGen's default output does. Bad ids: _mesh_cells warns
+    if len(faces) < 2 * m or not m or min(tets.min(), faces.min()) < 0:
+        return faces, markers
+    if max(tets.max(), faces.max()) >= n:
+        return faces, markers
+    from ._topology import TET_FACES, row_keys
+
+    sides = np.sort(tets[:, TET_FACES].reshape(-1, 3), axis=1)
+    keys = row_keys(np.concatenate([sides, np.sort(faces, axis=1)]), n)
+    mesh_faces, tets_per_face = np.unique(keys[: 4 * m], return_counts=True)
+    if not np.array_equal(np.unique(keys[4 * m :]), mesh_faces):
+        return faces, markers  # not the mesh's every face
+    inner = tets_per_face[np.searchsorted(mesh_faces, keys[4 * m :])] == 2
+    keep = ~inner | (markers != 0)
+    return faces[keep], markers[keep]
 
 
 def _required_cells(tri, tri_labels, lines, required: dict, source: str):

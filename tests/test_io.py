@@ -752,6 +752,53 @@ def test_tetgen_constrained_internal_facets_become_protected_faces(tmp_path):
     assert m.n_tets == 2 and len(m.protected_faces) == 0
 
 
+def test_tetgen_all_faces_listing_protects_only_the_facets(tmp_path):
+    """``tetgen -f`` lists every face of the mesh in the .face file, the inner ones with
+    marker 0 (on no facet): those are not protected, or no flip could ever run. A face
+    of such a listing with a marker of its own (a constrained internal facet) is."""
+    (tmp_path / "m.node").write_text(TETGEN_NODE)
+    (tmp_path / "m.ele").write_text(TETGEN_ELE)
+    faces = np.sort(TETS2[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), 1)
+    faces = np.unique(faces, axis=0)  # the 7 faces of the two tets, [1, 2, 3] shared
+    inner = (faces == [1, 2, 3]).all(axis=1)
+    for inner_marker, protected in ((0, 6), (5, 7)):
+        markers = np.where(inner, inner_marker, 1 + np.arange(len(faces)))
+        rows = [
+            f"{i + 1} {a + 1} {b + 1} {c + 1} {k}"
+            for i, ((a, b, c), k) in enumerate(zip(faces, markers))
+        ]
+        (tmp_path / "m.face").write_text("\n".join([f"{len(faces)} 1", *rows]) + "\n")
+        m = _io.load(tmp_path / "m.ele")
+        assert len(m.protected_faces) == protected
+        listed = {tuple(f): k for f, k in zip(faces.tolist(), markers.tolist())}
+        for f, k in zip(np.sort(m.protected_faces, 1).tolist(), m.protected_face_labels.tolist()):
+            assert listed[tuple(f)] == k
+
+
+def test_tetgen_f_output_is_improved(tmp_path):
+    """TetGen's own ``-f`` output (tetgenpy, experiments only): a cube whose six facets
+    have markers 1-6. Its .face file lists all 3,780 faces; jtet protects the 492 on the
+    facets, with their markers, and the run raises the worst angle (with every face
+    protected it could not: the bug this guards against)."""
+    tetgenpy = pytest.importorskip("tetgenpy")
+    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], float)
+    quads = [[0, 1, 3, 2], [4, 5, 7, 6], [0, 1, 5, 4], [2, 3, 7, 6], [0, 2, 6, 4], [1, 3, 7, 5]]
+    triangles = [t for q in quads for t in ([q[0], q[1], q[2]], [q[0], q[2], q[3]])]
+    plc = tetgenpy.TetgenIO()
+    plc.setup_plc(corners, triangles, facet_markers=[[1 + i // 2] for i in range(12)])
+    out = tetgenpy.tetrahedralize("pqfa0.001Q", plc)
+    base = str(tmp_path / "cube")
+    out.save_nodes(base), out.save_elements(base), out.save_faces(base)
+    mesh = _io.load(tmp_path / "cube.ele")
+    listed = int((tmp_path / "cube.face").read_text().split()[0])
+    on_boundary = mesh.topology.boundary_face
+    assert listed == len(on_boundary)  # every face of the mesh
+    assert len(mesh.protected_faces) == on_boundary.sum()
+    assert set(mesh.protected_face_labels.tolist()) == {1, 2, 3, 4, 5, 6}
+    result = jtet.improve(mesh, max_passes=4, perturb=0)
+    assert result.stats_after.min_dihedral > result.stats_before.min_dihedral + 5
+
+
 def test_tetgen_zero_based_numbering(tmp_path):
     # ``tetgen -z`` numbers nodes and elements from 0
     node = "\n".join(
