@@ -779,6 +779,8 @@ def _mesh_cells(tets: np.ndarray, cells: np.ndarray, labels, n: int, source: str
     local, noun, part = (TET_FACES, "triangle", "faces") if j == 3 else (TET_EDGES, "line", "edges")
     if not len(cells) or not len(tets) or tets.min() < 0 or tets.max() >= n:
         return None, None  # from_arrays reports bad tets
+    if j == 3:
+        cells, labels = _on_surfaces(tets, cells, np.asarray(labels, np.int64), n)
     inside = (cells.min(axis=1) >= 0) & (cells.max(axis=1) < n)
     rows, first = np.unique(np.sort(cells[inside], axis=1), axis=0, return_index=True)
     labels = np.asarray(labels, np.int64)[inside][first]
@@ -891,9 +893,8 @@ def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, required=No
     n = len(points)
     tri, tri_labels = cells("triangle", 3)
     if triangles is not None:
-        listed, markers = _tetgen_facets(tets, *triangles, n)
-        tri = np.concatenate([tri, listed])
-        tri_labels = np.concatenate([tri_labels, markers])
+        tri = np.concatenate([tri, triangles[0]])
+        tri_labels = np.concatenate([tri_labels, triangles[1]])
     faces, labels = _mesh_cells(tets, tri, tri_labels, n, source)
     lines, line_labels = cells("line", 2)
     pins, pin_labels = cells("vertex", 1)
@@ -909,28 +910,30 @@ def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, required=No
     return points, tets, region, faces, edges, labels, pinned, edge_labels, pinned_labels
 
 
-def _tetgen_facets(tets: np.ndarray, faces: np.ndarray, markers: np.ndarray, n: int):
-    """(faces (k, 3), markers (k,)) of a TetGen ``.face`` file that lie on facets, which
-    jtet protects: all of them, unless the file lists every face of the mesh (``tetgen
-    -f``). Then its inner faces (of two tets) with marker 0, TetGen's mark of a face on
-    no facet, are left out: protected, they would keep every flip from running."""
+def _on_surfaces(tets: np.ndarray, faces: np.ndarray, labels: np.ndarray, n: int):
+    """(faces (k, 3), labels (k,)): the triangles of a file that lie on its surfaces,
+    which jtet protects. That is all of them, unless the file lists every face of the
+    mesh (``tetgen -f``, a dolfinx facet meshtags over all facets): its inner faces (of
+    two tets) labelled 0, the label of a face on no surface (TetGen's marker, Gmsh's
+    "no physical group"), are then left out. Protected, they would keep every flip from
+    running."""
     m = len(tets)
-    # a mesh has at least 2m faces ((4m + boundary faces) / 2): a shorter file lists
-    # only facets, as TetGen's default output does. Bad ids: _mesh_cells warns
+    # a mesh has at least 2m faces ((4m + boundary faces) / 2): a shorter list holds
+    # surfaces only, as files usually do. Bad ids: _mesh_cells warns about them
     if len(faces) < 2 * m or not m or min(tets.min(), faces.min()) < 0:
-        return faces, markers
+        return faces, labels
     if max(tets.max(), faces.max()) >= n:
-        return faces, markers
+        return faces, labels
     from ._topology import TET_FACES, row_keys
 
     sides = np.sort(tets[:, TET_FACES].reshape(-1, 3), axis=1)
     keys = row_keys(np.concatenate([sides, np.sort(faces, axis=1)]), n)
     mesh_faces, tets_per_face = np.unique(keys[: 4 * m], return_counts=True)
     if not np.array_equal(np.unique(keys[4 * m :]), mesh_faces):
-        return faces, markers  # not the mesh's every face
+        return faces, labels  # not the mesh's every face
     inner = tets_per_face[np.searchsorted(mesh_faces, keys[4 * m :])] == 2
-    keep = ~inner | (markers != 0)
-    return faces[keep], markers[keep]
+    keep = ~inner | (labels != 0)
+    return faces[keep], labels[keep]
 
 
 def _required_cells(tri, tri_labels, lines, required: dict, source: str):

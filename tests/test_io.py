@@ -566,6 +566,23 @@ def test_vtk_triangles_become_labelled_protected_faces(tmp_path):
     assert m.protected_face_labels.tolist() == [5, 20] and m.region.tolist() == [1, 1]
 
 
+def test_every_face_as_unlabelled_triangles_protects_the_boundary_only(tmp_path):
+    """A grid that holds every face of its tets as a triangle cell, none labelled (an
+    export of all faces): the inner face is on no surface and stays free, as in TetGen's
+    ``-f`` listing; the boundary faces are protected."""
+    faces = np.unique(
+        np.sort(TETS2[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], 2).reshape(-1, 3), axis=0
+    )
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: TETS2, pv.CellType.TRIANGLE: faces}, PTS5)
+    m = jtet.TetMesh.from_pyvista(grid)
+    assert len(faces) == 7 and len(m.protected_faces) == 6
+    assert [1, 2, 3] not in m.protected_faces.tolist()
+    grid.cell_data["CellEntityIds"] = np.r_[1, 1, np.where((faces == [1, 2, 3]).all(1), 9, 0)]
+    grid.save(tmp_path / "m.vtu")  # labelled, the inner face is a surface of its own
+    m = _io.load(tmp_path / "m.vtu")
+    assert len(m.protected_faces) == 7 and sorted(m.protected_face_labels.tolist())[-1] == 9
+
+
 def test_line_and_vertex_cells_become_protected_edges_and_vertices(tmp_path):
     # lines that are edges of the tets (the shared edge (1, 2) inside, (0, 1) on the
     # boundary) and points that are their vertices are protected; (0, 4) is no edge and
