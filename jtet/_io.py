@@ -779,8 +779,7 @@ def _mesh_cells(tets: np.ndarray, cells: np.ndarray, labels, n: int, source: str
     local, noun, part = (TET_FACES, "triangle", "faces") if j == 3 else (TET_EDGES, "line", "edges")
     if not len(cells) or not len(tets) or tets.min() < 0 or tets.max() >= n:
         return None, None  # from_arrays reports bad tets
-    if j == 3:
-        cells, labels = _on_surfaces(tets, cells, np.asarray(labels, np.int64), n)
+    cells, labels = _on_features(tets, cells, np.asarray(labels, np.int64), n)
     inside = (cells.min(axis=1) >= 0) & (cells.max(axis=1) < n)
     rows, first = np.unique(np.sort(cells[inside], axis=1), axis=0, return_index=True)
     labels = np.asarray(labels, np.int64)[inside][first]
@@ -910,30 +909,46 @@ def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, required=No
     return points, tets, region, faces, edges, labels, pinned, edge_labels, pinned_labels
 
 
-def _on_surfaces(tets: np.ndarray, faces: np.ndarray, labels: np.ndarray, n: int):
-    """(faces (k, 3), labels (k,)): the triangles of a file that lie on its surfaces,
-    which jtet protects. That is all of them, unless the file lists every face of the
-    mesh (``tetgen -f``, a dolfinx facet meshtags over all facets): its inner faces (of
-    two tets) labelled 0, the label of a face on no surface (TetGen's marker, Gmsh's
+def _on_features(tets: np.ndarray, cells: np.ndarray, labels: np.ndarray, n: int):
+    """(cells, labels): the triangles (k, 3) or lines (k, 2) of a file that lie on its
+    surfaces / curves, which jtet protects. That is all of them, unless the file lists
+    every face / edge of the mesh (``tetgen -f``, a dolfinx meshtags over all facets, an
+    export of all faces): its inner faces (of two tets) or edges (on no boundary face)
+    labelled 0, the label of a cell on no surface or curve (TetGen's marker, Gmsh's
     "no physical group"), are then left out. Protected, they would keep every flip from
     running."""
-    m = len(tets)
-    # a mesh has at least 2m faces ((4m + boundary faces) / 2): a shorter list holds
-    # surfaces only, as files usually do. Bad ids: _mesh_cells warns about them
-    if len(faces) < 2 * m or not m or min(tets.min(), faces.min()) < 0:
-        return faces, labels
-    if max(tets.max(), faces.max()) >= n:
-        return faces, labels
-    from ._topology import TET_FACES, row_keys
+    from ._topology import TET_EDGES, TET_FACES, row_keys
 
+    m, j = len(tets), cells.shape[1]
+    # a mesh has at least 2m faces ((4m + boundary faces) / 2) and more than m edges: a
+    # shorter list holds surfaces / curves only, as files usually do. Bad ids:
+    # _mesh_cells warns about them
+    if len(cells) < (2 * m if j == 3 else m) or not m or min(tets.min(), cells.min()) < 0:
+        return cells, labels
+    if max(tets.max(), cells.max()) >= n:
+        return cells, labels
     sides = np.sort(tets[:, TET_FACES].reshape(-1, 3), axis=1)
-    keys = row_keys(np.concatenate([sides, np.sort(faces, axis=1)]), n)
-    mesh_faces, tets_per_face = np.unique(keys[: 4 * m], return_counts=True)
-    if not np.array_equal(np.unique(keys[4 * m :]), mesh_faces):
-        return faces, labels  # not the mesh's every face
-    inner = tets_per_face[np.searchsorted(mesh_faces, keys[4 * m :])] == 2
+    if j == 3:
+        keys = row_keys(np.concatenate([sides, np.sort(cells, axis=1)]), n)  # one key space
+        mesh_keys, tets_per_face = np.unique(keys[: 4 * m], return_counts=True)
+        listed = keys[4 * m :]
+        inner = (
+            tets_per_face[np.minimum(np.searchsorted(mesh_keys, listed), len(mesh_keys) - 1)] == 2
+        )
+    else:
+        _, first, tets_per_face = np.unique(
+            row_keys(sides, n), return_index=True, return_counts=True
+        )
+        outer = sides[first[tets_per_face == 1]][:, [[0, 1], [1, 2], [0, 2]]].reshape(-1, 2)
+        edges = np.sort(tets[:, TET_EDGES].reshape(-1, 2), axis=1)
+        keys = row_keys(np.concatenate([edges, outer, np.sort(cells, axis=1)]), n)
+        e, o = len(edges), len(outer)
+        mesh_keys, listed = np.unique(keys[:e]), keys[e + o :]
+        inner = ~np.isin(listed, keys[e : e + o])
+    if not np.array_equal(np.unique(listed), mesh_keys):
+        return cells, labels  # not every face / edge of the mesh
     keep = ~inner | (labels != 0)
-    return faces[keep], labels[keep]
+    return cells[keep], labels[keep]
 
 
 def _required_cells(tri, tri_labels, lines, required: dict, source: str):

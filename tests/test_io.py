@@ -583,6 +583,33 @@ def test_every_face_as_unlabelled_triangles_protects_the_boundary_only(tmp_path)
     assert len(m.protected_faces) == 7 and sorted(m.protected_face_labels.tolist())[-1] == 9
 
 
+def test_every_edge_as_unlabelled_lines_protects_the_boundary_edges_only():
+    """Every edge of a mesh as an unlabelled line cell: the edges inside (on no
+    boundary face) stay free, or no edge removal could run; a labelled inner edge is
+    a curve of its own and stays protected. Reference: the boundary faces' edges, by
+    NumPy."""
+    mesh = delaunay_mesh(40, seed=1)
+    tets = np.asarray(mesh.tets)
+    edges = np.unique(
+        np.sort(tets[:, [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]], 2).reshape(-1, 2), axis=0
+    )
+    faces, count = np.unique(
+        np.sort(tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], 2).reshape(-1, 3),
+        axis=0,
+        return_counts=True,
+    )
+    outer = np.unique(faces[count == 1][:, [[0, 1], [1, 2], [0, 2]]].reshape(-1, 2), axis=0)
+    assert len(outer) < len(edges)
+    cells = {pv.CellType.TETRA: tets, pv.CellType.LINE: edges}
+    grid = pv.UnstructuredGrid(cells, np.asarray(mesh.points))
+    np.testing.assert_array_equal(jtet.TetMesh.from_pyvista(grid).protected_edges, outer)
+    inner = np.flatnonzero(~(edges[:, None] == outer[None]).all(2).any(1))[0]
+    grid.cell_data["region"] = np.r_[np.ones(len(tets), int), (np.arange(len(edges)) == inner) * 7]
+    m = jtet.TetMesh.from_pyvista(grid)
+    assert len(m.protected_edges) == len(outer) + 1
+    assert edges[inner].tolist() in m.protected_edges[m.protected_edge_labels == 7].tolist()
+
+
 def test_line_and_vertex_cells_become_protected_edges_and_vertices(tmp_path):
     # lines that are edges of the tets (the shared edge (1, 2) inside, (0, 1) on the
     # boundary) and points that are their vertices are protected; (0, 4) is no edge and
