@@ -28,10 +28,13 @@ def pinned_worst_tets(mesh, quality: np.ndarray) -> np.ndarray:
     return worst[pinned]
 
 
-def notes(mesh, options, quality: np.ndarray, min_dihedral, max_dihedral) -> list[str]:
+def notes(
+    mesh, options, quality: np.ndarray, min_dihedral, max_dihedral, kept_rounds: int = 0
+) -> list[str]:
     """Sentences for the user about the result ``mesh`` of a run with ``options``:
     ``quality`` (m,) is its ``options.quality`` per tet, ``min_dihedral`` and
-    ``max_dihedral`` (m,) its dihedral angle range per tet in degrees."""
+    ``max_dihedral`` (m,) its dihedral angle range per tet in degrees; ``kept_rounds``
+    the perturbation rounds the run kept (-1: it stopped for a goal or a time limit)."""
     out = []
     missed = _missed_goals(options, min_dihedral, max_dihedral) if len(quality) else ""
     if missed:
@@ -42,6 +45,12 @@ def notes(mesh, options, quality: np.ndarray, min_dihedral, max_dihedral) -> lis
     good = options.good_quality
     if good is not None and len(quality) and quality.min() >= good:
         return out  # every tet is good enough: the run left them alone on purpose
+    if options.perturb and kept_rounds >= options.perturb:
+        out.append(
+            f"the perturbation rounds stopped at their limit (perturb {options.perturb}: "
+            f"kept rounds) while they still raised the worst tet; more rounds (--perturb "
+            f"{2 * options.perturb}) may raise it further, at more time"
+        )
     if options.boundary == "fixed" and "smooth" in options.ops:  # only smoothing slides
         stuck = pinned_worst_tets(mesh, quality)
         if len(stuck):

@@ -448,6 +448,8 @@ def improve(
     from ._advice import notes
 
     current, history = run.current, run.history
+    # rounds cut short by a goal or the time limit did not stop at their own limit
+    kept = sum(e["op"] == "perturb" and e["successes"] > 0 for e in history)
     return ImproveResult(
         mesh=current,
         stats_before=stats_before,
@@ -456,7 +458,9 @@ def improve(
         status=status,
         seconds=time.perf_counter() - t0,
         options=opts,
-        notes=notes(current, opts, run.q, run.lo_t, run.hi_t),
+        notes=notes(
+            current, opts, run.q, run.lo_t, run.hi_t, kept if status == "converged" else -1
+        ),
     )
 
 

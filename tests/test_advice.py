@@ -111,3 +111,29 @@ def test_missed_goals_are_noted_whatever_else_holds():
     assert "largest" not in note
     (note,) = goal_notes(goal_min_dihedral=1.0, goal_max_dihedral=float(hi.max()) - 1.0)
     assert "smallest" not in note and f"largest dihedral angle {hi.max():.2f} deg" in note
+
+
+def test_note_when_the_perturbation_rounds_hit_their_limit():
+    """A run whose rounds all kept a kick up to ``perturb`` gets a note to raise it; a
+    run that kept fewer (its last round kept nothing), or stopped for a goal or the
+    time limit (-1), does not."""
+    grid = grid_mesh(2)
+    q = grid.quality("biased_min_sine") * 0.5  # below good_quality: the notes look
+    lo, hi = np.zeros(grid.n_tets), np.ones(grid.n_tets)
+    opts = jtet.Options(perturb=3)
+    (note,) = [n for n in notes(grid, opts, q, lo, hi, kept_rounds=3) if "perturb" in n]
+    assert "limit (perturb 3: kept rounds)" in note and "(--perturb 6)" in note
+    for kept in (2, -1):
+        assert not [n for n in notes(grid, opts, q, lo, hi, kept_rounds=kept) if "perturb" in n]
+    assert not [n for n in notes(grid, jtet.Options(perturb=0), q, lo, hi) if "perturb" in n]
+
+
+def test_improve_notes_rounds_cut_by_their_limit():
+    """On the demo mesh the first rounds all keep a kick: with ``perturb=1`` the run
+    says so, and what the note suggests (more rounds) does raise the worst tet."""
+    demo = jtet.demo_mesh()
+    one = jtet.improve(demo, perturb=1)
+    assert any("(--perturb 2)" in n for n in one.notes)
+    two = jtet.improve(demo, perturb=2)
+    q1 = one.stats_after.quality_min["biased_min_sine"]
+    assert two.stats_after.quality_min["biased_min_sine"] > q1
