@@ -22,9 +22,7 @@ missing ones before anything is generated).
 
 from __future__ import annotations
 
-import contextlib
 import inspect
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -216,26 +214,15 @@ def gmsh_two_regions(h: float, seed: int = 0, radius: float = 0.3) -> jtet.TetMe
 
 
 def tetwild(shape: str, h: float, optimize: bool = False, seed: int = 0) -> jtet.TetMesh:
-    """fTetWild (``pytetwild``, one thread) on the Gmsh surface mesh of ``shape``.
+    """fTetWild (``jtet.tetrahedralize``: ``pytetwild`` in a child process, one thread)
+    on the Gmsh surface mesh of ``shape``.
 
     ``h`` is both the size of the input surface mesh and fTetWild's absolute target edge
     length. ``optimize=False`` skips fTetWild's AMIPS optimization (very poor tets);
     ``optimize=True`` is fTetWild's normal output. ``seed`` seeds the surface mesh.
     """
-    import pytetwild
-
-    v, f = _gmsh_surface(shape, h, seed)
-    # fTetWild leaves a scratch file (__tracked_surface.stl) in the working directory
-    with tempfile.TemporaryDirectory() as tmp, contextlib.chdir(tmp):
-        points, tets = pytetwild.tetrahedralize(
-            v, f, edge_length_abs=float(h), optimize=bool(optimize), num_threads=1, quiet=True
-        )
-    points = np.asarray(points, np.float64)
-    tets = np.asarray(tets, np.int64)
-    used, tets = np.unique(tets, return_inverse=True)
-    points = points[used]
-    tets = tets.reshape(-1, 4)
-    return jtet.TetMesh.from_arrays(points, _orient(points, tets), source=f"tetwild({shape})")
+    surface = _gmsh_surface(shape, h, seed)
+    return jtet.tetrahedralize(surface, edge_length=float(h), optimize=bool(optimize), threads=1)
 
 
 def perturbed(
