@@ -76,6 +76,7 @@ _READ_FORMATS = {
     ".ele": "tetgen",
     ".xdmf": "xdmf",
     ".inp": "abaqus",
+    ".vol": "netgen",
 }
 _FORMAT_NAMES = {
     "vtu": "VTK XML unstructured grid",
@@ -85,6 +86,7 @@ _FORMAT_NAMES = {
     "tetgen": "TetGen",
     "xdmf": "XDMF",
     "abaqus": "Abaqus input",
+    "netgen": "Netgen",
 }
 _KNOWN_EXTENSIONS = ", ".join(_READ_FORMATS)
 
@@ -1144,6 +1146,8 @@ def load(path: str | os.PathLike) -> TetMesh:
     if p.is_dir():
         raise MeshFileError(f"{p}: is a directory, not a mesh file")
     ext = p.suffix.lower()
+    if p.name.lower().endswith(".vol.gz"):  # NGSolve's gzipped meshes
+        ext = ".vol"
     fmt = _READ_FORMATS.get(ext)
     if fmt is None:
         from ._tetrahedralize import SURFACE_EXTENSIONS
@@ -1170,6 +1174,8 @@ def load(path: str | os.PathLike) -> TetMesh:
         arrays, extras = _vtk_file_arrays(p, fmt, source)
     elif fmt == "abaqus":
         arrays, extras = _abaqus_arrays(p, source)
+    elif fmt == "netgen":
+        arrays, extras = _netgen_arrays(p, source)
     elif fmt == "xdmf":
         from ._xdmf import read_xdmf, xdmf_to_meshio
 
@@ -1239,7 +1245,29 @@ def _xdmf_label_names(names, source: str) -> dict:
         raise MeshInputError(f"{source}: damaged label names") from None
 
 
+def _netgen_arrays(path: Path, source: str):
+    """``from_arrays``' arguments and extras of a Netgen mesh file (``_netgen``): its
+    surface elements' faces of the tets as labelled protected faces, its edge segments
+    and point elements as protected edges and vertices, its names as label names."""
+    from ._netgen import read_vol
+
+    points, tets, region, faces, face_labels, lines, line_labels, pins, pin_labels, names = (
+        read_vol(path, source)
+    )
+    n = len(points)
+    faces, face_labels = _mesh_cells(tets, faces, face_labels, n, source)
+    edges, edge_labels = _mesh_cells(tets, lines, line_labels, n, source)
+    pinned, pinned_labels = _mesh_vertices(tets, pins, pin_labels, n, source)
+    arrays = (points, tets, region, faces, edges, face_labels, pinned, edge_labels, pinned_labels)
+    return arrays, {"label_names": names}
+
+
 def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str = "") -> None:
+    if fmt == "netgen":
+        from ._netgen import write_vol
+
+        write_vol(mesh, tmp)
+        return
     if fmt == "abaqus":
         from ._abaqus import write_inp
 
@@ -1439,15 +1467,16 @@ def save(
     ext = p.suffix.lower()
     fmt = output_format(p)
     cell_data = _check_cell_data(mesh, cell_data)
-    if fmt in ("medit", "tetgen", "abaqus"):
+    if fmt in ("medit", "tetgen", "abaqus", "netgen"):
         dropped = list(cell_data)
         if len(dropped) > 4:
             dropped = [f"{len(dropped)} cell arrays ({', '.join(dropped[:3])}, ...)"]
         if fmt in ("tetgen", "abaqus") and len(mesh.protected_edges):
             dropped.append("protected edges")
-        if len(mesh.protected_vertices) and (fmt in ("tetgen", "abaqus") or ext == ".meshb"):
+        no_vertices = fmt in ("tetgen", "abaqus") or ext == ".meshb"
+        if len(mesh.protected_vertices) and no_vertices:
             dropped.append("protected vertices")
-        if len(mesh.label_names) and fmt != "abaqus":
+        if len(mesh.label_names) and fmt not in ("abaqus", "netgen"):
             dropped.append(f"{len(mesh.label_names)} label name(s) (Gmsh physical names)")
         if mesh.periodic:
             dropped.append(f"{len(mesh.periodic)} periodic link(s)")
@@ -1459,10 +1488,20 @@ def save(
                 ".meshb": "region labels and protected faces and edges",
                 ".inp": "regions (element sets, with their names) and protected faces "
                 "(element-face surfaces)",
+                ".vol": "regions (materials, with their names) and protected faces, "
+                "edges and vertices (surface elements, edge segments, point elements)",
             }.get(ext, "region labels and protected faces")
             warnings.warn(
                 f"{p}: the {_FORMAT_NAMES[fmt]} format stores only the {stored}; "
                 f"not saved: {', '.join(dropped)}",
+                stacklevel=2,
+            )
+        low = np.unique(mesh.region[mesh.region < 1]) if fmt == "netgen" else []
+        if len(low):
+            warnings.warn(
+                f"{p}: Netgen numbers materials from 1: the regions are written as "
+                f"materials 1, 2, ... in label order (region {int(low[0])} among them); each "
+                "material is named after its region's name or label",
                 stacklevel=2,
             )
     elif fmt == "xdmf" and mesh.periodic:

@@ -1,0 +1,127 @@
+"""NGSolve reads jtet's Netgen ``.vol`` output: material volumes, boundary areas and the
+flux of the position through each boundary agree with NGSolve's own file.
+
+A Python that has NGSolve (``pip install ngsolve`` into a virtual environment of its own;
+LGPL, never a jtet dependency) meshes a unit cube holding a ball of radius 0.25 with
+Netgen (materials "matrix" and "inclusion", boundaries "left", "right", "wall",
+"interface") and saves it; jtet reads that file, improves it and writes ``.vol``;
+NGSolve loads both and integrates, per material and per boundary name, 1 and, over each
+boundary, n_x and (x, y, z) . n: the last two test that the surface elements' normals
+point from ``domin`` to ``domout`` as Netgen's own do (on the interface: into the ball).
+
+    python experiments/ngsolve_vol.py --ngsolve-python /tmp/ngvenv/bin/python
+    /tmp/ngvenv/bin/python experiments/ngsolve_vol.py --write-fixture tests/data
+
+``--write-fixture DIR`` (run it with the NGSolve Python) writes ``netgen_ball.vol.gz``,
+the Netgen-written file ``tests/test_netgen.py`` reads (maxh 0.25, and the integrals
+NGSolve computes on it into ``netgen_ball.json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+# run by the NGSolve Python: one JSON line of the integrals over the file's regions
+_INTEGRALS = r"""
+import json, sys
+import ngsolve
+from ngsolve import BND, CF, Integrate, Mesh, specialcf, x, y, z
+mesh = Mesh(sys.argv[1])
+n = specialcf.normal(3)
+out = {"version": ngsolve.__version__, "tets": mesh.ne, "vertices": mesh.nv,
+       "volume": {m: Integrate(1, mesh, definedon=mesh.Materials(m)) for m in set(mesh.GetMaterials())},
+       "area": {}, "flux_x": {}, "flux_r": {}}
+for b in set(mesh.GetBoundaries()):
+    on = mesh.Boundaries(b)
+    out["area"][b] = Integrate(1, mesh, BND, definedon=on)
+    out["flux_x"][b] = Integrate(n[0], mesh, BND, definedon=on)
+    out["flux_r"][b] = Integrate(n * CF((x, y, z)), mesh, BND, definedon=on)
+print(json.dumps(out))
+"""
+
+
+def netgen_mesh(maxh: float):
+    """Netgen's mesh of the unit cube with a ball inside (run with the NGSolve Python)."""
+    from netgen.occ import Box, Glue, OCCGeometry, Pnt, Sphere, X
+
+    box = Box(Pnt(0, 0, 0), Pnt(1, 1, 1))
+    box.faces.name = "wall"
+    box.faces.Min(X).name = "left"
+    box.faces.Max(X).name = "right"
+    ball = Sphere(Pnt(0.5, 0.5, 0.5), 0.25)
+    ball.faces.name = "interface"
+    ball.mat("inclusion")
+    outer = box - ball
+    outer.mat("matrix")
+    return OCCGeometry(Glue([outer, ball])).GenerateMesh(maxh=maxh)
+
+
+def write_fixture(folder: Path) -> None:
+    """The Netgen-written test file and NGSolve's integrals on it."""
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "netgen_ball.vol.gz"
+    netgen_mesh(0.25).Save(str(path))
+    out = subprocess.run(
+        [sys.executable, "-c", _INTEGRALS, str(path)], capture_output=True, text=True, check=True
+    )
+    (folder / "netgen_ball.json").write_text(out.stdout)
+    print(f"wrote {path} and {folder / 'netgen_ball.json'}")
+
+
+def integrals(python: str, path: Path) -> dict:
+    out = subprocess.run([python, "-c", _INTEGRALS, str(path)], capture_output=True, text=True)
+    if out.returncode:
+        raise SystemExit(f"NGSolve could not read {path}:\n{out.stderr[-2000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--ngsolve-python", default="python3", help="a Python that has NGSolve")
+    p.add_argument("--maxh", type=float, default=0.1, help="Netgen's mesh size")
+    p.add_argument("--write-fixture", type=Path, help="write the test file into this folder")
+    args = p.parse_args()
+    if args.write_fixture:
+        write_fixture(args.write_fixture)
+        return
+    import jtet
+
+    with tempfile.TemporaryDirectory() as tmp:
+        made = Path(tmp) / "netgen.vol"
+        script = (
+            "import sys; sys.path.insert(0, sys.argv[1]); import ngsolve_vol;"
+            "ngsolve_vol.netgen_mesh(float(sys.argv[2])).Save(sys.argv[3])"
+        )
+        here = str(Path(__file__).resolve().parent)
+        subprocess.run(
+            [args.ngsolve_python, "-c", script, here, str(args.maxh), str(made)], check=True
+        )
+        mesh = jtet.load(made)
+        t0 = time.perf_counter()
+        result = jtet.improve(mesh)
+        seconds = time.perf_counter() - t0
+        out = Path(tmp) / "jtet.vol"
+        jtet.save(result.mesh, out)
+        theirs, ours = integrals(args.ngsolve_python, made), integrals(args.ngsolve_python, out)
+    b, a = result.stats_before, result.stats_after
+    print(
+        f"Netgen mesh (maxh {args.maxh}, NGSolve {theirs['version']}): {theirs['tets']} tets, "
+        f"{b.min_dihedral:.2f} / {b.max_dihedral:.2f} degrees; jtet: {ours['tets']} tets, "
+        f"{a.min_dihedral:.2f} / {a.max_dihedral:.2f} in {seconds:.1f} s\n"
+    )
+    print("| integral (NGSolve) | on | Netgen's file | jtet's file | difference |")
+    print("|---|---|---|---|---|")
+    for what in ("volume", "area", "flux_x", "flux_r"):
+        for name in sorted(theirs[what]):
+            x, y = theirs[what][name], ours[what].get(name, float("nan"))
+            print(f"| {what} | {name} | {x:.12f} | {y:.12f} | {abs(x - y):.1e} |")
+
+
+if __name__ == "__main__":
+    main()

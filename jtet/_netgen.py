@@ -1,0 +1,404 @@
+"""Netgen / NGSolve meshes (``.vol``, and ``.vol.gz`` for reading): what
+``ngsolve.Mesh("x.vol")`` loads and ``mesh.ngmesh.Save`` writes.
+
+``read_vol`` reads the mesh part of the file (up to ``endmesh``; the geometry Netgen may
+append after it is not read): ``points``; ``volumeelements`` (tets, their material
+number -> region); ``surfaceelements`` (also the ``gi`` / ``uv`` variants of STL and OCC
+geometries: triangles with their boundary-condition number -> labelled protected faces);
+``edgesegments`` (``gi2`` / ``gi3`` too: the geometry's edges -> protected edges
+labelled with their edge number); ``pointelements`` -> protected vertices; the names of
+``materials``, ``bcnames`` and ``cd2names`` -> ``TetMesh.label_names``; periodic
+``identifications``: their vertices and the surface edges between two of them are
+protected, so periodic faces keep their triangles. Netgen orients tets the other way
+round from VTK: they are read and written with two vertices swapped.
+
+``write_vol`` writes points, tets with their region as material number, and as surface
+elements every boundary face, every face between two regions and every protected face,
+each with a boundary-condition number (the face's label; unlabelled boundary and
+interface faces share one more number, named ``default``), the regions on its two sides
+(``domin`` behind its normal, ``domout`` in front, 0 outside) and the names.
+
+Both work on whole arrays: a section's numbers are parsed in one call, never a Python
+loop over its lines.
+"""
+
+from __future__ import annotations
+
+import gzip
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import MeshFileError, MeshInputError
+
+# Netgen's vertex order of a tet is VTK's with the second and third swapped
+_SWAP = [0, 2, 1, 3]
+# sections whose numbers jtet reads, with the number of leading columns before the
+# vertex count ("surfaceelements": surfnr bcnr domin domout np p1 p2 p3 [geometry info])
+_SURFACE = ("surfaceelements", "surfaceelementsgi", "surfaceelementsuv")
+_EDGES = ("edgesegments", "edgesegmentsgi", "edgesegmentsgi2", "edgesegmentsgi3")
+# sections of "<count>" then count lines (skipped unless read above)
+_COUNTED = (
+    "facedescriptors",
+    "volumeelements",
+    "points",
+    "pointelements",
+    "materials",
+    "bcnames",
+    "cd2names",
+    "cd3names",
+    "edgedescriptors",
+    "identifications",
+    "identificationnames",
+    "singular_points",
+    "singular_edge_left",
+    "singular_edge_right",
+    "singular_face_inside",
+    "singular_face_outside",
+    "face_colours",
+    "face_transparencies",
+    *_SURFACE,
+    *_EDGES,
+)
+_NAMES = {"materials": 3, "bcnames": 2, "cd2names": 1}
+
+
+def read_vol(path: Path, source: str):
+    """``(points, tets, region, faces, face labels, edges, edge labels, vertices,
+    vertex labels, names)`` of the Netgen mesh file ``path``: faces / edges / vertices
+    as candidate rows for ``_io._mesh_cells`` / ``_mesh_vertices``, names as
+    ``TetMesh.label_names``."""
+    try:
+        data = path.read_bytes()
+        if path.name.lower().endswith(".gz"):
+            data = gzip.decompress(data)
+    except (OSError, EOFError, gzip.BadGzipFile) as e:
+        raise MeshFileError(f"{source}: cannot read the file ({e})") from None
+    text = data.decode("latin-1")
+    end = re.search(r"^\s*endmesh\s*$", text, re.M)
+    text = re.sub(r"#[^\n]*", "", text[: end.start()] if end else text)
+    lines = text.split("\n")
+    if next((ln.strip() for ln in lines if ln.strip()), "") != "mesh3d":
+        raise MeshFileError(f"{source}: not a Netgen mesh file (no 'mesh3d' first)")
+    sections = _sections(lines, source)
+    dimension = int(_numbers(sections.get("dimension", ["3"]), 1, "dimension", source)[0, 0])
+    if dimension != 3:
+        raise MeshInputError(f"{source}: a {dimension}-D Netgen mesh; jtet needs a 3-D tet mesh")
+    if "points" not in sections or "volumeelements" not in sections:
+        raise MeshInputError(f"{source}: the file has no points or no volume elements")
+    points = _numbers(sections["points"], 3, "points", source)
+    tets, region = _volume_elements(sections["volumeelements"], source)
+    faces, face_labels = _surface_elements(sections, source)
+    edges, edge_labels = _edge_segments(sections, source)
+    vertices = np.zeros(0, np.int64)
+    vertex_labels = np.zeros(0, np.int64)
+    if "pointelements" in sections:
+        table = _numbers(sections["pointelements"], 2, "pointelements", source, np.int64)
+        vertices, vertex_labels = table[:, 0] - 1, table[:, 1]
+    if "identifications" in sections:  # periodic pairs: p1 p2 identification number
+        pairs = _numbers(sections["identifications"], 3, "identifications", source, np.int64)
+        linked = np.unique(pairs[:, :2].reshape(-1) - 1)
+        vertices = np.concatenate([vertices, linked])
+        vertex_labels = np.concatenate([vertex_labels, np.zeros(len(linked), np.int64)])
+        edges, edge_labels = _linked_surface_edges(faces, linked, len(points), edges, edge_labels)
+    names = {}
+    for section, dim in _NAMES.items():
+        for line in sections.get(section, []):
+            number, name = (line.split(None, 1) + ["", ""])[:2]
+            name = name.strip()
+            if number.lstrip("-").isdigit() and name and name != "default":
+                names[(dim, int(number))] = name
+    return (
+        points,
+        tets,
+        region,
+        faces,
+        face_labels,
+        edges,
+        edge_labels,
+        vertices,
+        vertex_labels,
+        names,
+    )
+
+
+def _sections(lines: list[str], source: str) -> dict[str, list[str]]:
+    """{keyword: its data lines} of the file's ``lines`` (comments removed). Netgen
+    writes a keyword line, a count line and that many lines (``dimension`` and
+    ``geomtype``: one value); the data lines of a section hold no blank line."""
+    out: dict[str, list[str]] = {}
+    i, n = 0, len(lines)
+    while i < n:
+        word = lines[i].strip()
+        i += 1
+        if not word or word == "mesh3d":
+            continue
+        word = word.split()[0]
+        if word in ("dimension", "geomtype"):
+            while i < n and not lines[i].strip():
+                i += 1
+            out[word] = lines[i : i + 1]
+            i += 1
+            continue
+        if word == "curvedelements":  # Netgen's high-order geometry, last before endmesh
+            break
+        if word not in _COUNTED and word != "identificationtypes":
+            raise MeshFileError(f"{source}: unknown Netgen mesh section {word[:40]!r}")
+        while i < n and not lines[i].strip():
+            i += 1
+        try:
+            count = int(lines[i].split()[0]) if i < n else -1
+        except (ValueError, IndexError):
+            count = -1
+        if count < 0:
+            raise MeshFileError(f"{source}: the Netgen section {word} has no count")
+        i += 1
+        if word == "identificationtypes":  # one line of ``count`` numbers
+            count = 1 if count else 0
+        if word in _NAMES or word in ("identificationnames", "edgedescriptors"):
+            rows = [ln for ln in lines[i:] if ln.strip()][:count]  # names: skip blank lines
+            taken = 0
+            while i < n and taken < count:
+                taken += bool(lines[i].strip())
+                i += 1
+        else:
+            rows = lines[i : i + count]
+            i += count
+        if len(rows) < count or any(not r.strip() for r in rows):
+            raise MeshFileError(
+                f"{source}: the Netgen section {word} announces {count} lines; fewer follow"
+            )
+        out[word] = rows
+    return out
+
+
+def _numbers(rows: list[str], width: int | None, what: str, source: str, kind=np.float64):
+    """The numbers of ``rows`` as a (len(rows), width) array (``width`` None: the
+    rows' common width), parsed in one call; ``MeshFileError`` when they are not that."""
+    if not rows:
+        return np.zeros((0, width or 0), kind)
+    joined = " ".join(rows)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # a word among the numbers: unreadable
+            values = np.fromstring(joined, dtype=np.float64, sep=" ")
+    except (ValueError, DeprecationWarning) as e:
+        raise MeshFileError(
+            f"{source}: unreadable numbers in Netgen section {what} ({e})"
+        ) from None
+    if width is None:
+        if len(values) % len(rows):
+            raise ValueError("rows of different lengths")
+        width = len(values) // len(rows)
+    if len(values) != width * len(rows) or not np.isfinite(values).all():
+        raise MeshFileError(
+            f"{source}: Netgen section {what}: {len(values)} numbers for {len(rows)} rows "
+            f"of {width}, or a number that is not finite"
+        )
+    table = values.reshape(len(rows), width)
+    if kind is not np.float64:
+        if (table != np.round(table)).any() or np.abs(table).max(initial=0) >= 2**62:
+            raise MeshFileError(f"{source}: Netgen section {what} holds a non-integral id")
+        table = table.astype(kind)
+    return table
+
+
+def _volume_elements(rows: list[str], source: str) -> tuple[np.ndarray, np.ndarray]:
+    """(tets (m, 4) 0-based in VTK's order, material numbers (m,)) of ``volumeelements``
+    (rows: matnr np p1 .. pnp); ``MeshInputError`` naming other elements."""
+    counts = np.array([ln.split()[1] if len(ln.split()) > 1 else "0" for ln in rows[:1]])
+    table = None
+    if len(counts) and counts[0] == "4":
+        try:
+            table = _numbers(rows, 6, "volumeelements", source, np.int64)
+        except MeshFileError:
+            table = None
+    if table is None or (table[:, 1] != 4).any():
+        from ._io import _non_tet_message
+
+        sizes = np.array([len(ln.split()) - 2 for ln in rows])
+        kinds = {4: "tetra", 5: "pyramid", 6: "wedge", 8: "hexahedron", 10: "tetra10"}
+        found, number = np.unique(sizes, return_counts=True)
+        bad = [
+            (kinds.get(int(k), f"{k}-node element"), int(c))
+            for k, c in zip(found, number, strict=True)
+            if k != 4
+        ]
+        if not bad:
+            raise MeshFileError(f"{source}: unreadable Netgen volume elements")
+        raise MeshInputError(
+            _non_tet_message(source, [b[0] for b in bad], [b[1] for b in bad], True)
+        )
+    return table[:, 2:6][:, _SWAP] - 1, table[:, 0]
+
+
+def _surface_elements(sections: dict, source: str) -> tuple[np.ndarray, np.ndarray]:
+    """(triangles (k, 3) 0-based, boundary-condition numbers (k,)) of the surface
+    elements (rows: surfnr bcnr domin domout np p1 p2 p3 [geometry info per point])."""
+    found = [s for s in _SURFACE if s in sections]
+    if not found:
+        return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
+    rows = sections[found[0]]
+    try:
+        table = _numbers(rows, None, found[0], source)
+    except ValueError:
+        table = None
+    if table is None or table.shape[1] < 8 or (table[:, 4] != 3).any():
+        warnings.warn(
+            f"{source}: Netgen surface elements other than triangles (or of mixed kinds); "
+            "none of them is kept as a protected face",
+            stacklevel=4,
+        )
+        return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
+    ids = table[:, [1, 5, 6, 7]]
+    if (ids != np.round(ids)).any():
+        raise MeshFileError(f"{source}: Netgen surface elements hold a non-integral id")
+    ids = ids.astype(np.int64)
+    return ids[:, 1:] - 1, ids[:, 0]
+
+
+def _edge_segments(sections: dict, source: str) -> tuple[np.ndarray, np.ndarray]:
+    """(edges (k, 2) 0-based, edge numbers (k,)) of the edge segments: ``gi3`` rows
+    "p1 p2 trignum1 trignum2 dist1 dist2 edgenr-1", the older ones "si 0 p1 p2 ...";
+    an unreadable section is ignored with a warning (the edges are the geometry's)."""
+    found = [s for s in _EDGES if s in sections]
+    if not found:
+        return np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
+    rows = sections[found[0]]
+    try:
+        table = _numbers(rows, None, found[0], source)
+    except (ValueError, MeshFileError):
+        table = None
+    if found[0] == "edgesegmentsgi3":
+        cols, label, shift = [0, 1], 6, 1
+    else:
+        cols, label, shift = [2, 3], 0, 0
+    if table is None or table.shape[1] <= max(*cols, label):
+        warnings.warn(
+            f"{source}: unreadable Netgen {found[0]}; its edges are not kept", stacklevel=4
+        )
+        return np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
+    ids = table[:, [*cols, label]]
+    if (ids != np.round(ids)).any():
+        raise MeshFileError(f"{source}: Netgen {found[0]} hold a non-integral id")
+    ids = ids.astype(np.int64)
+    return ids[:, :2] - 1, ids[:, 2] + shift
+
+
+def _linked_surface_edges(faces, linked, n, edges, edge_labels):
+    """``edges`` / ``edge_labels`` plus the sides of the surface triangles whose two
+    vertices are both periodically linked (label 0): flips may not re-triangulate a
+    periodic face, whose partner must stay its image."""
+    on = np.zeros(n + 1, bool)
+    on[linked[(linked >= 0) & (linked < n)]] = True
+    sides = np.sort(faces[:, [[0, 1], [1, 2], [0, 2]]].reshape(-1, 2), axis=1)
+    sides = sides[((sides >= 0) & (sides < n)).all(axis=1)]
+    sides = np.unique(sides[on[sides].all(axis=1)], axis=0)
+    return np.concatenate([edges, sides]), np.concatenate(
+        [edge_labels, np.zeros(len(sides), np.int64)]
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# writing
+
+
+def write_vol(mesh, path: Path) -> None:
+    """``mesh`` as a Netgen ``.vol`` file at ``path`` (see the module's docstring)."""
+    from ._io import format_rows
+    from ._topology import TET_FACES, row_keys
+
+    points = np.asarray(mesh.points, np.float64)
+    tets = np.asarray(mesh.tets, np.int64)
+    region = np.asarray(mesh.region, np.int64)
+    n, m = len(points), len(tets)
+    materials, matnr = np.unique(region, return_inverse=True)
+    matnr = matnr + 1 if (materials < 1).any() else region
+    # every tet face once (sorted ids); with its one or two tets
+    sides = np.sort(tets[:, TET_FACES].reshape(-1, 3), axis=1)
+    protected = np.sort(np.asarray(mesh.protected_faces, np.int64).reshape(-1, 3), axis=1)
+    keys = row_keys(np.concatenate([sides, protected]), n)
+    order = np.argsort(keys[: 4 * m], kind="stable")
+    sorted_keys = keys[: 4 * m][order]
+    unique, first, count = np.unique(sorted_keys, return_index=True, return_counts=True)
+    one, other = order[first], np.where(count == 2, order[np.minimum(first + 1, 4 * m - 1)], -1)
+    labels = np.asarray(mesh.protected_face_labels, np.int64)
+    default = int(max(labels.max(initial=0), 0)) + 1  # the bc number of unlabelled faces
+    bc = np.full(len(unique), default)
+    at = np.searchsorted(unique, keys[4 * m :])
+    bc[at] = np.where(labels > 0, labels, default)
+    # an interface face belongs to the tet of the lower material number (domin), so that
+    # all its faces' normals point one way, into the higher one, as Netgen's do
+    swap = (other >= 0) & (matnr[np.maximum(other, 0) // 4] < matnr[one // 4])
+    one, other = np.where(swap, other, one), np.where(swap, one, other)
+    t0, t1 = one // 4, np.where(other >= 0, other // 4, -1)
+    r0 = matnr[t0]
+    r1 = np.where(t1 >= 0, matnr[np.maximum(t1, 0)], 0)
+    keep = (t1 < 0) | (r0 != r1)
+    keep[at] = True
+    # the face as tet t0 has it, turned so that its normal points out of t0: t0 is behind
+    rows = np.flatnonzero(keep)
+    tet, local = one[rows] // 4, one[rows] % 4
+    tri = tets[tet[:, None], TET_FACES[local]]
+    p = points[tri]
+    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    apex = points[tets[tet, local]] - p[:, 0]
+    inward = np.einsum("ij,ij->i", normal, apex) > 0
+    tri[inward] = tri[inward][:, [0, 2, 1]]
+    domin, domout, bcnr = r0[rows], r1[rows], bc[rows]
+    _, surfnr = np.unique(np.stack([bcnr, domin, domout], axis=1), axis=0, return_inverse=True)
+    surface = np.column_stack(
+        [surfnr.reshape(-1) + 1, bcnr, domin, domout, np.full(len(rows), 3), tri + 1]
+    )
+    volume = np.column_stack([matnr, np.full(m, 4), tets[:, _SWAP] + 1])
+    names = mesh.label_names
+    material_names = {
+        int(k): names.get((3, int(r)), f"region{int(r)}") for k, r in zip(*_first(matnr, region))
+    }
+    bc_names = {
+        int(b): names.get((2, int(b)), f"surface{int(b)}") for b in np.unique(bcnr) if b != default
+    }
+    if (bcnr == default).any():
+        bc_names[default] = "default"
+    with open(path, "w") as f:
+        f.write("# Generated by jtet\nmesh3d\ndimension\n3\ngeomtype\n0\n\n")
+        f.write("# surfnr    bcnr   domin  domout      np      p1      p2      p3\n")
+        f.write(f"surfaceelements\n{len(surface)}\n")
+        f.write(format_rows(surface, "%d %d %d %d %d %d %d %d\n"))
+        f.write("\n#  matnr      np      p1      p2      p3      p4\n")
+        f.write(f"volumeelements\n{m}\n")
+        f.write(format_rows(volume, "%d %d %d %d %d %d\n"))
+        edges = np.asarray(mesh.protected_edges, np.int64).reshape(-1, 2)
+        edge_numbers = np.maximum(np.asarray(mesh.protected_edge_labels, np.int64), 1)
+        segments = np.column_stack(
+            [edges + 1, np.full((len(edges), 2), -1), np.zeros((len(edges), 2)), edge_numbers - 1]
+        )
+        f.write("\n# p1   p2   trignum1   trignum2   dist1   dist2   edsi\n")
+        f.write(f"edgesegmentsgi3\n{len(edges)}\n")
+        f.write(format_rows(segments, "%d %d %d %d %d %d %d\n"))
+        f.write(f"\n#          X             Y             Z\npoints\n{n}\n")
+        f.write(format_rows(points, "%.17g %.17g %.17g\n"))
+        pins = np.asarray(mesh.protected_vertices, np.int64)
+        pin_numbers = np.maximum(np.asarray(mesh.protected_vertex_labels, np.int64), 1)
+        f.write(f"\n#          pnum             index\npointelements\n{len(pins)}\n")
+        f.write(format_rows(np.column_stack([pins + 1, pin_numbers]), "%d %d\n"))
+        f.write(f"\nmaterials\n{len(material_names)}\n")
+        f.write("".join(f"{k} {_name(v)}\n" for k, v in sorted(material_names.items())))
+        width = max(bc_names, default=0)
+        f.write(f"\nbcnames\n{width}\n")
+        f.write("".join(f"{k} {_name(bc_names.get(k, 'default'))}\n" for k in range(1, width + 1)))
+        f.write("\nendmesh\n")
+
+
+def _first(numbers: np.ndarray, labels: np.ndarray):
+    """(each distinct value of ``numbers``, the label of its first tet)."""
+    values, first = np.unique(numbers, return_index=True)
+    return values, labels[first]
+
+
+def _name(name: str) -> str:
+    """A name as Netgen reads it: one word (it reads a name up to the line's end, but
+    spaces would make other readers split it)."""
+    return re.sub(r"\s+", "_", name.strip()) or "default"
