@@ -1129,10 +1129,10 @@ def load(path: str | os.PathLike) -> TetMesh:
     the ``.face`` file, if there is one, with its facet markers), ``.xdmf`` (dolfinx's,
     meshio's, VTK's and jtet's; cell tags or a region attribute -> region, facet tags ->
     labelled protected faces), ``.inp`` (flat Abaqus / CalculiX input files; element
-    sets -> regions, element-face surfaces -> labelled protected faces). Triangles that
-    are faces
-    of the tets become protected faces, labelled by their physical tags / references /
-    markers; lines and points (Medit: ``Edges``, ``RequiredVertices``) that are edges and
+    sets -> regions, element-face surfaces -> labelled protected faces), ``.vol`` /
+    ``.vol.gz`` (Netgen / NGSolve; materials -> regions, surface elements -> labelled
+    protected faces, ``_netgen``). Triangles that are faces of the tets become protected
+    faces, labelled by their physical tags / references / markers; lines and points (Medit: ``Edges``, ``RequiredVertices``) that are edges and
     vertices of the tets become protected edges and vertices. A globally reversed
     orientation is fixed with a warning (see ``TetMesh.from_arrays``).
 
@@ -1450,8 +1450,10 @@ def save(
     replaced or, for a mesh without protected faces, removed). ``.xdmf`` (with its heavy
     data in the ``.h5`` file of the same name) stores everything but periodic links, in
     dolfinx's layout (``_xdmf``). ``.inp`` (Abaqus / CalculiX) stores the regions as
-    element sets and the protected faces as element-face surfaces (``_abaqus``). What a
-    format cannot store is dropped with a warning.
+    element sets and the protected faces as element-face surfaces (``_abaqus``). ``.vol``
+    (Netgen / NGSolve) stores the regions as materials, every boundary, interface and
+    protected face as a surface element, the protected edges and vertices and the names
+    (``_netgen``). What a format cannot store is dropped with a warning.
 
     The file is written to a temporary file in the same directory and moved into place, so
     ``path`` is either the complete new file or left untouched.

@@ -139,6 +139,8 @@ def _sections(lines: list[str], source: str) -> dict[str, list[str]]:
         if word in ("dimension", "geomtype"):
             while i < n and not lines[i].strip():
                 i += 1
+            if i >= n:
+                raise MeshFileError(f"{source}: the Netgen section {word} has no value")
             out[word] = lines[i : i + 1]
             i += 1
             continue
@@ -166,7 +168,7 @@ def _sections(lines: list[str], source: str) -> dict[str, list[str]]:
         else:
             rows = lines[i : i + count]
             i += count
-        if len(rows) < count or any(not r.strip() for r in rows):
+        if len(rows) < count or any(not r.strip() or r.strip()[0].isalpha() for r in rows):
             raise MeshFileError(
                 f"{source}: the Netgen section {word} announces {count} lines; fewer follow"
             )
@@ -237,7 +239,7 @@ def _volume_elements(rows: list[str], source: str) -> tuple[np.ndarray, np.ndarr
 def _surface_elements(sections: dict, source: str) -> tuple[np.ndarray, np.ndarray]:
     """(triangles (k, 3) 0-based, boundary-condition numbers (k,)) of the surface
     elements (rows: surfnr bcnr domin domout np p1 p2 p3 [geometry info per point])."""
-    found = [s for s in _SURFACE if s in sections]
+    found = [s for s in _SURFACE if sections.get(s)]
     if not found:
         return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
     rows = sections[found[0]]
@@ -263,7 +265,7 @@ def _edge_segments(sections: dict, source: str) -> tuple[np.ndarray, np.ndarray]
     """(edges (k, 2) 0-based, edge numbers (k,)) of the edge segments: ``gi3`` rows
     "p1 p2 trignum1 trignum2 dist1 dist2 edgenr-1", the older ones "si 0 p1 p2 ...";
     an unreadable section is ignored with a warning (the edges are the geometry's)."""
-    found = [s for s in _EDGES if s in sections]
+    found = [s for s in _EDGES if sections.get(s)]
     if not found:
         return np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
     rows = sections[found[0]]
@@ -322,7 +324,8 @@ def write_vol(mesh, path: Path) -> None:
     keys = row_keys(np.concatenate([sides, protected]), n)
     order = np.argsort(keys[: 4 * m], kind="stable")
     sorted_keys = keys[: 4 * m][order]
-    unique, first, count = np.unique(sorted_keys, return_index=True, return_counts=True)
+    first = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])  # sorted once
+    unique, count = sorted_keys[first], np.diff(np.r_[first, 4 * m])
     one, other = order[first], np.where(count == 2, order[np.minimum(first + 1, 4 * m - 1)], -1)
     labels = np.asarray(mesh.protected_face_labels, np.int64)
     default = int(max(labels.max(initial=0), 0)) + 1  # the bc number of unlabelled faces

@@ -1,0 +1,209 @@
+"""Netgen / NGSolve ``.vol`` meshes (``jtet._netgen``), against a file Netgen wrote.
+
+``tests/data/netgen_ball.vol.gz`` was written by Netgen 6.2.2608 (``experiments/
+ngsolve_vol.py --write-fixture``): a unit cube holding a ball of radius 0.25, materials
+"matrix" and "inclusion", boundaries "left" (x = 0), "right" (x = 1), "wall" (the four
+other sides) and "interface". ``netgen_ball.json`` holds what NGSolve integrates on it.
+"""
+
+import gzip
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers import delaunay_mesh
+
+import jtet
+from jtet._errors import MeshFileError, MeshInputError
+from jtet._topology import TET_FACES
+from jtet.cli import main
+
+DATA = Path(__file__).parent / "data"
+FIXTURE = DATA / "netgen_ball.vol.gz"
+NGSOLVE = json.loads((DATA / "netgen_ball.json").read_text())
+
+
+def _areas(mesh, label: int) -> float:
+    p = np.asarray(mesh.points)[mesh.protected_faces[mesh.protected_face_labels == label]]
+    return float(np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum() / 2)
+
+
+def _labels_named(mesh, dim: int, name: str) -> list[int]:
+    return [label for (d, label), n in mesh.label_names.items() if d == dim and n == name]
+
+
+def test_netgen_file_reads_with_its_materials_and_boundaries():
+    """Regions and their volumes as NGSolve integrates them, boundary areas by closed
+    form (the cube's sides) and by NGSolve (the interface), tets positive with no
+    warning (Netgen's vertex order is the mirror of VTK's)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mesh = jtet.load(FIXTURE)
+    assert mesh.n_tets == NGSOLVE["tets"] and (mesh.volumes > 0).all()
+    assert mesh.is_valid().ok
+    for name, volume in NGSOLVE["volume"].items():
+        (label,) = _labels_named(mesh, 3, name)
+        assert mesh.volumes[mesh.region == label].sum() == pytest.approx(volume, rel=1e-12)
+    closed_form = {"left": 1.0, "right": 1.0, "wall": 4.0}
+    for name, area in NGSOLVE["area"].items():
+        labels = _labels_named(mesh, 2, name)
+        total = sum(_areas(mesh, label) for label in labels)
+        assert total == pytest.approx(closed_form.get(name, area), rel=1e-12)
+    # the cube's 12 edges and the ball's seam are the geometry's edges; its corners
+    assert len(mesh.protected_edges) > 12 and len(mesh.protected_vertices) >= 8
+
+
+def test_gzipped_and_plain_files_read_the_same(tmp_path):
+    plain = tmp_path / "ball.vol"
+    plain.write_bytes(gzip.decompress(FIXTURE.read_bytes()))
+    a, b = jtet.load(FIXTURE), jtet.load(plain)
+    np.testing.assert_array_equal(a.tets, b.tets)
+    np.testing.assert_array_equal(a.points, b.points)
+    assert a.label_names == b.label_names
+
+
+def test_round_trip_keeps_everything_netgen_holds(tmp_path):
+    mesh = jtet.load(FIXTURE)
+    jtet.save(mesh, tmp_path / "out.vol")
+    back = jtet.load(tmp_path / "out.vol")
+    np.testing.assert_array_equal(back.points, mesh.points)  # 17 digits: exact
+    np.testing.assert_array_equal(back.tets, mesh.tets)
+    np.testing.assert_array_equal(back.region, mesh.region)
+    for name in ("protected_faces", "protected_face_labels", "protected_edges"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(mesh, name))
+    np.testing.assert_array_equal(back.protected_vertices, mesh.protected_vertices)
+    assert back.label_names == mesh.label_names
+
+
+def _written_surface(path: Path) -> np.ndarray:
+    """The (k, 8) rows of a written file's surfaceelements section."""
+    lines = path.read_text().splitlines()
+    start = lines.index("surfaceelements")
+    count = int(lines[start + 1])
+    return np.array([ln.split() for ln in lines[start + 2 : start + 2 + count]], np.int64)
+
+
+def test_surface_elements_point_from_domin_to_domout(tmp_path):
+    """Every boundary and interface face is a surface element, its normal (right-hand
+    rule) pointing out of the tet of material ``domin`` and into the one of ``domout``
+    (0: none), as Netgen's own: checked against the tets by NumPy. Regions 0 and -3,
+    which Netgen's materials (from 1) cannot be, become materials 2 and 1, named."""
+    base = delaunay_mesh(150, seed=2)
+    c = np.asarray(base.points)[base.tets].mean(axis=1)
+    mesh = base.replace(region=np.where(c[:, 0] < 0.5, 0, -3))
+    with pytest.warns(UserWarning, match="Netgen numbers materials from 1"):
+        jtet.save(mesh, tmp_path / "m.vol")
+    rows = _written_surface(tmp_path / "m.vol")
+    tri, domin, domout = rows[:, 5:8] - 1, rows[:, 2], rows[:, 3]
+    material = np.where(mesh.region == -3, 1, 2)
+    faces = np.sort(mesh.tets[:, TET_FACES], axis=2).reshape(-1, 3)
+    keys, counts = np.unique(faces, axis=0, return_counts=True)
+    owners = {tuple(f): [] for f in keys.tolist()}
+    for i, f in enumerate(faces.tolist()):
+        owners[tuple(f)].append(i // 4)
+    expect = {f for f, ts in owners.items() if len(ts) == 1 or len(set(material[ts])) == 2}
+    assert {tuple(f) for f in np.sort(tri, axis=1).tolist()} == expect
+    points = np.asarray(mesh.points)
+    p = points[tri]
+    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    for k, f in enumerate(np.sort(tri, axis=1).tolist()):
+        for t in owners[tuple(f)]:
+            apex = points[np.setdiff1d(mesh.tets[t], f)[0]] - p[k, 0]
+            side = domin[k] if normal[k] @ apex < 0 else domout[k]
+            assert side == material[t]
+    back = jtet.load(tmp_path / "m.vol")
+    assert back.label_names[(3, 1)] == "region-3" and back.label_names[(3, 2)] == "region0"
+    np.testing.assert_array_equal(back.region, material)
+
+
+def test_improve_cli_reads_and_writes_netgen(tmp_path):
+    out = tmp_path / "out.vol"
+    args = ["improve", str(FIXTURE), str(out), "-q", "--max-passes", "2", "--perturb", "0"]
+    assert main(args) == 0
+    mesh, back = jtet.load(FIXTURE), jtet.load(out)
+    assert back.is_valid().ok and back.label_names == mesh.label_names
+    assert jtet.stats(back).min_dihedral > jtet.stats(mesh).min_dihedral
+    for label in (1, 2):  # materials keep their volumes
+        before = mesh.volumes[mesh.region == label].sum()
+        assert back.volumes[back.region == label].sum() == pytest.approx(before, rel=1e-12)
+    for label in np.unique(mesh.protected_face_labels):  # boundaries keep their areas
+        assert _areas(back, label) == pytest.approx(_areas(mesh, label), rel=1e-12)
+
+
+VOL = """mesh3d
+dimension
+3
+geomtype
+0
+surfaceelements
+2
+1 7 1 0 3 1 3 2
+1 7 1 0 3 2 3 4
+volumeelements
+{count}
+{elements}
+points
+5
+0 0 0
+1 0 0
+0 1 0
+0 0 1
+1 1 1
+{extra}endmesh
+"""
+# two tets in Netgen's order (the mirror of VTK's): 1 3 2 4 and 2 3 5 4
+TETS = "1 4 1 3 2 4\n1 4 2 3 5 4"
+
+
+def _vol(tmp_path, count=2, elements=TETS, extra="", name="m.vol") -> Path:
+    path = tmp_path / name
+    path.write_text(VOL.format(count=count, elements=elements, extra=extra))
+    return path
+
+
+def test_small_file_and_periodic_identifications(tmp_path):
+    m = jtet.load(_vol(tmp_path))
+    assert m.n_tets == 2 and (m.volumes > 0).all()
+    assert m.protected_face_labels.tolist() == [7, 7]
+    # identified (periodic) vertices 1, 2, 3: pinned, and the surface edges between
+    # them, so flips keep the periodic face's triangles
+    ident = "identifications\n2\n1 2 1\n3 2 1\nidentificationtypes\n1\n 2\n"
+    m = jtet.load(_vol(tmp_path, extra=ident))
+    assert m.protected_vertices.tolist() == [0, 1, 2]
+    assert m.protected_edges.tolist() == [[0, 1], [0, 2], [1, 2]]
+
+
+@pytest.mark.parametrize(
+    ("count", "elements", "extra", "error", "match"),
+    [
+        (2, TETS, "strangesection\n1\n1\n", MeshFileError, "unknown Netgen mesh section"),
+        (3, TETS, "", MeshFileError, "announces 3 lines"),
+        (2, "1 4 1 3 2 4\n1 4 2 3 x 4", "", MeshFileError, "unreadable Netgen volume"),
+        (1, "1 8 1 2 3 4 5 1 2 3", "", MeshInputError, "hexahedron"),
+        (1, "1 10 1 2 3 4 5 1 2 3 4 5", "", MeshInputError, "tetra10"),
+        (2, "1 4 1 3 2 4\n1 4 2 3 5 9", "", MeshInputError, "out of range|index"),
+    ],
+)
+def test_bad_netgen_files_say_why(tmp_path, count, elements, extra, error, match):
+    with pytest.raises(error, match=match):
+        jtet.load(_vol(tmp_path, count, elements, extra))
+
+
+def test_bad_netgen_files_without_sections(tmp_path):
+    (tmp_path / "a.vol").write_text("mesh2d\n")
+    with pytest.raises(MeshFileError, match="mesh3d"):
+        jtet.load(tmp_path / "a.vol")
+    (tmp_path / "b.vol").write_text("mesh3d\ndimension\n2\npoints\n0\nendmesh\n")
+    with pytest.raises(MeshInputError, match="2-D"):
+        jtet.load(tmp_path / "b.vol")
+    (tmp_path / "c.vol").write_text("mesh3d\ndimension\n3\npoints\n0\nendmesh\n")
+    with pytest.raises(MeshInputError, match="no points or no volume elements"):
+        jtet.load(tmp_path / "c.vol")
+    (tmp_path / "e.vol").write_text("mesh3d\ndimension\n")  # fuzz: cut after a keyword
+    with pytest.raises(MeshFileError, match="dimension has no value"):
+        jtet.load(tmp_path / "e.vol")
+    (tmp_path / "d.vol.gz").write_bytes(b"not gzip at all")
+    with pytest.raises(MeshFileError, match="cannot read"):
+        jtet.load(tmp_path / "d.vol.gz")
