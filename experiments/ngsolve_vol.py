@@ -14,7 +14,8 @@ point from ``domin`` to ``domout`` as Netgen's own do (on the interface: into th
 
 ``--write-fixture DIR`` (run it with the NGSolve Python) writes ``netgen_ball.vol.gz``,
 the Netgen-written file ``tests/test_netgen.py`` reads (maxh 0.25, and the integrals
-NGSolve computes on it into ``netgen_ball.json``).
+NGSolve computes on it into ``netgen_ball.json``), and ``netgen_periodic.vol.gz``: a
+unit cube periodic in x and y (two identifications, maxh 0.3).
 """
 
 from __future__ import annotations
@@ -42,7 +43,18 @@ for b in set(mesh.GetBoundaries()):
     out["area"][b] = Integrate(1, mesh, BND, definedon=on)
     out["flux_x"][b] = Integrate(n[0], mesh, BND, definedon=on)
     out["flux_r"][b] = Integrate(n * CF((x, y, z)), mesh, BND, definedon=on)
-print(json.dumps(out))
+print(json.dumps(out, sort_keys=True))
+"""
+
+
+# run by the NGSolve Python: the file's identified vertex pairs, as Netgen reads them
+_IDENTIFIED = r"""
+import json, sys
+from netgen.meshing import Mesh
+mesh = Mesh()
+mesh.Load(sys.argv[1])
+pairs = sorted(sorted((p[0].nr, p[1].nr)) for p in mesh.GetIdentifications())
+print(json.dumps({"vertices": len(mesh.Points()), "pairs": pairs}))
 """
 
 
@@ -62,9 +74,21 @@ def netgen_mesh(maxh: float):
     return OCCGeometry(Glue([outer, ball])).GenerateMesh(maxh=maxh)
 
 
+def periodic_mesh(maxh: float):
+    """Netgen's mesh of the unit cube, periodic in x and y (run with the NGSolve Python)."""
+    from netgen.occ import Box, IdentificationType, OCCGeometry, Pnt, X, Y
+
+    box = Box(Pnt(0, 0, 0), Pnt(1, 1, 1))
+    box.faces.Min(X).Identify(box.faces.Max(X), "px", IdentificationType.PERIODIC)
+    box.faces.Min(Y).Identify(box.faces.Max(Y), "py", IdentificationType.PERIODIC)
+    box.mat("cell")
+    return OCCGeometry(box).GenerateMesh(maxh=maxh)
+
+
 def write_fixture(folder: Path) -> None:
-    """The Netgen-written test file and NGSolve's integrals on it."""
+    """The Netgen-written test files and NGSolve's integrals on the first."""
     folder.mkdir(parents=True, exist_ok=True)
+    periodic_mesh(0.3).Save(str(folder / "netgen_periodic.vol.gz"))
     path = folder / "netgen_ball.vol.gz"
     netgen_mesh(0.25).Save(str(path))
     out = subprocess.run(
@@ -109,6 +133,20 @@ def main() -> None:
         out = Path(tmp) / "jtet.vol"
         jtet.save(result.mesh, out)
         theirs, ours = integrals(args.ngsolve_python, made), integrals(args.ngsolve_python, out)
+        script = script.replace("netgen_mesh", "periodic_mesh")
+        periodic = Path(tmp) / "periodic.vol"
+        subprocess.run([args.ngsolve_python, "-c", script, here, "0.3", str(periodic)], check=True)
+        periodic_result = jtet.improve(jtet.load(periodic))
+        jtet.save(periodic_result.mesh, Path(tmp) / "periodic_jtet.vol")
+        same = [
+            json.loads(
+                subprocess.run(
+                    [args.ngsolve_python, "-c", _IDENTIFIED, str(f)],
+                    capture_output=True, text=True, check=True,
+                ).stdout
+            )
+            for f in (periodic, Path(tmp) / "periodic_jtet.vol")
+        ]  # fmt: skip
     b, a = result.stats_before, result.stats_after
     print(
         f"Netgen mesh (maxh {args.maxh}, NGSolve {theirs['version']}): {theirs['tets']} tets, "
@@ -121,6 +159,13 @@ def main() -> None:
         for name in sorted(theirs[what]):
             x, y = theirs[what][name], ours[what].get(name, float("nan"))
             print(f"| {what} | {name} | {x:.12f} | {y:.12f} | {abs(x - y):.1e} |")
+    pb, pa = periodic_result.stats_before, periodic_result.stats_after
+    print(
+        f"\nPeriodic cube (x and y, maxh 0.3): {pb.min_dihedral:.2f} -> {pa.min_dihedral:.2f} "
+        f"degrees; Netgen reads {len(same[0]['pairs'])} identified pairs from its file and "
+        f"{len(same[1]['pairs'])} from jtet's, "
+        + ("the same pairs." if same[0]["pairs"] == same[1]["pairs"] else "NOT the same pairs.")
+    )
 
 
 if __name__ == "__main__":

@@ -1251,15 +1251,25 @@ def _netgen_arrays(path: Path, source: str):
     and point elements as protected edges and vertices, its names as label names."""
     from ._netgen import read_vol
 
-    points, tets, region, faces, face_labels, lines, line_labels, pins, pin_labels, names = (
-        read_vol(path, source)
-    )
+    (
+        points,
+        tets,
+        region,
+        faces,
+        face_labels,
+        lines,
+        line_labels,
+        pins,
+        pin_labels,
+        names,
+        periodic,
+    ) = read_vol(path, source)
     n = len(points)
     faces, face_labels = _mesh_cells(tets, faces, face_labels, n, source)
     edges, edge_labels = _mesh_cells(tets, lines, line_labels, n, source)
     pinned, pinned_labels = _mesh_vertices(tets, pins, pin_labels, n, source)
     arrays = (points, tets, region, faces, edges, face_labels, pinned, edge_labels, pinned_labels)
-    return arrays, {"label_names": names}
+    return arrays, {"label_names": names, "periodic": periodic}
 
 
 def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str = "") -> None:
@@ -1480,7 +1490,7 @@ def save(
             dropped.append("protected vertices")
         if len(mesh.label_names) and fmt not in ("abaqus", "netgen"):
             dropped.append(f"{len(mesh.label_names)} label name(s) (Gmsh physical names)")
-        if mesh.periodic:
+        if mesh.periodic and fmt != "netgen":
             dropped.append(f"{len(mesh.periodic)} periodic link(s)")
         if len(mesh.protected_tets) and ext != ".mesh":
             dropped.append("protected tets")

@@ -8,8 +8,8 @@ geometries: triangles with their boundary-condition number -> labelled protected
 ``edgesegments`` (``gi2`` / ``gi3`` too: the geometry's edges -> protected edges
 labelled with their edge number); ``pointelements`` -> protected vertices; the names of
 ``materials``, ``bcnames`` and ``cd2names`` -> ``TetMesh.label_names``; periodic
-``identifications``: their vertices and the surface edges between two of them are
-protected, so periodic faces keep their triangles. Netgen orients tets the other way
+``identifications`` -> ``TetMesh.periodic`` links, which ``improve`` keeps (their
+vertices and the surface edges between them stay), written back as identifications. Netgen orients tets the other way
 round from VTK: they are read and written with two vertices swapped.
 
 ``write_vol`` writes points, tets with their region as material number, and as surface
@@ -67,9 +67,10 @@ _NAMES = {"materials": 3, "bcnames": 2, "cd2names": 1}
 
 def read_vol(path: Path, source: str):
     """``(points, tets, region, faces, face labels, edges, edge labels, vertices,
-    vertex labels, names)`` of the Netgen mesh file ``path``: faces / edges / vertices
-    as candidate rows for ``_io._mesh_cells`` / ``_mesh_vertices``, names as
-    ``TetMesh.label_names``."""
+    vertex labels, names, periodic)`` of the Netgen mesh file ``path``: faces / edges /
+    vertices as candidate rows for ``_io._mesh_cells`` / ``_mesh_vertices``, names as
+    ``TetMesh.label_names``, the identifications as ``TetMesh.periodic`` links (one per
+    identification number, no affine map)."""
     try:
         data = path.read_bytes()
         if path.name.lower().endswith(".gz"):
@@ -97,12 +98,12 @@ def read_vol(path: Path, source: str):
     if "pointelements" in sections:
         table = _numbers(sections["pointelements"], 2, "pointelements", source, np.int64)
         vertices, vertex_labels = table[:, 0] - 1, table[:, 1]
+    periodic = []
     if "identifications" in sections:  # periodic pairs: p1 p2 identification number
         pairs = _numbers(sections["identifications"], 3, "identifications", source, np.int64)
-        linked = np.unique(pairs[:, :2].reshape(-1) - 1)
-        vertices = np.concatenate([vertices, linked])
-        vertex_labels = np.concatenate([vertex_labels, np.zeros(len(linked), np.int64)])
-        edges, edge_labels = _linked_surface_edges(faces, linked, len(points), edges, edge_labels)
+        for number in np.unique(pairs[:, 2]):
+            link = pairs[pairs[:, 2] == number, :2] - 1
+            periodic.append((2, (int(number), int(number)), None, link))
     names = {}
     for section, dim in _NAMES.items():
         for line in sections.get(section, []):
@@ -121,6 +122,7 @@ def read_vol(path: Path, source: str):
         vertices,
         vertex_labels,
         names,
+        periodic,
     )
 
 
@@ -159,7 +161,8 @@ def _sections(lines: list[str], source: str) -> dict[str, list[str]]:
         i += 1
         if word == "identificationtypes":  # one line of ``count`` numbers
             count = 1 if count else 0
-        if word in _NAMES or word in ("identificationnames", "edgedescriptors"):
+        named = word in _NAMES or word in ("identificationnames", "edgedescriptors")
+        if named:
             rows = [ln for ln in lines[i:] if ln.strip()][:count]  # names: skip blank lines
             taken = 0
             while i < n and taken < count:
@@ -168,7 +171,9 @@ def _sections(lines: list[str], source: str) -> dict[str, list[str]]:
         else:
             rows = lines[i : i + count]
             i += count
-        if len(rows) < count or any(not r.strip() or r.strip()[0].isalpha() for r in rows):
+        # a numbers row never starts with a letter: that is the next section's keyword
+        cut = any(not r.strip() or (r.strip()[0].isalpha() and not named) for r in rows)
+        if len(rows) < count or cut:
             raise MeshFileError(
                 f"{source}: the Netgen section {word} announces {count} lines; fewer follow"
             )
@@ -289,20 +294,6 @@ def _edge_segments(sections: dict, source: str) -> tuple[np.ndarray, np.ndarray]
     return ids[:, :2] - 1, ids[:, 2] + shift
 
 
-def _linked_surface_edges(faces, linked, n, edges, edge_labels):
-    """``edges`` / ``edge_labels`` plus the sides of the surface triangles whose two
-    vertices are both periodically linked (label 0): flips may not re-triangulate a
-    periodic face, whose partner must stay its image."""
-    on = np.zeros(n + 1, bool)
-    on[linked[(linked >= 0) & (linked < n)]] = True
-    sides = np.sort(faces[:, [[0, 1], [1, 2], [0, 2]]].reshape(-1, 2), axis=1)
-    sides = sides[((sides >= 0) & (sides < n)).all(axis=1)]
-    sides = np.unique(sides[on[sides].all(axis=1)], axis=0)
-    return np.concatenate([edges, sides]), np.concatenate(
-        [edge_labels, np.zeros(len(sides), np.int64)]
-    )
-
-
 # ---------------------------------------------------------------------------------------
 # writing
 
@@ -387,6 +378,17 @@ def write_vol(mesh, path: Path) -> None:
         pin_numbers = np.maximum(np.asarray(mesh.protected_vertex_labels, np.int64), 1)
         f.write(f"\n#          pnum             index\npointelements\n{len(pins)}\n")
         f.write(format_rows(np.column_stack([pins + 1, pin_numbers]), "%d %d\n"))
+        if mesh.periodic:  # Netgen's identifications, each of type 2 (periodic)
+            pairs = np.concatenate(
+                [
+                    np.column_stack([lk.pairs + 1, np.full(len(lk.pairs), k + 1)])
+                    for k, lk in enumerate(mesh.periodic)
+                ]
+            )
+            f.write(f"\nidentifications\n{len(pairs)}\n")
+            f.write(format_rows(pairs, "%d %d %d\n"))
+            f.write(f"identificationtypes\n{len(mesh.periodic)}\n")
+            f.write(" ".join(["2"] * len(mesh.periodic)) + "\n")
         f.write(f"\nmaterials\n{len(material_names)}\n")
         f.write("".join(f"{k} {_name(v)}\n" for k, v in sorted(material_names.items())))
         width = max(bc_names, default=0)

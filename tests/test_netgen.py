@@ -163,16 +163,48 @@ def _vol(tmp_path, count=2, elements=TETS, extra="", name="m.vol") -> Path:
     return path
 
 
-def test_small_file_and_periodic_identifications(tmp_path):
+def test_small_file_and_its_identifications(tmp_path):
     m = jtet.load(_vol(tmp_path))
     assert m.n_tets == 2 and (m.volumes > 0).all()
     assert m.protected_face_labels.tolist() == [7, 7]
-    # identified (periodic) vertices 1, 2, 3: pinned, and the surface edges between
-    # them, so flips keep the periodic face's triangles
-    ident = "identifications\n2\n1 2 1\n3 2 1\nidentificationtypes\n1\n 2\n"
+    ident = "identifications\n3\n1 2 1\n3 5 2\n4 2 1\nidentificationtypes\n2\n 2 2\n"
     m = jtet.load(_vol(tmp_path, extra=ident))
-    assert m.protected_vertices.tolist() == [0, 1, 2]
-    assert m.protected_edges.tolist() == [[0, 1], [0, 2], [1, 2]]
+    assert [(link.tags, link.pairs.tolist()) for link in m.periodic] == [
+        ((1, 1), [[0, 1], [3, 1]]),
+        ((2, 2), [[2, 4]]),
+    ]
+
+
+def _identified(path: Path) -> list[tuple[int, int, int]]:
+    lines = (
+        gzip.decompress(path.read_bytes()).decode() if path.suffix == ".gz" else path.read_text()
+    )
+    lines = lines.splitlines()
+    start = lines.index("identifications")
+    rows = lines[start + 2 : start + 2 + int(lines[start + 1])]
+    return sorted(tuple(int(v) for v in row.split()) for row in rows)
+
+
+def test_periodic_netgen_mesh_keeps_its_identifications(tmp_path):
+    """Netgen's cube periodic in x and y: the identifications become two periodic links,
+    the run keeps their vertices and the triangles of the periodic faces, and the output
+    holds the same identifications (NGSolve reads them back: experiments/ngsolve_vol.py)."""
+    path = DATA / "netgen_periodic.vol.gz"
+    mesh = jtet.load(path)
+    assert [link.tags for link in mesh.periodic] == [(1, 1), (2, 2)]
+    result = jtet.improve(mesh, check=True)
+    assert result.stats_after.min_dihedral > result.stats_before.min_dihedral
+    jtet.save(result.mesh, tmp_path / "out.vol")
+    assert _identified(tmp_path / "out.vol") == _identified(path)
+    back = jtet.load(tmp_path / "out.vol")
+    points, before = np.asarray(back.points), np.asarray(mesh.points)
+    for link in back.periodic:  # the linked vertices did not move
+        np.testing.assert_array_equal(points[link.pairs], before[link.pairs])
+    x0 = np.sort(back.protected_faces[(points[back.protected_faces][:, :, 0] == 0).all(1)], 1)
+    x0_before = np.sort(
+        mesh.protected_faces[(before[mesh.protected_faces][:, :, 0] == 0).all(1)], 1
+    )
+    assert sorted(map(tuple, x0.tolist())) == sorted(map(tuple, x0_before.tolist()))
 
 
 @pytest.mark.parametrize(
