@@ -84,7 +84,9 @@ class RunConfig:
     optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
     save_input: bool = False  # also write the generated input mesh (input.vtu)
     save_mesh: bool = True  # write the improved mesh with per-tet quality arrays
-    mesh_format: str = "vtu"  # of improved.* / input.*: vtu, xdmf (dolfinx), msh, mesh, inp, vol (NGSolve), ...
+    mesh_format: str = (
+        "vtu"  # of improved.* / input.*: vtu, xdmf (dolfinx), msh, mesh, inp, vol (NGSolve), ...
+    )
     plot: bool = True  # write before/after histograms (histograms.png)
     fail_fast: bool = False  # re-raise a run's error (default: record it in metrics.json)
 
