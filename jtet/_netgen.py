@@ -241,17 +241,32 @@ def _volume_elements(rows: list[str], source: str) -> tuple[np.ndarray, np.ndarr
     return table[:, 2:6][:, _SWAP] - 1, table[:, 0]
 
 
+def _section_table(sections: dict, names: tuple, source: str):
+    """(the first of the sections ``names`` the file has, its rows' numbers; None when
+    the rows differ in length), or (None, None) when it has none of them."""
+    found = next((name for name in names if sections.get(name)), None)
+    if found is None:
+        return None, None
+    try:
+        return found, _numbers(sections[found], None, found, source)
+    except ValueError:
+        return found, None
+
+
+def _ids(table: np.ndarray, columns: list, what: str, source: str) -> np.ndarray:
+    """``table``'s ``columns`` as int64; ``MeshFileError`` for a non-integral one."""
+    ids = table[:, columns]
+    if (ids != np.round(ids)).any():
+        raise MeshFileError(f"{source}: Netgen {what} hold a non-integral id")
+    return ids.astype(np.int64)
+
+
 def _surface_elements(sections: dict, source: str) -> tuple[np.ndarray, np.ndarray]:
     """(triangles (k, 3) 0-based, boundary-condition numbers (k,)) of the surface
     elements (rows: surfnr bcnr domin domout np p1 p2 p3 [geometry info per point])."""
-    found = [s for s in _SURFACE if sections.get(s)]
-    if not found:
+    found, table = _section_table(sections, _SURFACE, source)
+    if found is None:
         return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
-    rows = sections[found[0]]
-    try:
-        table = _numbers(rows, None, found[0], source)
-    except ValueError:
-        table = None
     if table is None or table.shape[1] < 8 or (table[:, 4] != 3).any():
         warnings.warn(
             f"{source}: Netgen surface elements other than triangles (or of mixed kinds); "
@@ -259,10 +274,7 @@ def _surface_elements(sections: dict, source: str) -> tuple[np.ndarray, np.ndarr
             stacklevel=4,
         )
         return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
-    ids = table[:, [1, 5, 6, 7]]
-    if (ids != np.round(ids)).any():
-        raise MeshFileError(f"{source}: Netgen surface elements hold a non-integral id")
-    ids = ids.astype(np.int64)
+    ids = _ids(table, [1, 5, 6, 7], "surface elements", source)
     return ids[:, 1:] - 1, ids[:, 0]
 
 
@@ -270,27 +282,18 @@ def _edge_segments(sections: dict, source: str) -> tuple[np.ndarray, np.ndarray]
     """(edges (k, 2) 0-based, edge numbers (k,)) of the edge segments: ``gi3`` rows
     "p1 p2 trignum1 trignum2 dist1 dist2 edgenr-1", the older ones "si 0 p1 p2 ...";
     an unreadable section is ignored with a warning (the edges are the geometry's)."""
-    found = [s for s in _EDGES if sections.get(s)]
-    if not found:
-        return np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
-    rows = sections[found[0]]
     try:
-        table = _numbers(rows, None, found[0], source)
-    except (ValueError, MeshFileError):
-        table = None
-    if found[0] == "edgesegmentsgi3":
-        cols, label, shift = [0, 1], 6, 1
-    else:
-        cols, label, shift = [2, 3], 0, 0
-    if table is None or table.shape[1] <= max(*cols, label):
-        warnings.warn(
-            f"{source}: unreadable Netgen {found[0]}; its edges are not kept", stacklevel=4
-        )
+        found, table = _section_table(sections, _EDGES, source)
+    except MeshFileError:
+        found, table = next(name for name in _EDGES if sections.get(name)), None
+    if found is None:
         return np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
-    ids = table[:, [*cols, label]]
-    if (ids != np.round(ids)).any():
-        raise MeshFileError(f"{source}: Netgen {found[0]} hold a non-integral id")
-    ids = ids.astype(np.int64)
+    # gi3: p1 p2 ... edgenr - 1 (numbered from 0); older: si 0 p1 p2 ...
+    cols, shift = ([0, 1, 6], 1) if found == "edgesegmentsgi3" else ([2, 3, 0], 0)
+    if table is None or table.shape[1] <= max(cols):
+        warnings.warn(f"{source}: unreadable Netgen {found}; its edges are not kept", stacklevel=4)
+        return np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
+    ids = _ids(table, cols, found, source)
     return ids[:, :2] - 1, ids[:, 2] + shift
 
 
