@@ -175,6 +175,25 @@ def test_small_file_and_its_identifications(tmp_path):
     ]
 
 
+def test_older_and_stl_geometry_sections(tmp_path):
+    """Netgen writes ``surfaceelementsgi`` (STL geometries: a triangle number per point)
+    and, before 6.2, ``edgesegmentsgi2`` rows "si 0 p1 p2 trignum1 trignum2 surfnr1
+    surfnr2 ednr1 dist1 ednr2 dist2": the same faces, edges and labels come out."""
+    text = VOL.format(
+        count=2, elements=TETS, extra="edgesegmentsgi2\n1\n4 0 1 2 -1 -1 1 2 3 0 3 1\n"
+    )
+    text = text.replace(
+        "1 7 1 0 3 1 3 2\n1 7 1 0 3 2 3 4", "1 7 1 0 3 1 3 2 5 6 7\n1 7 1 0 3 2 3 4 8 9 10"
+    )
+    (tmp_path / "gi.vol").write_text(text.replace("surfaceelements\n", "surfaceelementsgi\n"))
+    m = jtet.load(tmp_path / "gi.vol")
+    assert m.protected_faces.tolist() == [
+        [0, 1, 2],
+        [1, 2, 3],
+    ] and m.protected_face_labels.tolist() == [7, 7]
+    assert m.protected_edges.tolist() == [[0, 1]] and m.protected_edge_labels.tolist() == [4]
+
+
 def _identified(path: Path) -> list[tuple[int, int, int]]:
     lines = (
         gzip.decompress(path.read_bytes()).decode() if path.suffix == ".gz" else path.read_text()
