@@ -7,7 +7,7 @@ number -> region); ``surfaceelements`` (also the ``gi`` / ``uv`` variants of STL
 geometries: triangles with their boundary-condition number -> labelled protected faces);
 ``edgesegments`` (``gi2`` / ``gi3`` too: the geometry's edges -> protected edges
 labelled with their edge number); ``pointelements`` -> protected vertices; the names of
-``materials``, ``bcnames`` and ``cd2names`` -> ``TetMesh.label_names``; periodic
+``materials``, ``bcnames``, ``cd2names`` and ``cd3names`` -> ``TetMesh.label_names``; periodic
 ``identifications`` -> ``TetMesh.periodic`` links, which ``improve`` keeps (their
 vertices and the surface edges between them stay), written back as identifications. Netgen orients tets the other way
 round from VTK: they are read and written with two vertices swapped.
@@ -62,7 +62,7 @@ _COUNTED = (
     *_SURFACE,
     *_EDGES,
 )
-_NAMES = {"materials": 3, "bcnames": 2, "cd2names": 1}
+_NAMES = {"materials": 3, "bcnames": 2, "cd2names": 1, "cd3names": 0}
 
 
 def read_vol(path: Path, source: str):
@@ -397,6 +397,14 @@ def write_vol(mesh, path: Path) -> None:
         width = max(bc_names, default=0)
         f.write(f"\nbcnames\n{width}\n")
         f.write("".join(f"{k} {_name(bc_names.get(k, 'default'))}\n" for k in range(1, width + 1)))
+        for section, dim in (("cd2names", 1), ("cd3names", 0)):  # edge and point names
+            named = {label: name for (d, label), name in names.items() if d == dim and label >= 1}
+            if named:
+                width = max(named)
+                f.write(f"\n{section}\n{width}\n")
+                f.write(
+                    "".join(f"{k} {_name(named.get(k, 'default'))}\n" for k in range(1, width + 1))
+                )
         f.write("\nendmesh\n")
 
 

@@ -77,6 +77,16 @@ def test_round_trip_keeps_everything_netgen_holds(tmp_path):
     assert back.label_names == mesh.label_names
 
 
+def test_names_of_every_dimension_round_trip(tmp_path):
+    """Material, boundary, edge and point names (Netgen's materials, bcnames, cd2names
+    and cd3names) come back from a written file."""
+    mesh = jtet.load(FIXTURE)
+    edge, vertex = int(mesh.protected_edge_labels[0]), int(mesh.protected_vertex_labels[0])
+    names = {**mesh.label_names, (1, edge): "seam", (0, vertex): "corner"}
+    jtet.save(mesh.replace(label_names=names), tmp_path / "named.vol")
+    assert jtet.load(tmp_path / "named.vol").label_names == names
+
+
 def _written_surface(path: Path) -> np.ndarray:
     """The (k, 8) rows of a written file's surfaceelements section."""
     lines = path.read_text().splitlines()
