@@ -728,7 +728,7 @@ def build_parser() -> argparse.ArgumentParser:
         "paths",
         nargs="+",
         metavar="IN [OUT]",
-        help="input mesh (.vtu .vtk .msh .mesh .meshb .node/.ele .xdmf .inp) and output mesh (format "
+        help="input mesh (.vtu .vtk .msh .mesh .meshb .node/.ele .xdmf .inp .vol) and output mesh (format "
         "from the extension; carries per-tet quality arrays); with --out-dir, only inputs",
     )
     pi.add_argument(
@@ -793,7 +793,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="write a mesh in another format, with its regions and labelled surfaces, "
         "curves and points",
     )
-    pc.add_argument("input", help="input mesh (.vtu .vtk .msh .mesh .meshb .node/.ele .xdmf .inp)")
+    pc.add_argument(
+        "input", help="input mesh (.vtu .vtk .msh .mesh .meshb .node/.ele .xdmf .inp .vol)"
+    )
     pc.add_argument("output", help="output mesh (format from the extension)")
     pc.add_argument(
         "--quality-arrays",
