@@ -327,13 +327,23 @@ class ImproveResult:
         }
 
 
+def _kicks(history: list[dict]) -> list[dict]:
+    """The perturbation attempts of a run's history (each kick is one entry)."""
+    return [e for e in history if e["op"] == "perturb"]
+
+
+def _kept(kicks: list[dict]) -> int:
+    """How many of ``kicks`` were kept (one per kept round)."""
+    return sum(e["successes"] > 0 for e in kicks)
+
+
 def _phases(history: list[dict]) -> list[str]:
     """Lines for ``summary()``: what the climb and the perturbation rounds each took and
     gave (seconds of their operations; the smallest dihedral angle after them), so that
     a user sees whether the rounds (``--perturb``) are worth their time on a mesh."""
     if not history:
         return []
-    kicks = [e for e in history if e["op"] == "perturb"]
+    kicks = _kicks(history)
     climb = history[: history.index(kicks[0])] if kicks else history
     lines = []
     if climb:
@@ -344,9 +354,8 @@ def _phases(history: list[dict]) -> list[str]:
             f"{climb[-1]['min_dihedral']:.2f} deg"
         )
     if kicks:
-        kept = sum(e["successes"] > 0 for e in kicks)
         lines.append(
-            f"perturbation rounds: {kept} of {len(kicks)} kicks kept in "
+            f"perturbation rounds: {_kept(kicks)} of {len(kicks)} kicks kept in "
             f"{sum(e['seconds'] for e in kicks):.2f} s, min dihedral -> "
             f"{kicks[-1]['min_dihedral']:.2f} deg"
         )
@@ -449,7 +458,7 @@ def improve(
 
     current, history = run.current, run.history
     # rounds cut short by a goal or the time limit did not stop at their own limit
-    kept = sum(e["op"] == "perturb" and e["successes"] > 0 for e in history)
+    kept = _kept(_kicks(history))
     return ImproveResult(
         mesh=current,
         stats_before=stats_before,

@@ -919,7 +919,7 @@ def _on_features(tets: np.ndarray, cells: np.ndarray, labels: np.ndarray, n: int
     labelled 0, the label of a cell on no surface or curve (TetGen's marker, Gmsh's
     "no physical group"), are then left out. Protected, they would keep every flip from
     running."""
-    from ._topology import TET_EDGES, TET_FACES, row_keys
+    from ._topology import TET_EDGES, TET_FACES, row_keys, sorted_lookup
 
     m, j = len(tets), cells.shape[1]
     # a mesh has at least 2m faces ((4m + boundary faces) / 2) and more than m edges: a
@@ -933,10 +933,8 @@ def _on_features(tets: np.ndarray, cells: np.ndarray, labels: np.ndarray, n: int
     if j == 3:
         keys = row_keys(np.concatenate([sides, np.sort(cells, axis=1)]), n)  # one key space
         mesh_keys, tets_per_face = np.unique(keys[: 4 * m], return_counts=True)
-        listed = keys[4 * m :]
-        inner = (
-            tets_per_face[np.minimum(np.searchsorted(mesh_keys, listed), len(mesh_keys) - 1)] == 2
-        )
+        at = sorted_lookup(mesh_keys, keys[4 * m :])
+        inner = tets_per_face[at] == 2
     else:
         _, first, tets_per_face = np.unique(
             row_keys(sides, n), return_index=True, return_counts=True
@@ -945,9 +943,10 @@ def _on_features(tets: np.ndarray, cells: np.ndarray, labels: np.ndarray, n: int
         edges = np.sort(tets[:, TET_EDGES].reshape(-1, 2), axis=1)
         keys = row_keys(np.concatenate([edges, outer, np.sort(cells, axis=1)]), n)
         e, o = len(edges), len(outer)
-        mesh_keys, listed = np.unique(keys[:e]), keys[e + o :]
-        inner = ~np.isin(listed, keys[e : e + o])
-    if not np.array_equal(np.unique(listed), mesh_keys):
+        mesh_keys = np.unique(keys[:e])
+        at = sorted_lookup(mesh_keys, keys[e + o :])
+        inner = ~np.isin(keys[e + o :], keys[e : e + o])
+    if (at < 0).any() or len(np.unique(at)) != len(mesh_keys):
         return cells, labels  # not every face / edge of the mesh
     keep = ~inner | (labels != 0)
     return cells[keep], labels[keep]

@@ -162,11 +162,11 @@ def _sections(lines: list[str], source: str) -> dict[str, list[str]]:
         if word == "identificationtypes":  # one line of ``count`` numbers
             count = 1 if count else 0
         named = word in _NAMES or word in ("identificationnames", "edgedescriptors")
-        if named:
-            rows = [ln for ln in lines[i:] if ln.strip()][:count]  # names: skip blank lines
-            taken = 0
-            while i < n and taken < count:
-                taken += bool(lines[i].strip())
+        if named:  # names: blank lines between them are skipped
+            rows = []
+            while i < n and len(rows) < count:
+                if lines[i].strip():
+                    rows.append(lines[i])
                 i += 1
         else:
             rows = lines[i : i + count]
@@ -304,7 +304,7 @@ def _edge_segments(sections: dict, source: str) -> tuple[np.ndarray, np.ndarray]
 def write_vol(mesh, path: Path) -> None:
     """``mesh`` as a Netgen ``.vol`` file at ``path`` (see the module's docstring)."""
     from ._io import format_rows
-    from ._topology import TET_FACES, row_keys
+    from ._topology import TET_FACES, _group, match_rows, row_keys
 
     points = np.asarray(mesh.points, np.float64)
     tets = np.asarray(mesh.tets, np.int64)
@@ -312,19 +312,17 @@ def write_vol(mesh, path: Path) -> None:
     n, m = len(points), len(tets)
     materials, matnr = np.unique(region, return_inverse=True)
     matnr = matnr + 1 if (materials < 1).any() else region
-    # every tet face once (sorted ids); with its one or two tets
+    # the tet faces (row 4 t + j: face j of tet t) grouped by face of the mesh, each
+    # group listing its one or two rows
     sides = np.sort(tets[:, TET_FACES].reshape(-1, 3), axis=1)
-    protected = np.sort(np.asarray(mesh.protected_faces, np.int64).reshape(-1, 3), axis=1)
-    keys = row_keys(np.concatenate([sides, protected]), n)
-    order = np.argsort(keys[: 4 * m], kind="stable")
-    sorted_keys = keys[: 4 * m][order]
-    first = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])  # sorted once
-    unique, count = sorted_keys[first], np.diff(np.r_[first, 4 * m])
-    one, other = order[first], np.where(count == 2, order[np.minimum(first + 1, 4 * m - 1)], -1)
+    perm, ptr, group = _group(row_keys(sides, n))
+    count = np.diff(ptr)
+    one = perm[ptr[:-1]]
+    other = np.where(count == 2, perm[np.minimum(ptr[:-1] + 1, 4 * m - 1)], -1)
     labels = np.asarray(mesh.protected_face_labels, np.int64)
     default = int(max(labels.max(initial=0), 0)) + 1  # the bc number of unlabelled faces
-    bc = np.full(len(unique), default)
-    at = np.searchsorted(unique, keys[4 * m :])
+    bc = np.full(len(count), default)
+    at = group[match_rows(sides, mesh.protected_faces, n)]  # TetMesh: they are tet faces
     bc[at] = np.where(labels > 0, labels, default)
     # an interface face belongs to the tet of the lower material number (domin), so that
     # all its faces' normals point one way, into the higher one, as Netgen's do

@@ -53,8 +53,7 @@ def plot_run(result, path: str | os.PathLike, measure: str | None = None) -> Non
     """The figure of an ``ImproveResult`` (PNG/PDF/SVG, written atomically): before /
     after histograms of dihedral angles and of the optimized quality and, below them,
     the run (``history_curve``): the smallest and largest dihedral angle after each
-    operation against the seconds spent in operations, as Stellar's papers plot
-    quality against time."""
+    operation against the seconds spent in operations."""
     import matplotlib
 
     matplotlib.use("Agg")
