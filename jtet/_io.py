@@ -1,7 +1,8 @@
 """Mesh input and output: pyvista grids, mesh files, and the demo meshes shipped with jtet.
 
 Readers: ``.vtu`` / ``.vtk`` through VTK's own readers; ``.msh`` (Gmsh 2.2 and 4.1),
-``.mesh`` / ``.meshb`` (Medit) and ``.node`` / ``.ele`` (TetGen) through meshio. Every failure
+``.mesh`` (Medit) and ``.node`` / ``.ele`` (TetGen) through meshio; ``.meshb`` (binary
+Medit), ``.xdmf``, ``.inp`` and ``.vol`` by jtet's own modules. Every failure
 is a ``MeshFileError`` (the file) or a ``MeshInputError`` (its contents) with the path and a
 one-line reason; VTK's and meshio's console chatter is captured, never printed.
 
@@ -1186,6 +1187,8 @@ def load(path: str | os.PathLike) -> TetMesh:
             if found["protected"] is None
             else found["blocks"][0][1][found["protected"]],
         }
+    elif ext == ".meshb":
+        arrays, extras = _meshb_arrays(p, source)
     else:
         captured = ""
         readable = _medit_without_unknown_sections(p) if ext == ".mesh" else None
@@ -1271,6 +1274,39 @@ def _netgen_arrays(path: Path, source: str):
     return arrays, {"label_names": names, "periodic": periodic}
 
 
+def _meshb_arrays(path: Path, source: str):
+    """``from_arrays``' arguments and extras of a binary Medit file (``_meshb``), read as
+    an ASCII one is: references -> regions and labels, triangles and edges of the tets ->
+    protected faces and edges, MMG's required entities kept exactly."""
+    import meshio
+
+    from ._meshb import read_meshb
+
+    points, blocks, required = read_meshb(path, source)
+    m = meshio.Mesh(
+        points,
+        [(kind, cells) for kind, cells, _ in blocks],
+        cell_data={"medit:ref": [refs for _, _, refs in blocks]},
+    )
+    arrays = _meshio_to_arrays(m, source, "medit", None, required)
+    tets = _medit_required_tets(required.get("RequiredTetrahedra"), arrays[1], path)
+    return arrays, {"protected_tets": tets}
+
+
+def _medit_sections(mesh: TetMesh) -> dict[str, np.ndarray]:
+    """The Required* sections of a Medit output of ``mesh`` (0-based ids), empty ones
+    left out: its protected vertices and tets, and the edges and faces it keeps exactly
+    (``_kept_exactly``)."""
+    edge_ids, face_ids = _kept_exactly(mesh)
+    sections = {
+        "RequiredVertices": mesh.protected_vertices,
+        "RequiredEdges": edge_ids,
+        "RequiredTriangles": face_ids,
+        "RequiredTetrahedra": np.flatnonzero(mesh.protected_tet_mask()),
+    }
+    return {k: v for k, v in sections.items() if len(v)}
+
+
 def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str = "") -> None:
     if fmt == "netgen":
         from ._netgen import write_vol
@@ -1290,6 +1326,13 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str 
     if fmt in ("vtu", "vtk"):
         _write_vtk_file(mesh_to_grid(mesh, cell_data), tmp, fmt)
         return
+    if fmt == "medit" and tmp.suffix.lower() == ".meshb":
+        from ._meshb import write_meshb
+
+        blocks = [("tetra", mesh.tets, mesh.region)]
+        blocks += [(kind, cells, tags) for kind, cells, tags in _lower_blocks(mesh, fmt)]
+        write_meshb(tmp, mesh.points, blocks, _medit_sections(mesh))
+        return
     with _quiet_meshio():
         m = _meshio_mesh(mesh, fmt, cell_data)
         if fmt == "gmsh":
@@ -1298,15 +1341,8 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str 
             _meshio_module(fmt).write(str(tmp), m, fmt_version="2.2", binary=True)
         else:
             _meshio_module(fmt).write(str(tmp), m)
-    if fmt == "medit" and tmp.suffix.lower() == ".mesh":
-        edge_ids, face_ids = _kept_exactly(mesh)
-        sections = {
-            "RequiredVertices": mesh.protected_vertices,
-            "RequiredEdges": edge_ids,
-            "RequiredTriangles": face_ids,
-            "RequiredTetrahedra": np.flatnonzero(mesh.protected_tet_mask()),
-        }
-        sections = {k: v for k, v in sections.items() if len(v)}
+    if fmt == "medit":
+        sections = _medit_sections(mesh)
         if sections:
             _append_required(tmp, sections)
     if fmt == "tetgen" and len(mesh.protected_faces):
@@ -1452,8 +1488,10 @@ def save(
     protected faces as triangles tagged with their labels, edges and vertices as line and
     point elements, and ``cell_data`` as element data when there are no protected
     entities. ``.mesh`` / ``.meshb`` (Medit) store the region as references, the protected
-    faces and edges as ``Triangles`` and ``Edges``, the vertices as ``RequiredVertices``
-    (``.mesh`` only). ``.node`` / ``.ele`` (TetGen, both files are written; region ->
+    faces and edges as ``Triangles`` and ``Edges``, the vertices and tets as
+    ``RequiredVertices`` and ``RequiredTetrahedra``, and what ``improve`` keeps exactly
+    as MMG's required edges and triangles (``.meshb``: version 2, which MMG reads,
+    ``_meshb``). ``.node`` / ``.ele`` (TetGen, both files are written; region ->
     element attribute) store the region, and the protected faces with their labels as
     boundary markers in a ``.face`` file beside them (an old ``.face`` of that name is
     replaced or, for a mesh without protected faces, removed). ``.xdmf`` (with its heavy
@@ -1484,19 +1522,19 @@ def save(
             dropped = [f"{len(dropped)} cell arrays ({', '.join(dropped[:3])}, ...)"]
         if fmt in ("tetgen", "abaqus") and len(mesh.protected_edges):
             dropped.append("protected edges")
-        no_vertices = fmt in ("tetgen", "abaqus") or ext == ".meshb"
+        no_vertices = fmt in ("tetgen", "abaqus")
         if len(mesh.protected_vertices) and no_vertices:
             dropped.append("protected vertices")
         if len(mesh.label_names) and fmt not in ("abaqus", "netgen"):
             dropped.append(f"{len(mesh.label_names)} label name(s) (Gmsh physical names)")
         if mesh.periodic and fmt != "netgen":
             dropped.append(f"{len(mesh.periodic)} periodic link(s)")
-        if len(mesh.protected_tets) and ext != ".mesh":
+        if len(mesh.protected_tets) and fmt != "medit":
             dropped.append("protected tets")
         if dropped:
             stored = {
                 ".mesh": "region labels and protected faces, edges, vertices and tets",
-                ".meshb": "region labels and protected faces and edges",
+                ".meshb": "region labels and protected faces, edges, vertices and tets",
                 ".inp": "regions (element sets, with their names) and protected faces "
                 "(element-face surfaces)",
                 ".vol": "regions (materials, with their names) and protected faces, "

@@ -106,7 +106,7 @@ def test_protected_entities_round_trip(tmp_path, labelled, ext):
     """Protected faces, edges and vertices with their labels come back from every format
     that stores them: Gmsh triangles, lines and points tagged with their labels
     (physical groups); Medit triangles and edges with references, RequiredVertices
-    without labels (and not in the binary .meshb); VTK field data; TetGen's .face file
+    without labels; VTK field data; TetGen's .face file
     with the face labels as boundary markers (no edges or vertices).
     A warning names what a format leaves out."""
     mesh = labelled.replace(
@@ -126,18 +126,18 @@ def test_protected_entities_round_trip(tmp_path, labelled, ext):
     back = _io.load(path)
     names = ("protected_faces", "protected_face_labels", "protected_edges",
              "protected_edge_labels", "protected_vertices", "protected_vertex_labels")  # fmt: skip
-    stored = {"node": names[:2], "meshb": names[:4], "mesh": names[:5]}.get(ext, names)
+    stored = {"node": names[:2], "meshb": names[:5], "mesh": names[:5]}.get(ext, names)
     for name in names:
         if name in stored:
             np.testing.assert_array_equal(getattr(back, name), getattr(mesh, name), err_msg=name)
-        elif name == "protected_vertex_labels" and ext == "mesh":
+        elif name == "protected_vertex_labels" and ext in ("mesh", "meshb"):
             assert back.protected_vertex_labels.tolist() == [0, 0, 0]
         else:
             assert len(getattr(back, name)) == 0, name
             if not name.endswith("labels"):  # the entities are named in the warning
                 assert name.replace("_", " ") in dropped, (name, dropped)
     np.testing.assert_array_equal(back.region, mesh.region)
-    assert back.protected_vertices.tolist() == ([3, 7, 12] if ext not in ("node", "meshb") else [])
+    assert back.protected_vertices.tolist() == ([3, 7, 12] if ext != "node" else [])
 
 
 @pytest.mark.parametrize("ext", ["msh", "mesh", "vtu", "node", "xdmf"])
@@ -911,7 +911,7 @@ def test_random_bytes_are_a_file_error_and_print_nothing(tmp_path, capfd, ext):
     assert out == "" and err == ""  # VTK / meshio chatter is captured, not printed
 
 
-@pytest.mark.parametrize("ext", ["msh", "vtu", "vtk", "mesh"])
+@pytest.mark.parametrize("ext", ["msh", "vtu", "vtk", "mesh", "meshb"])
 @pytest.mark.parametrize("frac", [0.3, 0.8, 0.99])
 def test_truncated_files_are_a_file_error(tmp_path, capfd, labelled, ext, frac):
     full = tmp_path / f"full.{ext}"

@@ -150,7 +150,7 @@ def test_mmg_required_triangles_stay_exactly(tmp_path):
     }
 
 
-@pytest.mark.parametrize("name", ["m.msh", "m.meshb", "m.node"])
+@pytest.mark.parametrize("name", ["m.msh", "m.node", "m.inp"])
 def test_formats_without_protected_tets_warn(tmp_path, mesh, name):
     with pytest.warns(UserWarning, match="protected tet"):
         jtet.save(mesh, tmp_path / name)
