@@ -24,11 +24,12 @@ def _volume6(p):
 
 def _pytetwild_mesh():
     pv = pytest.importorskip("pyvista")
-    pytetwild = pytest.importorskip("pytetwild")
-    grid = pytetwild.tetrahedralize_pv(
+    pytest.importorskip("pytetwild")
+    # through jtet.tetrahedralize: fTetWild runs in a child whose working directory is a
+    # temporary one (called here, it wrote __tracked_surface.stl into the checkout)
+    return jtet.tetrahedralize(
         pv.Sphere(theta_resolution=12, phi_resolution=12), edge_length_fac=0.2
     )
-    return jtet.TetMesh.from_pyvista(grid)
 
 
 MESHES = {
