@@ -843,6 +843,25 @@ def test_tetgen_f_output_is_improved(tmp_path):
     assert result.stats_after.min_dihedral > result.stats_before.min_dihedral + 5
 
 
+def test_tetgen_reads_and_refines_jtet_output(tmp_path):
+    """TetGen itself (tetgenpy, experiments only) reads jtet's .node / .ele output with
+    its regions as the same tets, and ``tetgen -r`` refines it, keeping both regions.
+    (With labels alternating tet by tet instead of two volumes, ``tetgen -rq`` stops
+    with an error on the same arrays.)"""
+    tetgenpy = pytest.importorskip("tetgenpy")
+    mesh = delaunay_mesh(80, seed=5)
+    mesh = mesh.replace(region=np.where(mesh.points[mesh.tets].mean(axis=1)[:, 0] < 0.5, 1, 2))
+    jtet.save(mesh, tmp_path / "out.node")
+    io = tetgenpy.TetgenIO()
+    io.load_node(str(tmp_path / "out")), io.load_tet(str(tmp_path / "out"))
+    np.testing.assert_array_equal(io.points(), mesh.points)
+    np.testing.assert_array_equal(io.tetrahedra(), mesh.tets)
+    np.testing.assert_array_equal(np.ravel(io.tetrahedronattributes()), mesh.region)
+    refined = tetgenpy.tetrahedralize("rq1.4Q", io)
+    assert len(refined.tetrahedra()) > mesh.n_tets
+    assert set(np.ravel(refined.tetrahedronattributes()).tolist()) == {1, 2}
+
+
 def test_tetgen_zero_based_numbering(tmp_path):
     # ``tetgen -z`` numbers nodes and elements from 0
     node = "\n".join(
