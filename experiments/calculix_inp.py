@@ -3,7 +3,8 @@
 For each mesh (a unit cube: random Delaunay points with its faces, or a Gmsh reference
 mesh scaled into one), jtet improves it and writes it as an Abaqus input file whose
 protected faces are the cube's x = 0 and x = 1 faces (surfaces ``XMIN`` / ``XMAX`` with
-their node sets). A CalculiX deck includes that file, fixes the nodes of one face, puts
+their node sets). A CalculiX deck includes that file, fixes the nodes of one face (its
+node set of the surface's own name, as in Gmsh's exports), puts
 a pressure of 1 on the other (``*DSLOAD``) and prints the total reaction force: by
 equilibrium it is the pressure times the area (1) along x, whichever of the element
 faces S1-S4 the surface names. ``ccx`` (Debian's ``calculix-ccx``) must be on PATH; it
@@ -35,7 +36,7 @@ DECK = """*INCLUDE, INPUT={mesh}
 {sections}*STEP
 *STATIC
 *BOUNDARY
-{fixed}_NODES, 1, 3, 0
+{fixed}, 1, 3, 0
 *DSLOAD
 {loaded}, P, 1.0
 *NODE PRINT, NSET={fixed}_NODES, TOTALS=ONLY

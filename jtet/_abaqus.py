@@ -4,14 +4,20 @@
 per region (its element set named after the region: a Gmsh physical name, else
 ``REGION<label>``), and each label of the protected faces as an element-face
 ``*SURFACE`` (what ``*DSLOAD`` / ``*DLOAD`` pressure loads and contact use) with a node
-set ``<surface>_NODES`` of its vertices (what ``*BOUNDARY`` uses). Element ``i + 1`` is
-tet ``i``, node ``j + 1`` point ``j``. Comment lines ``** jtet region <label> <set>`` and
-``** jtet surface <label> <name>`` keep the labels for the way back.
+set ``<surface>_NODES`` of its vertices (what ``*BOUNDARY`` uses). Each region and
+surface also has a node set of its own name, as Gmsh's export writes them
+(``Mesh.SaveGroupsOfNodes``), and each label of the protected vertices a node set
+(``POINT<label>`` when unnamed). Element ``i + 1`` is tet ``i``, node ``j + 1`` point
+``j``. Comment lines ``** jtet region <label> <set>``, ``** jtet surface <label> <name>``
+and ``** jtet point <label> <set>`` keep the labels for the way back.
 
 ``read_inp`` reads such files and those of Gmsh, meshio and CalculiX's pre-processor:
 ``*NODE``, ``*ELEMENT`` (tets; triangles and lines as candidate protected faces and
 edges), ``*ELSET`` / ``*NSET`` (ids, ``GENERATE`` ranges, other sets' names) and
-element-face ``*SURFACE``. Regions come from the element sets holding tets (without the
+element-face ``*SURFACE``. Node sets that are not the nodes of a region, surface or
+curve (nor of every node) become labelled protected vertices (``_point_sets``): the
+nodes a deck's loads and boundary conditions name stay where they are, and the output
+names them again. Regions come from the element sets holding tets (without the
 comments: the sets named by ``*ELSET`` first, then those of ``*ELEMENT`` lines, a tet
 in several taking the first; a set holding every tet is no region when there are
 others). Material, step and load sections are skipped. Parts, instances and
@@ -58,6 +64,14 @@ def _set_name(name: str, taken: set) -> str:
     return out
 
 
+def _nodes_of(cells: np.ndarray, n: int) -> np.ndarray:
+    """Sorted distinct node indices of ``cells`` (any shape) among ``n`` nodes: a mask,
+    not a sort (a region's 4M corner ids)."""
+    used = np.zeros(n, bool)
+    used[np.ravel(cells)] = True
+    return np.flatnonzero(used)
+
+
 def _id_lines(ids: np.ndarray) -> str:
     """1-based ids, 16 to a line (Abaqus reads at most 16 per data line)."""
     ids = np.asarray(ids, np.int64)
@@ -84,9 +98,17 @@ def write_inp(mesh, path: Path) -> None:
         int(k): _set_name(names.get((2, int(k)), f"SURFACE{k}".replace("-", "M")), taken)
         for k in face_labels
     }
+    # node sets have names of their own (Abaqus keeps element and node sets apart)
+    node_taken: set = set()
+    point_labels = np.unique(mesh.protected_vertex_labels)
+    points = {
+        int(k): _set_name(names.get((0, int(k)), f"POINT{k}".replace("-", "M")), node_taken)
+        for k in point_labels
+    }
     out = [f"** written by jtet {__version__}\n"]
     out += [f"** jtet region {r} {s}\n" for r, s in region_sets.items()]
     out += [f"** jtet surface {k} {s}\n" for k, s in surfaces.items()]
+    out += [f"** jtet point {k} {s}\n" for k, s in points.items()]
     out.append(f"*HEADING\njtet mesh: {mesh.n_points} nodes, {mesh.n_tets} C3D4 elements\n")
     ids = np.arange(1, mesh.n_points + 1, dtype=np.float64)[:, None]
     out.append("*NODE\n")
@@ -98,6 +120,18 @@ def write_inp(mesh, path: Path) -> None:
     for r, name in region_sets.items():
         out.append(f"*ELEMENT, TYPE=C3D4, ELSET={name}\n")
         out.append(format_rows(table[mesh.region == r], "%d, %d, %d, %d, %d\n"))
+    # a node set of each region and surface under its own name, as Gmsh's export writes
+    # them (Mesh.SaveGroupsOfNodes): decks written for Gmsh's files (*BOUNDARY on a
+    # physical group's name) run on jtet's
+    node_sets = [(name, mesh.tets[mesh.region == r]) for r, name in region_sets.items()]
+    node_sets += [(name, mesh.protected_faces[mesh.protected_face_labels == k])
+                  for k, name in surfaces.items()]  # fmt: skip
+    for name, cells in node_sets:
+        out.append(f"*NSET, NSET={_set_name(name, node_taken)}\n")
+        out.append(_id_lines(_nodes_of(cells, mesh.n_points) + 1))
+    for k, name in points.items():
+        out.append(f"*NSET, NSET={name}\n")
+        out.append(_id_lines(mesh.protected_vertices[mesh.protected_vertex_labels == k] + 1))
     if len(mesh.protected_faces):
         tet, opposite = _face_owners(mesh)
         side = _S_OF_OPPOSITE[opposite]
@@ -110,8 +144,9 @@ def write_inp(mesh, path: Path) -> None:
                     out.append(f"*ELSET, ELSET={name}_S{s}\n" + _id_lines(elements))
                     lines.append(f"{name}_S{s}, S{s}\n")
             out.append(f"*SURFACE, NAME={name}, TYPE=ELEMENT\n" + "".join(lines))
-            nodes = np.unique(mesh.protected_faces[mine]) + 1
-            out.append(f"*NSET, NSET={name}_NODES\n" + _id_lines(nodes))
+            nodes = _nodes_of(mesh.protected_faces[mine], mesh.n_points) + 1
+            out.append(f"*NSET, NSET={_set_name(name + '_NODES', node_taken)}\n")
+            out.append(_id_lines(nodes))
     path.write_text("".join(out))
 
 
@@ -136,7 +171,7 @@ def _sections(text: str, source: str):
     file has millions), a data block is the text up to the next keyword."""
     first = re.search(r"(?mi)^\*NODE", text)  # jtet writes its comments before the nodes
     top = text if first is None else text[: first.start()]
-    comments = re.findall(r"(?m)^\*\* jtet (region|surface) (-?\d+) (\S+)[ \t]*\r?$", top)
+    comments = re.findall(r"(?m)^\*\* jtet (region|surface|point) (-?\d+) (\S+)[ \t]*\r?$", top)
     body = re.sub(r"(?m)^(\*\*.*|[ \t\r]*)(\n|$)", "", text)  # comment and blank lines
     keywords = list(re.finditer(r"(?m)^\*.*$", body))
     lead = body[: keywords[0].start()] if keywords else body
@@ -224,6 +259,7 @@ def read_inp(path: Path, source: str):
     node_blocks, elements = [], {"tet": [], "triangle": [], "line": []}
     others: dict[str, int] = {}
     sets: dict[str, tuple[str, np.ndarray, int]] = {}  # NAME -> (name, element ids, order)
+    node_sets: dict[str, tuple[str, np.ndarray, int]] = {}  # the same, of node ids
     surfaces: list[tuple[str, list[str]]] = []
     order = 0
     for head, params, data in sections:
@@ -264,6 +300,11 @@ def read_inp(path: Path, source: str):
             prev = sets.get(name.upper(), (name, np.zeros(0, np.int64), order))
             sets[name.upper()] = (name, np.concatenate([prev[1], ids]), prev[2])
             order += 1
+        elif head == "NSET" and params.get("NSET"):
+            name = params["NSET"]
+            ids = _set_ids(data, "GENERATE" in params, node_sets, f"*NSET {name}", source)
+            prev = node_sets.get(name.upper(), (name, np.zeros(0, np.int64), len(node_sets)))
+            node_sets[name.upper()] = (name, np.concatenate([prev[1], ids]), prev[2])
         elif head == "SURFACE" and params.get("TYPE", "ELEMENT").upper() == "ELEMENT":
             surfaces.append((params.get("NAME", f"SURFACE{len(surfaces) + 1}"), data))
     if others:
@@ -321,7 +362,56 @@ def read_inp(path: Path, source: str):
     lines, line_labels = _element_cells(elements["line"], sets, index_of, names, 1, 0)
     faces = np.concatenate([faces, extra_faces])
     face_labels = np.concatenate([face_labels, extra_labels])
-    return nodes[:, 1:], tets, region, faces, face_labels, lines, line_labels, names
+    entities = [(3, tets, region), (2, faces, face_labels), (1, lines, line_labels)]
+    pins, pin_labels = _point_sets(
+        node_sets, index_of, entities, names, comments, len(nodes), source
+    )
+    return (nodes[:, 1:], tets, region, faces, face_labels, lines, line_labels, pins,
+            pin_labels, names)  # fmt: skip
+
+
+def _point_sets(node_sets, index_of, entities, names, comments, n: int, source: str):
+    """Protected vertices (k,) and their labels (k,) from the node sets: those jtet
+    wrote for its protected vertices (``** jtet point`` comments), and every other set
+    that is not the nodes of a named region, surface or curve (Gmsh's
+    ``SaveGroupsOfNodes`` sets and jtet's ``<surface>_NODES``, written again from those)
+    nor of every node: a set a deck's boundary conditions or loads name, whose nodes
+    must stay where they are and which the output writes back under its name. A node in
+    several sets keeps the first one's label, with a warning (``names`` gains each set's
+    name)."""
+    derived = {}
+    default = {3: "REGION", 2: "SURFACE", 1: "CURVE"}  # write_inp's names of unnamed labels
+    for dim, cells, labels in entities:
+        for label in np.unique(labels).tolist():
+            name = names.get((dim, label), f"{default[dim]}{label}".replace("-", "M"))
+            nodes = _nodes_of(cells[labels == label], n).tobytes()
+            derived[name.upper()] = nodes
+            derived[name.upper() + "_NODES"] = nodes
+    given = {name.upper(): int(label) for kind, label, name in comments if kind == "point"}
+    pins, pin_labels = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    taken = np.zeros(n, bool)
+    next_label = max([0, *given.values()]) + 1
+    for key, (name, ids, _) in sorted(node_sets.items(), key=lambda s: s[1][2]):
+        nodes = _nodes_of(index_of(ids, f"*NSET {name}"), n)
+        label = given.get(key)
+        if label is None:
+            if derived.get(key) == nodes.tobytes() or len(nodes) == n:
+                continue
+            label, next_label = next_label, next_label + 1
+        if not re.fullmatch(r"POINT-?M?\d+", name):
+            names[(0, label)] = name
+        new = nodes[~taken[nodes]]
+        if len(new) < len(nodes):
+            warnings.warn(
+                f"{source}: node set {name} shares {len(nodes) - len(new)} node(s) with "
+                "sets before it; a protected vertex has one label, so an output lists "
+                "them in the first set only",
+                stacklevel=4,
+            )
+        taken[new] = True
+        pins.append(new)
+        pin_labels.append(np.full(len(new), label, np.int64))
+    return np.concatenate(pins), np.concatenate(pin_labels)
 
 
 def _regions(tet_ids, sets, comments, source):
@@ -342,7 +432,9 @@ def _regions(tet_ids, sets, comments, source):
         if (mask := np.isin(tet_ids, ids)).any()
     ]
     if len(held) > 1:  # a set of every tet ("EALL") says nothing of regions
-        held = [h for h in held if not h[2].all()] or held[:1]
+        # (unless every set holds every tet: then the first in the file's order, a
+        # Gmsh physical volume's *ELSET before its elementary volume's *ELEMENT set)
+        held = [h for h in held if not h[2].all()] or [min(held, key=lambda h: h[0])]
     done = np.zeros(len(tet_ids), bool)
     label = 0
     for _, name, mask in sorted(held, key=lambda h: h[0]):

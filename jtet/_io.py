@@ -1231,11 +1231,13 @@ def _abaqus_arrays(path: Path, source: str):
     line elements' edges as protected edges."""
     from ._abaqus import read_inp
 
-    points, tets, region, faces, face_labels, lines, line_labels, names = read_inp(path, source)
+    (points, tets, region, faces, face_labels, lines, line_labels, pins, pin_labels,
+     names) = read_inp(path, source)  # fmt: skip
     n = len(points)
     faces, face_labels = _mesh_cells(tets, faces, face_labels, n, source)
     edges, edge_labels = _mesh_cells(tets, lines, line_labels, n, source)
-    arrays = (points, tets, region, faces, edges, face_labels, None, edge_labels, None)
+    pinned, pinned_labels = _mesh_vertices(tets, pins, pin_labels, n, source)
+    arrays = (points, tets, region, faces, edges, face_labels, pinned, edge_labels, pinned_labels)
     return arrays, {"label_names": names}
 
 
@@ -1522,7 +1524,7 @@ def save(
             dropped = [f"{len(dropped)} cell arrays ({', '.join(dropped[:3])}, ...)"]
         if fmt in ("tetgen", "abaqus") and len(mesh.protected_edges):
             dropped.append("protected edges")
-        no_vertices = fmt in ("tetgen", "abaqus")
+        no_vertices = fmt == "tetgen"
         if len(mesh.protected_vertices) and no_vertices:
             dropped.append("protected vertices")
         if len(mesh.label_names) and fmt not in ("abaqus", "netgen"):
@@ -1535,8 +1537,8 @@ def save(
             stored = {
                 ".mesh": "region labels and protected faces, edges, vertices and tets",
                 ".meshb": "region labels and protected faces, edges, vertices and tets",
-                ".inp": "regions (element sets, with their names) and protected faces "
-                "(element-face surfaces)",
+                ".inp": "regions (element sets, with their names), protected faces "
+                "(element-face surfaces) and protected vertices (node sets)",
                 ".vol": "regions (materials, with their names) and protected faces, "
                 "edges and vertices (surface elements, edge segments, point elements)",
             }.get(ext, "region labels and protected faces")

@@ -198,3 +198,81 @@ def test_sets_by_range_and_by_name(tmp_path):
     }
     top = m.protected_faces[m.protected_face_labels == 1]
     assert top.tolist() == [[0, 1, 2]] and m.label_names[(2, 1)] == "TOP"
+
+
+def _node_sets(path) -> dict[str, set[int]]:
+    """{NSET name: node ids} of an .inp file, parsed here with a regular expression
+    (ids only, as Gmsh and jtet write them)."""
+    found = re.findall(r"(?ms)^\*NSET, ?NSET=([^\n,]+)\n(.*?)(?=^\*|\Z)", path.read_text())
+    return {name.strip(): {int(t) for t in body.replace(",", " ").split()} for name, body in found}
+
+
+def test_gmsh_node_sets_are_written_back(tmp_path):
+    """Gmsh's export with ``Mesh.SaveGroupsOfNodes`` (what CalculiX decks name in
+    *BOUNDARY): the physical volume names the region (not Gmsh's elementary set beside
+    it), the physical point's node set becomes a protected vertex, and an improved
+    output has a node set of each physical group's name holding the same node ids
+    (jtet keeps the nodes' numbering; flips change no node set of a region, surface or
+    point)."""
+    gmsh = pytest.importorskip("gmsh")
+    path = tmp_path / "g.inp"
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
+        gmsh.model.occ.synchronize()
+        gmsh.model.addPhysicalGroup(3, [1], 1, name="solid")
+        gmsh.model.addPhysicalGroup(2, [1], 2, name="fix")
+        gmsh.model.addPhysicalGroup(2, [2], 3, name="load")
+        gmsh.model.addPhysicalGroup(0, [1], 4, name="corner")
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.3)
+        gmsh.option.setNumber("Mesh.SaveGroupsOfNodes", 1)
+        gmsh.model.mesh.generate(3)
+        gmsh.write(str(path))
+    finally:
+        gmsh.finalize()
+    mesh = jtet.load(path)
+    assert {v for k, v in mesh.label_names.items() if k[0] == 3} == {"solid"}
+    given = _node_sets(path)
+    assert set(given) == {"solid", "fix", "load", "corner"}
+    assert mesh.label_names[(0, 1)] == "corner"
+    assert (mesh.protected_vertices + 1).tolist() == sorted(given["corner"])
+    out = tmp_path / "out.inp"
+    result = jtet.improve(mesh, max_passes=3, perturb=0)
+    assert result.mesh.n_tets != mesh.n_tets  # flips ran
+    _save(result.mesh, out)
+    written = _node_sets(out)
+    for name, ids in given.items():
+        assert written[name] == ids, name
+    np.testing.assert_array_equal(jtet.load(out).protected_vertices, mesh.protected_vertices)
+
+
+def test_node_sets_of_a_deck_stay_put(tmp_path, labelled):
+    """A hand-made node set (a probe inside, a corner) becomes protected vertices that
+    improve never moves, and the output writes it back under its name; a set of every
+    node ("NALL") protects nothing; a node in two sets warns, as the output can list it
+    in the first only."""
+    src = tmp_path / "deck.inp"
+    _save(labelled, src)
+    interior = np.setdiff1d(np.arange(labelled.n_points), np.unique(labelled.protected_faces))
+    probe, corner = interior[:3] + 1, [1]
+    text = src.read_text() + (
+        "*NSET, NSET=PROBE\n" + ", ".join(map(str, probe)) + "\n"
+        "*NSET, NSET=NALL, GENERATE\n1, " + str(labelled.n_points) + ", 1\n"
+        "*NSET, NSET=TIP\n" + ", ".join(map(str, [*corner, probe[0]])) + "\n"
+    )
+    src.write_text(text)
+    with pytest.warns(UserWarning, match="node set TIP shares 1 node"):
+        mesh = jtet.load(src)
+    named = {v: k[1] for k, v in mesh.label_names.items() if k[0] == 0}
+    assert set(named) == {"PROBE", "TIP"}
+    pins = dict(zip(mesh.protected_vertices.tolist(), mesh.protected_vertex_labels.tolist()))
+    assert pins == {**{i - 1: named["PROBE"] for i in probe}, 0: named["TIP"]}
+    result = jtet.improve(mesh, max_passes=3, perturb=0)
+    moved = np.flatnonzero((result.mesh.points != mesh.points).any(axis=1))
+    assert len(moved) and not set(moved.tolist()) & set(pins)
+    out = tmp_path / "out.inp"
+    _save(result.mesh, out)
+    written = _node_sets(out)
+    assert written["PROBE"] == set(probe.tolist()) and written["TIP"] == {1}
+    assert "NALL" not in written
