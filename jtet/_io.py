@@ -78,6 +78,10 @@ _READ_FORMATS = {
     ".xdmf": "xdmf",
     ".inp": "abaqus",
     ".vol": "netgen",
+    ".exo": "exodus",
+    ".e": "exodus",
+    ".ex2": "exodus",
+    ".g": "exodus",
 }
 _FORMAT_NAMES = {
     "vtu": "VTK XML unstructured grid",
@@ -88,6 +92,7 @@ _FORMAT_NAMES = {
     "xdmf": "XDMF",
     "abaqus": "Abaqus input",
     "netgen": "Netgen",
+    "exodus": "Exodus II",
 }
 _KNOWN_EXTENSIONS = ", ".join(_READ_FORMATS)
 
@@ -1176,6 +1181,8 @@ def load(path: str | os.PathLike) -> TetMesh:
         arrays, extras = _abaqus_arrays(p, source)
     elif fmt == "netgen":
         arrays, extras = _netgen_arrays(p, source)
+    elif fmt == "exodus":
+        arrays, extras = _exodus_arrays(p, source)
     elif fmt == "xdmf":
         from ._xdmf import read_xdmf, xdmf_to_meshio
 
@@ -1225,20 +1232,41 @@ def load(path: str | os.PathLike) -> TetMesh:
         raise MeshInputError(msg if msg.startswith(source) else f"{source}: {msg}") from None
 
 
-def _abaqus_arrays(path: Path, source: str):
-    """``from_arrays``' arguments and extras of an Abaqus input file (``_abaqus``): its
-    surfaces' and triangle elements' faces of the tets as labelled protected faces, its
-    line elements' edges as protected edges."""
-    from ._abaqus import read_inp
-
-    (points, tets, region, faces, face_labels, lines, line_labels, pins, pin_labels,
-     names) = read_inp(path, source)  # fmt: skip
+def _candidate_arrays(read, path: Path, source: str):
+    """``from_arrays``' arguments and extras of a file whose reader ``read(path, source)``
+    returns (points, tets, region, candidate faces, their labels, candidate edges, their
+    labels, candidate vertices, their labels, label names[, periodic]): the candidates
+    that are faces, edges and vertices of the tets become protected ones
+    (``_mesh_cells``, ``_mesh_vertices``)."""
+    points, tets, region, faces, face_labels, lines, line_labels, pins, pin_labels, *rest = read(
+        path, source
+    )
     n = len(points)
     faces, face_labels = _mesh_cells(tets, faces, face_labels, n, source)
     edges, edge_labels = _mesh_cells(tets, lines, line_labels, n, source)
     pinned, pinned_labels = _mesh_vertices(tets, pins, pin_labels, n, source)
     arrays = (points, tets, region, faces, edges, face_labels, pinned, edge_labels, pinned_labels)
-    return arrays, {"label_names": names}
+    extras = {"label_names": rest[0]}
+    if len(rest) > 1:
+        extras["periodic"] = rest[1]
+    return arrays, extras
+
+
+def _abaqus_arrays(path: Path, source: str):
+    """An Abaqus input file (``_abaqus``): element sets -> regions, surfaces and triangle
+    elements -> labelled protected faces, line elements -> edges, node sets -> vertices."""
+    from ._abaqus import read_inp
+
+    return _candidate_arrays(read_inp, path, source)
+
+
+def _exodus_arrays(path: Path, source: str):
+    """An Exodus II file (``_exodus``): element blocks -> regions, side sets and triangle
+    blocks -> labelled protected faces, bar blocks -> edges, node sets and sphere blocks
+    -> vertices, with their names."""
+    from ._exodus import read_exo
+
+    return _candidate_arrays(read_exo, path, source)
 
 
 def _xdmf_label_names(names, source: str) -> dict:
@@ -1250,30 +1278,12 @@ def _xdmf_label_names(names, source: str) -> dict:
 
 
 def _netgen_arrays(path: Path, source: str):
-    """``from_arrays``' arguments and extras of a Netgen mesh file (``_netgen``): its
-    surface elements' faces of the tets as labelled protected faces, its edge segments
-    and point elements as protected edges and vertices, its names as label names."""
+    """A Netgen mesh file (``_netgen``): surface elements -> labelled protected faces,
+    edge segments and point elements -> edges and vertices, names, identifications ->
+    periodic links."""
     from ._netgen import read_vol
 
-    (
-        points,
-        tets,
-        region,
-        faces,
-        face_labels,
-        lines,
-        line_labels,
-        pins,
-        pin_labels,
-        names,
-        periodic,
-    ) = read_vol(path, source)
-    n = len(points)
-    faces, face_labels = _mesh_cells(tets, faces, face_labels, n, source)
-    edges, edge_labels = _mesh_cells(tets, lines, line_labels, n, source)
-    pinned, pinned_labels = _mesh_vertices(tets, pins, pin_labels, n, source)
-    arrays = (points, tets, region, faces, edges, face_labels, pinned, edge_labels, pinned_labels)
-    return arrays, {"label_names": names, "periodic": periodic}
+    return _candidate_arrays(read_vol, path, source)
 
 
 def _meshb_arrays(path: Path, source: str):
@@ -1319,6 +1329,11 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str 
         from ._abaqus import write_inp
 
         write_inp(mesh, tmp)
+        return
+    if fmt == "exodus":
+        from ._exodus import write_exo
+
+        write_exo(mesh, tmp, cell_data)
         return
     if fmt == "xdmf":
         from ._xdmf import companion, write_xdmf
@@ -1518,16 +1533,16 @@ def save(
     ext = p.suffix.lower()
     fmt = output_format(p)
     cell_data = _check_cell_data(mesh, cell_data)
-    if fmt in ("medit", "tetgen", "abaqus", "netgen"):
-        dropped = list(cell_data)
+    if fmt in ("medit", "tetgen", "abaqus", "netgen", "exodus"):
+        dropped = list(cell_data) if fmt != "exodus" else []
         if len(dropped) > 4:
             dropped = [f"{len(dropped)} cell arrays ({', '.join(dropped[:3])}, ...)"]
-        if fmt in ("tetgen", "abaqus") and len(mesh.protected_edges):
+        if fmt in ("tetgen", "abaqus", "exodus") and len(mesh.protected_edges):
             dropped.append("protected edges")
         no_vertices = fmt == "tetgen"
         if len(mesh.protected_vertices) and no_vertices:
             dropped.append("protected vertices")
-        if len(mesh.label_names) and fmt not in ("abaqus", "netgen"):
+        if len(mesh.label_names) and fmt not in ("abaqus", "netgen", "exodus"):
             dropped.append(f"{len(mesh.label_names)} label name(s) (Gmsh physical names)")
         if mesh.periodic and fmt != "netgen":
             dropped.append(f"{len(mesh.periodic)} periodic link(s)")
@@ -1542,6 +1557,11 @@ def save(
                 ".vol": "regions (materials, with their names) and protected faces, "
                 "edges and vertices (surface elements, edge segments, point elements)",
             }.get(ext, "region labels and protected faces")
+            if fmt == "exodus":
+                stored = (
+                    "regions (element blocks), protected faces (side sets) and vertices "
+                    "(node sets), their names and the cell arrays (element variables)"
+                )
             warnings.warn(
                 f"{p}: the {_FORMAT_NAMES[fmt]} format stores only the {stored}; "
                 f"not saved: {', '.join(dropped)}",
