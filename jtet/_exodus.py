@@ -133,6 +133,12 @@ def read_exo(path: Path, source: str):
     reader = _Reader(path, source)
     try:
         return _read(reader, source)
+    except (MeshFileError, MeshInputError):
+        raise
+    except Exception as e:  # noqa: BLE001 - a damaged file fails inside netCDF / HDF5
+        raise MeshFileError(
+            f"{source}: not a readable Exodus file ({type(e).__name__}: {e})"
+        ) from None
     finally:
         reader.close()
 
