@@ -6,8 +6,8 @@ per region (its element set named after the region: a Gmsh physical name, else
 ``*SURFACE`` (what ``*DSLOAD`` / ``*DLOAD`` pressure loads and contact use) with a node
 set ``<surface>_NODES`` of its vertices (what ``*BOUNDARY`` uses). Each region and
 surface also has a node set of its own name, as Gmsh's export writes them
-(``Mesh.SaveGroupsOfNodes``), and each label of the protected vertices a node set
-(``POINT<label>`` when unnamed). Element ``i + 1`` is tet ``i``, node ``j + 1`` point
+(``Mesh.SaveGroupsOfNodes``), each label of the protected vertices a node set
+(``POINT<label>`` when unnamed), and each of ``TetMesh.node_sets`` its own. Element ``i + 1`` is tet ``i``, node ``j + 1`` point
 ``j``. Comment lines ``** jtet region <label> <set>``, ``** jtet surface <label> <name>``
 and ``** jtet point <label> <set>`` keep the labels for the way back.
 
@@ -15,9 +15,9 @@ and ``** jtet point <label> <set>`` keep the labels for the way back.
 ``*NODE``, ``*ELEMENT`` (tets; triangles and lines as candidate protected faces and
 edges), ``*ELSET`` / ``*NSET`` (ids, ``GENERATE`` ranges, other sets' names) and
 element-face ``*SURFACE``. Node sets that are not the nodes of a region, surface or
-curve (nor of every node) become labelled protected vertices (``_point_sets``): the
-nodes a deck's loads and boundary conditions name stay where they are, and the output
-names them again. Regions come from the element sets holding tets (without the
+curve become ``TetMesh.node_sets`` (``_point_sets``): the nodes a deck's loads and
+boundary conditions name stay where they are, and the output writes each set again
+under its name. Regions come from the element sets holding tets (without the
 comments: the sets named by ``*ELSET`` first, then those of ``*ELEMENT`` lines, a tet
 in several taking the first; a set holding every tet is no region when there are
 others). Material, step and load sections are skipped. Parts, instances and
@@ -100,6 +100,12 @@ def write_inp(mesh, path: Path) -> None:
     }
     # node sets have names of their own (Abaqus keeps element and node sets apart)
     node_taken: set = set()
+    # the mesh's node sets keep their names first: a deck names them (the sets jtet
+    # derives from regions and surfaces take a suffix where a name is taken)
+    own_sets = [
+        (_set_name(ns.name or f"NSET{ns.label}".replace("-", "M"), node_taken), ns.ids)
+        for ns in mesh.node_sets
+    ]
     point_labels = np.unique(mesh.protected_vertex_labels)
     points = {
         int(k): _set_name(names.get((0, int(k)), f"POINT{k}".replace("-", "M")), node_taken)
@@ -132,6 +138,8 @@ def write_inp(mesh, path: Path) -> None:
     for k, name in points.items():
         out.append(f"*NSET, NSET={name}\n")
         out.append(_id_lines(mesh.protected_vertices[mesh.protected_vertex_labels == k] + 1))
+    for name, ids in own_sets:
+        out.append(f"*NSET, NSET={name}\n" + _id_lines(ids + 1))
     if len(mesh.protected_faces):
         tet, opposite = _face_owners(mesh)
         side = _S_OF_OPPOSITE[opposite]
@@ -363,22 +371,19 @@ def read_inp(path: Path, source: str):
     faces = np.concatenate([faces, extra_faces])
     face_labels = np.concatenate([face_labels, extra_labels])
     entities = [(3, tets, region), (2, faces, face_labels), (1, lines, line_labels)]
-    pins, pin_labels = _point_sets(
-        node_sets, index_of, entities, names, comments, len(nodes), source
-    )
+    pins, pin_labels, kept = _point_sets(node_sets, index_of, entities, names, comments, len(nodes))
     return (nodes[:, 1:], tets, region, faces, face_labels, lines, line_labels, pins,
-            pin_labels, names)  # fmt: skip
+            pin_labels, {"label_names": names, "node_sets": kept})  # fmt: skip
 
 
-def _point_sets(node_sets, index_of, entities, names, comments, n: int, source: str):
-    """Protected vertices (k,) and their labels (k,) from the node sets: those jtet
-    wrote for its protected vertices (``** jtet point`` comments), and every other set
-    that is not the nodes of a named region, surface or curve (Gmsh's
-    ``SaveGroupsOfNodes`` sets and jtet's ``<surface>_NODES``, written again from those)
-    nor of every node: a set a deck's boundary conditions or loads name, whose nodes
-    must stay where they are and which the output writes back under its name. A node in
-    several sets keeps the first one's label, with a warning (``names`` gains each set's
-    name)."""
+def _point_sets(node_sets, index_of, entities, names, comments, n: int):
+    """Protected vertices (k,), their labels (k,) and ``TetMesh.node_sets`` from the
+    node sets of the file: those jtet wrote for its protected vertices (``** jtet point``
+    comments) are protected vertices again; those that are the nodes of a named region,
+    surface or curve (Gmsh's ``SaveGroupsOfNodes`` sets and jtet's ``<surface>_NODES``)
+    are written again from those; every other one (what a deck's boundary conditions
+    and loads name) is a node set, kept as it is (``names`` gains the protected
+    vertices' names)."""
     derived = {}
     default = {3: "REGION", 2: "SURFACE", 1: "CURVE"}  # write_inp's names of unnamed labels
     for dim, cells, labels in entities:
@@ -388,30 +393,18 @@ def _point_sets(node_sets, index_of, entities, names, comments, n: int, source: 
             derived[name.upper()] = nodes
             derived[name.upper() + "_NODES"] = nodes
     given = {name.upper(): int(label) for kind, label, name in comments if kind == "point"}
-    pins, pin_labels = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
-    taken = np.zeros(n, bool)
-    next_label = max([0, *given.values()]) + 1
+    pins, pin_labels, kept = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], []
     for key, (name, ids, _) in sorted(node_sets.items(), key=lambda s: s[1][2]):
         nodes = _nodes_of(index_of(ids, f"*NSET {name}"), n)
         label = given.get(key)
-        if label is None:
-            if derived.get(key) == nodes.tobytes() or len(nodes) == n:
-                continue
-            label, next_label = next_label, next_label + 1
-        if not re.fullmatch(r"POINT-?M?\d+", name):
-            names[(0, label)] = name
-        new = nodes[~taken[nodes]]
-        if len(new) < len(nodes):
-            warnings.warn(
-                f"{source}: node set {name} shares {len(nodes) - len(new)} node(s) with "
-                "sets before it; a protected vertex has one label, so an output lists "
-                "them in the first set only",
-                stacklevel=4,
-            )
-        taken[new] = True
-        pins.append(new)
-        pin_labels.append(np.full(len(new), label, np.int64))
-    return np.concatenate(pins), np.concatenate(pin_labels)
+        if label is not None:  # jtet's protected vertices of this label
+            if not re.fullmatch(r"POINT-?M?\d+", name):
+                names[(0, label)] = name
+            pins.append(nodes)
+            pin_labels.append(np.full(len(nodes), label, np.int64))
+        elif derived.get(key) != nodes.tobytes():
+            kept.append((name, nodes))
+    return np.concatenate(pins), np.concatenate(pin_labels), kept
 
 
 def _regions(tet_ids, sets, comments, source):

@@ -393,8 +393,8 @@ def improve(
     # the run's topologies (the checks', every step's) treat subfacets bent by less than
     # the feature angle as one surface; the caller's mesh object is left as it was
     mesh = mesh._with_feature_angle(opts.feature_angle)
-    if mesh.periodic:
-        return _improve_periodic(mesh, opts, callback)
+    if mesh.periodic or mesh.node_sets:
+        return _improve_pinned(mesh, opts, callback)
     if opts.regions is not None or len(mesh.protected_tets):
         # the run changes only these tets: those of the regions, minus the protected ones
         sel = np.ones(mesh.n_tets, bool)
@@ -473,24 +473,31 @@ def improve(
     )
 
 
-def _improve_periodic(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
-    """``improve`` of a mesh with periodic links (``TetMesh.periodic``): their vertices
-    and the boundary edges between two of them are protected for the run (no move, no
-    2-2 flip on a periodic surface), so every periodic surface keeps its triangulation,
-    its partner's image, and the vertex pairs stay valid (vertex ids never change). The
-    result has the input's own protected edges and vertices (those of the run were
-    never removed nor moved) and its periodic links."""
+def _improve_pinned(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
+    """``improve`` of a mesh with periodic links (``TetMesh.periodic``) or node sets
+    (``TetMesh.node_sets``). The periodic vertices and the boundary edges between two of
+    them are protected for the run (no move, no 2-2 flip on a periodic surface), so
+    every periodic surface keeps its triangulation, its partner's image; the vertices of
+    each node set are protected (but those of a set of every vertex, which constrains
+    nothing). Vertex ids never change, so the pairs and the sets stay valid. The result
+    has the input's own protected edges and vertices (those of the run were never
+    removed nor moved), its periodic links and node sets."""
     import dataclasses
 
-    verts = np.unique(np.concatenate([link.pairs.reshape(-1) for link in mesh.periodic]))
+    links = [link.pairs.reshape(-1) for link in mesh.periodic]
+    verts = np.unique(np.concatenate([np.zeros(0, np.int64), *links]))
     edges = _boundary_edges_between(mesh.tets, verts, mesh.n_points)
-    result = improve(mesh._with_pinned(edges, verts, periodic=()), opts, callback=callback)
+    sets = [s.ids for s in mesh.node_sets if len(s.ids) < mesh.n_points]
+    verts = np.unique(np.concatenate([verts, *sets]))
+    pinned = mesh._with_pinned(edges, verts, periodic=(), node_sets=())
+    result = improve(pinned, opts, callback=callback)
     out = result.mesh.replace(
         protected_edges=mesh.protected_edges,
         protected_edge_labels=mesh.protected_edge_labels,
         protected_vertices=mesh.protected_vertices,
         protected_vertex_labels=mesh.protected_vertex_labels,
         periodic=mesh.periodic,
+        node_sets=mesh.node_sets,
     )
     return dataclasses.replace(result, mesh=out)
 

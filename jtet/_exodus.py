@@ -1,6 +1,6 @@
 """Exodus II meshes (``.exo``, ``.e``; Cubit, SEACAS, MOOSE, ParaView), read and written
-here: element blocks are regions, side sets labelled protected faces, node sets
-labelled protected vertices, with their names.
+here: element blocks are regions, side sets labelled protected faces, node sets node
+sets, with their names.
 
 An Exodus file is a netCDF file: the classic ones (CDF1, CDF2 "64-bit offset") are read
 and written with ``scipy.io.netcdf_file``, the netCDF-4 ones (HDF5 inside) read with
@@ -21,19 +21,21 @@ faces, edges and vertices labelled by their block id; blocks of other solids are
 
 A node set that is the nodes of the side set with its id is read as derived from it and
 written again from it: ``write_exo`` gives each side set a node set of its id and name
-(Cubit's and Gmsh's habit; MOOSE makes the same ones). Every other node set becomes
-protected vertices (a vertex has one label: a node in two such sets stays in the first,
-with a warning).
+(Cubit's and Gmsh's habit; MOOSE makes the same ones). jtet's protected vertices are
+node sets too, whose ids the file's ``jtet_point_sets`` attribute lists. Every other
+node set is one of ``TetMesh.node_sets``, kept as it is (overlaps included).
 """
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ._errors import MeshFileError, MeshInputError
+
+#: global attribute of jtet's files: the ids of the node sets that are protected vertices
+POINT_SETS_ATTR = "jtet_point_sets"
 
 #: local vertices of each Exodus tet side (1-4), 0-based
 SIDES = np.array([[0, 1, 3], [1, 2, 3], [0, 3, 2], [0, 2, 1]])
@@ -106,6 +108,10 @@ class _Reader:
             return [""] * count
         rows = a.astype("S1").view(f"S{a.shape[1]}").reshape(-1)
         return [r.split(b"\0")[0].decode("utf-8", "replace").strip() for r in rows[:count]]
+
+    def global_attr(self, name: str, default=None):
+        """The file's attribute ``name`` (``default`` without it)."""
+        return self._attrs.get(name, default)
 
     def attr(self, var: str, name: str) -> str:
         v = self._vars[var]
@@ -211,7 +217,7 @@ def _read(r: _Reader, source: str):
     tet_of_element = np.concatenate(tet_of_element)
 
     faces, face_labels, side_nodes = _side_sets(r, tets, tet_of_element, names, source)
-    pins, pin_labels = _node_sets(r, n, side_nodes, names, source)
+    pins, pin_labels, node_sets = _node_sets(r, n, side_nodes, names, source)
     # jtet's files number the tets in ``elem_num_map`` (their order before they were
     # grouped into blocks): back in that order, when it is one of every tet (after the
     # side sets, which name elements in the blocks' order)
@@ -235,7 +241,7 @@ def _read(r: _Reader, source: str):
     pins = np.concatenate([pins, spheres.reshape(-1)])
     pin_labels = np.concatenate([pin_labels, sphere_labels])
     return (points, tets, region, faces, face_labels, lines, line_labels, pins, pin_labels,
-            names)  # fmt: skip
+            {"label_names": names, "node_sets": node_sets})  # fmt: skip
 
 
 def _side_sets(r: _Reader, tets, tet_of_element, names, source):
@@ -270,16 +276,19 @@ def _side_sets(r: _Reader, tets, tet_of_element, names, source):
 
 
 def _node_sets(r: _Reader, n: int, side_nodes: dict, names, source):
-    """Protected vertices and labels of the node sets not derived from a side set."""
+    """(protected vertices, their labels, ``TetMesh.node_sets``) of the file's node
+    sets: those jtet wrote for protected vertices (the ids its ``jtet_point_sets``
+    attribute lists) are protected vertices again; a side set's own (its id, its nodes)
+    is written again from the side set; every other one is a node set, kept as it is."""
     count = r.count("ns_prop1", "node_ns")
     ids = r.ints("ns_prop1", np.arange(1, count + 1))[:count]
     set_names = r.names("ns_names", count)
-    taken = np.zeros(n, bool)
-    pins, labels = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    points = set(np.ravel(r.global_attr(POINT_SETS_ATTR, [])).astype(np.int64).tolist())
+    pins, labels, kept = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], []
     for s in range(count):
         members = r.ints(f"node_ns{s + 1}")
         if members is None:
-            continue
+            members = np.zeros(0, np.int64)
         if len(members) and (members.min() < 1 or members.max() > n):
             raise MeshInputError(
                 f"{source}: node set {int(ids[s])} names node "
@@ -287,22 +296,14 @@ def _node_sets(r: _Reader, n: int, side_nodes: dict, names, source):
             )
         nodes = np.unique(members - 1)
         label = int(ids[s])
-        if side_nodes.get(label) == nodes.tobytes():
-            continue  # the side set's nodes: written again from it
-        if set_names[s]:
-            names.setdefault((0, label), set_names[s])
-        new = nodes[~taken[nodes]]
-        if len(new) < len(nodes):
-            warnings.warn(
-                f"{source}: node set {label} shares {len(nodes) - len(new)} node(s) with "
-                "sets before it; a protected vertex has one label, so an output lists "
-                "them in the first set only",
-                stacklevel=4,
-            )
-        taken[new] = True
-        pins.append(new)
-        labels.append(np.full(len(new), label, np.int64))
-    return np.concatenate(pins), np.concatenate(labels)
+        if label in points:
+            if set_names[s]:
+                names.setdefault((0, label), set_names[s])
+            pins.append(nodes)
+            labels.append(np.full(len(nodes), label, np.int64))
+        elif side_nodes.get(label) != nodes.tobytes():
+            kept.append((set_names[s], nodes, label))
+    return np.concatenate(pins), np.concatenate(labels), kept
 
 
 def _chars(names: list[str], width: int) -> np.ndarray:
@@ -315,7 +316,8 @@ def write_exo(mesh, path: Path, cell_data: dict | None = None) -> None:
     """Write ``mesh`` as a classic (64-bit offset) Exodus II file: one TETRA4 block per
     region (id = label, name from ``label_names``), one side set per protected face
     label with a node set of the same id and name, one node set per protected vertex
-    label (ids past the side sets' where they collide), and ``cell_data`` (name -> (m,)
+    label (listed in the ``jtet_point_sets`` attribute) and per ``node_sets`` entry
+    (each keeps its id unless one before took it: the next free id), and ``cell_data`` (name -> (m,)
     per-tet values) as element variables at one time step (0.0), which ParaView colours
     by."""
     from scipy.io import netcdf_file
@@ -399,14 +401,24 @@ def write_exo(mesh, path: Path, cell_data: dict | None = None) -> None:
             for k, _, _ in side_sets
         ]  # fmt: skip
         used = {k for k, _, _ in side_sets}
-        spare = max([0, *used, *vertex_labels.tolist()]) + 1
-        for k in vertex_labels.tolist():
-            label = k
-            if label in used:  # a side set's node set has this id
+        own = [ns.label for ns in mesh.node_sets if ns.label is not None]
+        spare = max([0, *used, *vertex_labels.tolist(), *own]) + 1
+        point_sets = []
+
+        def free(label):  # the id itself, or the next unused one
+            nonlocal spare
+            if label is None or label in used:
                 label, spare = spare, spare + 1
-            mine = mesh.protected_vertices[mesh.protected_vertex_labels == k] + 1
-            node_sets.append((label, mine, names.get((0, k), "")))
             used.add(label)
+            return label
+
+        for k in vertex_labels.tolist():
+            mine = mesh.protected_vertices[mesh.protected_vertex_labels == k] + 1
+            point_sets.append(free(k))
+            node_sets.append((point_sets[-1], mine, names.get((0, k), "")))
+        node_sets += [(free(ns.label), ns.ids + 1, ns.name) for ns in mesh.node_sets]
+        if point_sets:
+            setattr(f, POINT_SETS_ATTR, np.array(point_sets, np.int32))
         if side_sets:
             f.createDimension("num_side_sets", len(side_sets))
             ids_variable("ss_status", "num_side_sets", np.ones(len(side_sets)))

@@ -58,6 +58,9 @@ LABEL_NAMES_ARRAY = "jtet:label_names"
 #: field data of VTK files: the UTF-8 bytes of a JSON list of the periodic links,
 #: [dim, slave tag, master tag, 16 affine numbers or null, [[slave, master], ...]]
 PERIODIC_ARRAY = "jtet:periodic"
+#: field data of VTK files: the UTF-8 bytes of a JSON list of the node sets, each
+#: [name, [vertex ids], label or null]
+NODE_SETS_ARRAY = "jtet:node_sets"
 PROTECTED_TETS_ARRAY = "jtet:protected_tets"
 PROTECTED_FACE_LABELS_ARRAY = "jtet:protected_face_labels"
 
@@ -358,6 +361,9 @@ def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
             for p in mesh.periodic
         ]
         grid.field_data[PERIODIC_ARRAY] = _json_bytes(links)
+    if mesh.node_sets:
+        sets = [[ns.name, ns.ids.tolist(), ns.label] for ns in mesh.node_sets]
+        grid.field_data[NODE_SETS_ARRAY] = _json_bytes(sets)
     if len(mesh.protected_tets):
         grid.field_data[PROTECTED_TETS_ARRAY] = np.array(mesh.protected_tets)
     return grid
@@ -463,7 +469,26 @@ def grid_extras(grid, source: str = "pyvista grid") -> dict:
         "label_names": grid_label_names(grid, source),
         "periodic": grid_periodic(grid, source),
         "protected_tets": _field_entities(grid, PROTECTED_TETS_ARRAY, 4, source),
+        "node_sets": grid_node_sets(grid, source),
     }
+
+
+def grid_node_sets(grid, source: str = "pyvista grid") -> list | None:
+    """The node sets in the ``NODE_SETS_ARRAY`` field data of ``grid`` (``mesh_to_grid``'s),
+    as ``TetMesh.node_sets`` takes them; None without (or, with a warning, unreadable)."""
+    sets = _json_field(grid, NODE_SETS_ARRAY, source)
+    if sets is None:
+        return None
+    from ._mesh import _checked_node_sets
+
+    try:
+        return list(_checked_node_sets(sets, grid.n_points))
+    except (TypeError, ValueError, MeshInputError) as e:
+        warnings.warn(
+            f"{source}: field data {NODE_SETS_ARRAY!r} is unreadable ({_reason(e)}); ignored",
+            stacklevel=3,
+        )
+        return None
 
 
 def _json_field(grid, name: str, source: str):
@@ -1235,10 +1260,10 @@ def load(path: str | os.PathLike) -> TetMesh:
 def _candidate_arrays(read, path: Path, source: str):
     """``from_arrays``' arguments and extras of a file whose reader ``read(path, source)``
     returns (points, tets, region, candidate faces, their labels, candidate edges, their
-    labels, candidate vertices, their labels, label names[, periodic]): the candidates
-    that are faces, edges and vertices of the tets become protected ones
+    labels, candidate vertices, their labels, {``from_arrays`` keyword: value}): the
+    candidates that are faces, edges and vertices of the tets become protected ones
     (``_mesh_cells``, ``_mesh_vertices``)."""
-    points, tets, region, faces, face_labels, lines, line_labels, pins, pin_labels, *rest = read(
+    points, tets, region, faces, face_labels, lines, line_labels, pins, pin_labels, extras = read(
         path, source
     )
     n = len(points)
@@ -1246,9 +1271,6 @@ def _candidate_arrays(read, path: Path, source: str):
     edges, edge_labels = _mesh_cells(tets, lines, line_labels, n, source)
     pinned, pinned_labels = _mesh_vertices(tets, pins, pin_labels, n, source)
     arrays = (points, tets, region, faces, edges, face_labels, pinned, edge_labels, pinned_labels)
-    extras = {"label_names": rest[0]}
-    if len(rest) > 1:
-        extras["periodic"] = rest[1]
     return arrays, extras
 
 
@@ -1303,6 +1325,11 @@ def _meshb_arrays(path: Path, source: str):
     arrays = _meshio_to_arrays(m, source, "medit", None, required)
     tets = _medit_required_tets(required.get("RequiredTetrahedra"), arrays[1], path)
     return arrays, {"protected_tets": tets}
+
+
+def _node_set_names(mesh: TetMesh) -> list[str]:
+    """How warnings name the node sets: their names, else their labels."""
+    return [ns.name or f"id {ns.label}" for ns in mesh.node_sets]
 
 
 def _medit_sections(mesh: TetMesh) -> dict[str, np.ndarray]:
@@ -1609,6 +1636,13 @@ def save(
                 "protected triangles, lines or points) (use .vtu)",
                 stacklevel=2,
             )
+    if mesh.node_sets and fmt not in ("vtu", "vtk", "abaqus", "exodus"):
+        warnings.warn(
+            f"{p}: the {_FORMAT_NAMES[fmt]} format has no node sets; not saved: "
+            f"{len(mesh.node_sets)} node set(s) ({', '.join(_node_set_names(mesh)[:3])}"
+            f"{', ...' if len(mesh.node_sets) > 3 else ''}) (use .inp, .exo or .vtu)",
+            stacklevel=2,
+        )
     for what, values in (
         ("region", mesh.region),
         ("surface", mesh.protected_face_labels),

@@ -78,6 +78,47 @@ class Periodic(NamedTuple):
     pairs: np.ndarray  # (k, 2) int64 vertex ids (slave, master), read-only
 
 
+class NodeSet(NamedTuple):
+    """A set of vertices a solver's input names (an Abaqus ``*NSET``, an Exodus node
+    set): what its boundary conditions, loads and outputs are applied to. ``improve``
+    never moves these vertices (unless the set holds every vertex: it constrains
+    nothing), and the Abaqus, Exodus and VTK savers write the set back. ``name`` may be
+    "" (an Exodus node set without a name); ``label`` is an Exodus node set id (None:
+    none)."""
+
+    name: str
+    ids: np.ndarray  # (k,) int64 sorted distinct vertex ids, read-only
+    label: int | None = None
+
+
+def _checked_node_sets(sets, n_points: int) -> tuple[NodeSet, ...]:
+    """``TetMesh.node_sets`` as a tuple of ``NodeSet`` (items: ``NodeSet`` or (name,
+    ids[, label])) with sorted, distinct, in-range vertex ids."""
+    if sets is None:
+        return ()
+    out = []
+    for item in sets:
+        try:
+            name, ids, *rest = item
+            label = None if not rest or rest[0] is None else int(rest[0])
+            ids = np.asarray(ids)
+            if not np.issubdtype(ids.dtype, np.integer) and ids.size:
+                raise ValueError("ids must be integer vertex ids")
+            ids = np.unique(ids.astype(np.int64).reshape(-1))
+        except (TypeError, ValueError) as e:
+            raise MeshInputError(
+                f"node_sets must hold (name, vertex ids[, label]) items: {e}"
+            ) from None
+        if not isinstance(name, str):
+            raise MeshInputError(f"node set names must be strings, got {name!r}")
+        if len(ids) and (ids[0] < 0 or ids[-1] >= n_points):
+            raise MeshInputError(
+                f"node set {name or label!r} holds vertex ids out of range [0, {n_points})"
+            )
+        out.append(NodeSet(name, _readonly(ids), label))
+    return tuple(out)
+
+
 def _checked_periodic(links, n_points: int) -> tuple[Periodic, ...]:
     """``TetMesh.periodic`` as a tuple of ``Periodic`` with in-range vertex ids."""
     if links is None:
@@ -277,6 +318,9 @@ class TetMesh:
         protected_tets: (k, 4) int64 tets that ``improve`` leaves exactly as they are
             (sorted vertex rows; MMG's ``RequiredTetrahedra``, the VTK field data
             ``jtet:protected_tets``), with their vertices and faces.
+        node_sets: tuple of ``NodeSet`` (Abaqus ``*NSET``, Exodus node sets): named
+            vertex sets a solver's input refers to, which may overlap. ``improve`` never
+            moves their vertices and never renumbers vertices, so each set stays valid.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it
@@ -295,6 +339,7 @@ class TetMesh:
     label_names: dict = field(default=None)
     periodic: tuple = field(default=None)
     protected_tets: Int[np.ndarray, "k 4"] = field(default=None)
+    node_sets: tuple = field(default=None)
 
     def __post_init__(self):
         points = _checked_points(self.points)
@@ -315,6 +360,7 @@ class TetMesh:
             object.__setattr__(self, label_name, _readonly(labels))
         object.__setattr__(self, "label_names", _checked_names(self.label_names))
         object.__setattr__(self, "periodic", _checked_periodic(self.periodic, len(points)))
+        object.__setattr__(self, "node_sets", _checked_node_sets(self.node_sets, len(points)))
         pt = self._entity_array(self.protected_tets, 4, "protected_tets", len(points))
         object.__setattr__(self, "protected_tets", _readonly(pt))
 
@@ -372,6 +418,10 @@ class TetMesh:
         if "periodic" in changes or len(points) < self.n_points:
             periodic = _checked_periodic(changes.get("periodic", periodic), len(points))
         object.__setattr__(out, "periodic", periodic)
+        node_sets = self.node_sets
+        if "node_sets" in changes or len(points) < self.n_points:
+            node_sets = _checked_node_sets(changes.get("node_sets", node_sets), len(points))
+        object.__setattr__(out, "node_sets", node_sets)
         pt = self.protected_tets
         if "protected_tets" in changes or len(points) < self.n_points:
             pt = self._entity_array(
@@ -500,6 +550,7 @@ class TetMesh:
         label_names=None,
         periodic=None,
         protected_tets=None,
+        node_sets=None,
         source: str = "input",
     ) -> TetMesh:
         """Build a mesh from user arrays, fixing a globally reversed orientation.
@@ -515,7 +566,7 @@ class TetMesh:
         mesh = cls(
             points, tets, region, protected_faces, protected_edges, protected_face_labels,
             protected_vertices, protected_edge_labels, protected_vertex_labels, label_names,
-            periodic, protected_tets,
+            periodic, protected_tets, node_sets,
         )  # fmt: skip
         vol = _orient_volumes6(mesh.points, mesh.tets)
         neg, pos = int((vol < 0).sum()), int((vol > 0).sum())
@@ -738,5 +789,6 @@ class TetMesh:
             + (f", {pv} protected vertices" if pv else "")
             + (f", {len(self.protected_tets)} protected tets" if len(self.protected_tets) else "")
             + (f", {len(self.periodic)} periodic links" if self.periodic else "")
+            + (f", {len(self.node_sets)} node sets" if self.node_sets else "")
             + ")"
         )

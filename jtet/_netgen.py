@@ -67,10 +67,10 @@ _NAMES = {"materials": 3, "bcnames": 2, "cd2names": 1, "cd3names": 0}
 
 def read_vol(path: Path, source: str):
     """``(points, tets, region, faces, face labels, edges, edge labels, vertices,
-    vertex labels, names, periodic)`` of the Netgen mesh file ``path``: faces / edges /
-    vertices as candidate rows for ``_io._mesh_cells`` / ``_mesh_vertices``, names as
-    ``TetMesh.label_names``, the identifications as ``TetMesh.periodic`` links (one per
-    identification number, no affine map)."""
+    vertex labels, {"label_names": names, "periodic": links})`` of the Netgen mesh file
+    ``path``: faces / edges / vertices as candidate rows for ``_io._mesh_cells`` /
+    ``_mesh_vertices``, names as ``TetMesh.label_names``, the identifications as
+    ``TetMesh.periodic`` links (one per identification number, no affine map)."""
     try:
         data = path.read_bytes()
         if path.name.lower().endswith(".gz"):
@@ -121,8 +121,7 @@ def read_vol(path: Path, source: str):
         edge_labels,
         vertices,
         vertex_labels,
-        names,
-        periodic,
+        {"label_names": names, "periodic": periodic},
     )
 
 

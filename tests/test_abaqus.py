@@ -210,10 +210,10 @@ def _node_sets(path) -> dict[str, set[int]]:
 def test_gmsh_node_sets_are_written_back(tmp_path):
     """Gmsh's export with ``Mesh.SaveGroupsOfNodes`` (what CalculiX decks name in
     *BOUNDARY): the physical volume names the region (not Gmsh's elementary set beside
-    it), the physical point's node set becomes a protected vertex, and an improved
-    output has a node set of each physical group's name holding the same node ids
-    (jtet keeps the nodes' numbering; flips change no node set of a region, surface or
-    point)."""
+    it), the physical point's node set is a node set (the others are the nodes of the
+    region and surfaces, written again from them), and an improved output has a node
+    set of each physical group's name holding the same node ids (jtet keeps the nodes'
+    numbering; flips change no node set of a region, surface or point)."""
     gmsh = pytest.importorskip("gmsh")
     path = tmp_path / "g.inp"
     gmsh.initialize()
@@ -235,8 +235,8 @@ def test_gmsh_node_sets_are_written_back(tmp_path):
     assert {v for k, v in mesh.label_names.items() if k[0] == 3} == {"solid"}
     given = _node_sets(path)
     assert set(given) == {"solid", "fix", "load", "corner"}
-    assert mesh.label_names[(0, 1)] == "corner"
-    assert (mesh.protected_vertices + 1).tolist() == sorted(given["corner"])
+    assert [ns.name for ns in mesh.node_sets] == ["corner"]
+    assert (mesh.node_sets[0].ids + 1).tolist() == sorted(given["corner"])
     out = tmp_path / "out.inp"
     result = jtet.improve(mesh, max_passes=3, perturb=0)
     assert result.mesh.n_tets != mesh.n_tets  # flips ran
@@ -244,14 +244,14 @@ def test_gmsh_node_sets_are_written_back(tmp_path):
     written = _node_sets(out)
     for name, ids in given.items():
         assert written[name] == ids, name
-    np.testing.assert_array_equal(jtet.load(out).protected_vertices, mesh.protected_vertices)
+    np.testing.assert_array_equal(jtet.load(out).node_sets[0].ids, mesh.node_sets[0].ids)
 
 
 def test_node_sets_of_a_deck_stay_put(tmp_path, labelled):
-    """A hand-made node set (a probe inside, a corner) becomes protected vertices that
-    improve never moves, and the output writes it back under its name; a set of every
-    node ("NALL") protects nothing; a node in two sets warns, as the output can list it
-    in the first only."""
+    """Hand-made node sets (a probe inside, a tip sharing a node with it, every node)
+    are kept as they are, overlaps included: improve never moves the probe's or the
+    tip's nodes (while it moves others), a set of every node ("NALL") constrains
+    nothing, and the output writes each back under its name with its nodes."""
     src = tmp_path / "deck.inp"
     _save(labelled, src)
     interior = np.setdiff1d(np.arange(labelled.n_points), np.unique(labelled.protected_faces))
@@ -262,17 +262,20 @@ def test_node_sets_of_a_deck_stay_put(tmp_path, labelled):
         "*NSET, NSET=TIP\n" + ", ".join(map(str, [*corner, probe[0]])) + "\n"
     )
     src.write_text(text)
-    with pytest.warns(UserWarning, match="node set TIP shares 1 node"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
         mesh = jtet.load(src)
-    named = {v: k[1] for k, v in mesh.label_names.items() if k[0] == 0}
-    assert set(named) == {"PROBE", "TIP"}
-    pins = dict(zip(mesh.protected_vertices.tolist(), mesh.protected_vertex_labels.tolist()))
-    assert pins == {**{i - 1: named["PROBE"] for i in probe}, 0: named["TIP"]}
+    sets = {ns.name: (ns.ids + 1).tolist() for ns in mesh.node_sets}
+    assert sets == {
+        "PROBE": sorted(probe.tolist()),
+        "NALL": list(range(1, labelled.n_points + 1)),
+        "TIP": sorted([*corner, int(probe[0])]),
+    }
+    assert len(mesh.protected_vertices) == 0
     result = jtet.improve(mesh, max_passes=3, perturb=0)
     moved = np.flatnonzero((result.mesh.points != mesh.points).any(axis=1))
-    assert len(moved) and not set(moved.tolist()) & set(pins)
+    assert len(moved) and not set(moved.tolist()) & {i - 1 for i in [*probe, *corner]}
     out = tmp_path / "out.inp"
     _save(result.mesh, out)
     written = _node_sets(out)
-    assert written["PROBE"] == set(probe.tolist()) and written["TIP"] == {1}
-    assert "NALL" not in written
+    assert {k: sorted(written[k]) for k in sets} == sets

@@ -28,19 +28,18 @@ def _rows(a) -> set:
 def test_classic_file_blocks_side_set_and_node_sets():
     """Blocks 10 "left" / 20 "right" are the tets on each side of x = 0.5, side set 7
     "wall" every boundary face at x = 0 (found here by NumPy), its node set (id 7, the
-    same nodes) is derived from it, node set 4 "probe" (nodes 3 and 7) is protected."""
+    same nodes) is derived from it, node set 4 "probe" (nodes 3 and 7) is a node set."""
     mesh = jtet.load(CLASSIC)
     x = mesh.points[mesh.tets].mean(axis=1)[:, 0]
     np.testing.assert_array_equal(mesh.region, np.where(x < 0.5, 10, 20))
-    assert dict(mesh.label_names) == {(3, 10): "left", (3, 20): "right", (2, 7): "wall",
-                                      (0, 4): "probe"}  # fmt: skip
+    assert dict(mesh.label_names) == {(3, 10): "left", (3, 20): "right", (2, 7): "wall"}
     T = mesh.topology
     boundary = T.faces[T.boundary_face]
     wall = boundary[(mesh.points[boundary][:, :, 0] == 0).all(axis=1)]
     assert len(wall) > 2 and _rows(mesh.protected_faces) == _rows(wall)
     assert set(mesh.protected_face_labels.tolist()) == {7}
-    assert mesh.protected_vertices.tolist() == [3, 7]
-    assert mesh.protected_vertex_labels.tolist() == [4, 4]
+    assert len(mesh.protected_vertices) == 0
+    assert [(ns.name, ns.ids.tolist(), ns.label) for ns in mesh.node_sets] == [("probe", [3, 7], 4)]
 
 
 def test_meshio_netcdf4_file_reads_as_the_classic_one():
@@ -50,7 +49,7 @@ def test_meshio_netcdf4_file_reads_as_the_classic_one():
     np.testing.assert_array_equal(a.points, b.points)
     assert _rows(a.tets) == _rows(b.tets)
     assert sorted(np.unique(a.region).tolist()) == [0, 1]
-    assert a.protected_vertices.tolist() == [3, 7] and a.label_names[(0, 0)] == "probe"
+    assert [(ns.name, ns.ids.tolist(), ns.label) for ns in a.node_sets] == [("probe", [3, 7], 0)]
 
 
 @pytest.fixture(scope="module")
@@ -72,13 +71,16 @@ def labelled():
             (2, 5): "floor",
             (2, 6): "lid",
             (0, 5): "probes",
-        },  # fmt: skip
+        },
+        # overlapping sets; id 6 is a side set's, the second set has none
+        node_sets=[("inlet", inside[2:6], 6), ("tip", inside[4:8])],
     )
 
 
 def test_round_trip(tmp_path, labelled):
-    """Everything comes back (coordinates bit for bit), but the vertex label that is
-    also a side set's id, which takes the next free id with its name."""
+    """Everything comes back (coordinates bit for bit), but the ids of a vertex label
+    and of a node set that a side set already uses, and the id of a node set without
+    one: each takes the next free id, with its name; overlapping node sets stay whole."""
     path = tmp_path / "m.exo"
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -88,6 +90,9 @@ def test_round_trip(tmp_path, labelled):
                  "protected_vertices"):  # fmt: skip
         np.testing.assert_array_equal(getattr(back, name), getattr(labelled, name), name)
     assert back.protected_vertex_labels.tolist() == [12, 12, 11]
+    got = [(ns.name, ns.ids.tolist(), ns.label) for ns in back.node_sets]
+    expected = [(ns.name, ns.ids.tolist(), k) for ns, k in zip(labelled.node_sets, [13, 14])]
+    assert got == expected
     assert dict(back.label_names) == {**{k: v for k, v in labelled.label_names.items()
                                          if k[0] != 0}, (0, 12): "probes"}  # fmt: skip
 
@@ -156,7 +161,7 @@ def test_improve_cli(tmp_path):
         return np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum() / 2
 
     assert area(after) == pytest.approx(area(before), rel=1e-12) == pytest.approx(1.0)
-    assert after.protected_vertices.tolist() == [3, 7]
+    assert after.node_sets[0].ids.tolist() == [3, 7]
     assert jtet.mesh_stats(after).min_dihedral > jtet.mesh_stats(before).min_dihedral
 
 
