@@ -5,7 +5,7 @@ or a crash.
     python experiments/fuzz_files.py --tries 300 --seed 0
     python experiments/fuzz_files.py --formats vtk,vtu --tries 2000
 
-A small labelled mesh (regions, protected faces with labels, edges and vertices) is saved
+A small labelled mesh (regions, protected faces with labels, edges and vertices, node sets) is saved
 in every format (its boundary as a surface in the surface formats); each try mutates one of its files (flips 1-3 bytes, truncates it,
 deletes a line, or replaces a line's start with a bad number) and loads it. Each format
 runs in a child process, so a reader that crashes the process (as VTK's did before its
@@ -58,6 +58,7 @@ def _mesh():
         label_names={(3, 1): "odd tets", (2, 1): "first face", (2, 2): "second"},
         periodic=[(2, (2, 1), None, np.unique(faces)[:4].reshape(-1, 2))],
         protected_tets=mesh.tets[:3],
+        node_sets=[("probe", [2, 3]), ("tip", [3, 4], 9)],
     )
 
 
