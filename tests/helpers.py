@@ -133,6 +133,27 @@ def named_ball_in_box(*paths, save_all_entities=False, names=True):
             gmsh.write(str(path))
 
 
+def run_mmg3d(mesh: "jtet.TetMesh", src: Path, out: Path, *args: str) -> "jtet.TetMesh":
+    """Save ``mesh`` to ``src``, run mmg3d (the binary of the pymmg package, experiments
+    extra; the calling test is skipped without it) from ``src`` to ``out`` with
+    ``args``, and load ``out``."""
+    import importlib.util
+    import subprocess
+
+    spec = importlib.util.find_spec("mmg3d")
+    exe = None if spec is None else Path(spec.origin).parent / "mmg3d_O3"
+    if exe is None or not exe.exists():
+        pytest.skip("mmg3d (pymmg) is not installed")
+    jtet.save(mesh, src)
+    run = subprocess.run(
+        [str(exe), "-in", str(src), "-out", str(out), *args, "-v", "-1"],
+        capture_output=True,
+        timeout=120,
+    )
+    assert run.returncode == 0, (run.stdout[-500:], run.stderr[-500:])
+    return jtet.load(out)
+
+
 def shared_mesh_path(name: str) -> Path:
     """Path of the reference mesh ``name`` in ``shared/meshes`` next to the checkout; the
     calling test is skipped when that directory is not there."""

@@ -7,15 +7,13 @@ same mesh in both encodings, with MMG's Corners, Ridges, Normals and Tangents an
 required vertices, edges, triangles and tets (code 12 in the binary file).
 """
 
-import importlib.util
 import struct
-import subprocess
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import delaunay_mesh
+from helpers import delaunay_mesh, run_mmg3d
 
 import jtet
 from jtet._errors import MeshFileError, MeshInputError
@@ -134,19 +132,7 @@ def test_every_version_and_byte_order(tmp_path, version, order):
 def test_mmg3d_reads_what_jtet_writes(tmp_path, marked):
     """mmg3d (pymmg; skipped without it) reads jtet's .meshb and keeps its required tets
     and vertices: the same tets and vertex coordinates in its output."""
-    spec = importlib.util.find_spec("mmg3d")
-    exe = None if spec is None else Path(spec.origin).parent / "mmg3d_O3"
-    if exe is None or not exe.exists():
-        pytest.skip("mmg3d (pymmg) is not installed")
-    src, out = tmp_path / "in.meshb", tmp_path / "out.meshb"
-    jtet.save(marked, src)
-    run = subprocess.run(
-        [str(exe), "-in", str(src), "-out", str(out), "-optim", "-nosurf", "-v", "-1"],
-        capture_output=True,
-        timeout=120,
-    )
-    assert run.returncode == 0, run.stdout[-500:]
-    back = jtet.load(out)
+    back = run_mmg3d(marked, tmp_path / "in.meshb", tmp_path / "out.meshb", "-optim", "-nosurf")
 
     def corners(mesh, rows):
         return {tuple(sorted(map(tuple, mesh.points[r].tolist()))) for r in rows}

@@ -1,8 +1,6 @@
 """TetMesh.protected_tets: tets improve leaves exactly as they are (MMG's
 RequiredTetrahedra), read and written by the Medit and VTK savers."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -162,15 +160,8 @@ def test_mmg3d_keeps_the_required_triangles_jtet_writes(tmp_path):
     jtet wrote as required, while it splits most of the other boundary triangles (the
     sign that it would have changed them). mmg3d is the binary of the pymmg package
     (experiments extra; the test is skipped without it)."""
-    import importlib.util
-    import subprocess
+    from helpers import delaunay_mesh, run_mmg3d
 
-    from helpers import delaunay_mesh
-
-    spec = importlib.util.find_spec("mmg3d")
-    exe = None if spec is None else Path(spec.origin).parent / "mmg3d_O3"
-    if exe is None or not exe.exists():
-        pytest.skip("mmg3d (pymmg) is not installed")
     mesh = delaunay_mesh(150, seed=4, surface_points=120)
     T = mesh.topology
     faces = np.sort(T.faces[T.boundary_face], axis=1)
@@ -181,15 +172,7 @@ def test_mmg3d_keeps_the_required_triangles_jtet_writes(tmp_path):
         protected_edges=np.unique(sides, axis=0),
         protected_vertices=np.unique(required),
     )
-    src, out = tmp_path / "in.mesh", tmp_path / "out.mesh"
-    jtet.save(mesh, src)
-    run = subprocess.run(
-        [str(exe), "-in", str(src), "-out", str(out), "-hmax", "0.08", "-v", "-1"],
-        capture_output=True,
-        timeout=120,
-    )
-    assert run.returncode == 0, run.stderr[-500:]
-    remeshed = jtet.load(out)
+    remeshed = run_mmg3d(mesh, tmp_path / "in.mesh", tmp_path / "out.mesh", "-hmax", "0.08")
     assert remeshed.n_tets > 2 * mesh.n_tets
 
     def corners(points, tris):
