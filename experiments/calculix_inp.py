@@ -78,8 +78,8 @@ def main() -> None:
             jtet.save(mesh, path)
             text = path.read_text()
             sides = sorted(set(re.findall(r"X(?:MIN|MAX)_S(\d)", text)))
-            sets = re.findall(r"\*ELEMENT, TYPE=C3D4, ELSET=(\S+)", text)
-            sections = "".join(f"*SOLID SECTION, ELSET={s}, MATERIAL=STEEL\n" for s in sets)
+            # one section on the set of every element, as cgx's and PrePoMax's decks do
+            sections = "*SOLID SECTION, ELSET=Eall, MATERIAL=STEEL\n"
             for fixed, loaded, expected in (("XMIN", "XMAX", 1.0), ("XMAX", "XMIN", -1.0)):
                 deck = Path(tmp) / "deck.inp"
                 deck.write_text(

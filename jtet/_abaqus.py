@@ -2,14 +2,15 @@
 
 ``write_inp`` writes the nodes, the tets as ``C3D4`` elements in one ``*ELEMENT`` block
 per region (its element set named after the region: a Gmsh physical name, else
-``REGION<label>``), and each label of the protected faces as an element-face
-``*SURFACE`` (what ``*DSLOAD`` / ``*DLOAD`` pressure loads and contact use) with a node
-set ``<surface>_NODES`` of its vertices (what ``*BOUNDARY`` uses). Each region and
-surface also has a node set of its own name, as Gmsh's export writes them
-(``Mesh.SaveGroupsOfNodes``), each label of the protected vertices a node set
-(``POINT<label>`` when unnamed), and each of ``TetMesh.node_sets`` its own. Element ``i + 1`` is tet ``i``, node ``j + 1`` point
-``j``. Comment lines ``** jtet region <label> <set>``, ``** jtet surface <label> <name>``
-and ``** jtet point <label> <set>`` keep the labels for the way back.
+``REGION<label>``), a set ``EALL`` of every element (CalculiX decks' habit), and each
+label of the protected faces as an element-face ``*SURFACE`` (what ``*DSLOAD`` /
+``*DLOAD`` pressure loads and contact use) with a node set ``<surface>_NODES`` of its
+vertices (what ``*BOUNDARY`` uses). Each region and surface also has a node set of its
+own name, as Gmsh's export writes them (``Mesh.SaveGroupsOfNodes``), each label of the
+protected vertices a node set (``POINT<label>`` when unnamed), and each of
+``TetMesh.node_sets`` its own. Element ``i + 1`` is tet ``i``, node ``j + 1`` point
+``j``. Comment lines ``** jtet region <label> <set>``, ``** jtet surface <label>
+<name>`` and ``** jtet point <label> <set>`` keep the labels for the way back.
 
 ``read_inp`` reads such files and those of Gmsh, meshio and CalculiX's pre-processor:
 ``*NODE``, ``*ELEMENT`` (tets; triangles and lines as candidate protected faces and
@@ -126,6 +127,10 @@ def write_inp(mesh, path: Path) -> None:
     for r, name in region_sets.items():
         out.append(f"*ELEMENT, TYPE=C3D4, ELSET={name}\n")
         out.append(format_rows(table[mesh.region == r], "%d, %d, %d, %d, %d\n"))
+    if "EALL" not in taken:
+        # every element: CalculiX decks (cgx's, PrePoMax's) put their sections on Eall,
+        # which a read of such a deck's mesh keeps as no region when there are others
+        out.append(f"*ELSET, ELSET=EALL, GENERATE\n1, {mesh.n_tets}, 1\n")
     # a node set of each region and surface under its own name, as Gmsh's export writes
     # them (Mesh.SaveGroupsOfNodes): decks written for Gmsh's files (*BOUNDARY on a
     # physical group's name) run on jtet's

@@ -54,6 +54,8 @@ def test_round_trip(tmp_path, labelled):
     text = path.read_text()
     assert "*ELEMENT, TYPE=C3D4, ELSET=lower_half" in text and "ELSET=REGION2" in text
     assert "*SURFACE, NAME=load, TYPE=ELEMENT" in text and "*NSET, NSET=load_NODES" in text
+    # every element, for decks that put their section on Eall (not a region when read)
+    assert f"*ELSET, ELSET=EALL, GENERATE\n1, {labelled.n_tets}, 1\n" in text
 
 
 def test_surfaces_follow_the_abaqus_face_table(tmp_path, labelled):
