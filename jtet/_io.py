@@ -182,6 +182,34 @@ def _field_entities(grid, name: str, k: int, source: str) -> np.ndarray | None:
     return a.reshape(-1, k).astype(np.int64)
 
 
+# arrays a mesh file holds that jtet reads, or writes itself (its per-tet quality
+# arrays: recomputed for every output), or that are bookkeeping of VTK and meshio
+_KNOWN_ARRAY_PREFIXES = ("quality_", "gmsh:", "medit:", "tetgen:", "vtk")
+_KNOWN_ARRAYS = {*REGION_ARRAYS, "min_dihedral", "max_dihedral", "volume"}
+
+
+def _warn_dropped_arrays(point_arrays: list, cell_arrays: list, source: str) -> None:
+    """Warn that a file's point and cell arrays (a temperature, a material id) do not
+    reach the output: a ``TetMesh`` holds none (flips replace tets, so per-tet values
+    have no tets to go with), only the region labels and what jtet computes itself."""
+    groups = []
+    for what, names in (("point", point_arrays), ("cell", cell_arrays)):
+        names = [
+            n for n in names
+            if isinstance(n, str) and n not in _KNOWN_ARRAYS
+            and not n.startswith(_KNOWN_ARRAY_PREFIXES)
+        ]  # fmt: skip
+        if names:
+            shown = ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
+            groups.append(f"{len(names)} {what} array(s) ({shown})")
+    if groups:
+        warnings.warn(
+            f"{source}: jtet carries no point or cell data but the region labels; not "
+            f"read: {' and '.join(groups)}",
+            stacklevel=3,
+        )
+
+
 def grid_to_arrays(grid, source: str = "pyvista grid"):
     """Arrays of a tet mesh from a ``pyvista.UnstructuredGrid``.
 
@@ -257,6 +285,7 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     points = np.asarray(grid.points, dtype=np.float64)
     # by name: a damaged file may hold an array without one (pyvista then refuses dict())
     cell_arrays = {k: grid.cell_data[k] for k in grid.cell_data.keys() if isinstance(k, str)}
+    _warn_dropped_arrays(list(grid.point_data.keys()), list(cell_arrays), source)
     region = _pick_region(cell_arrays, n_cells, is_tet, source)
     pf = _field_entities(grid, PROTECTED_FACES_ARRAY, 3, source)
     pe = _field_entities(grid, PROTECTED_EDGES_ARRAY, 2, source)

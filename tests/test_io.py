@@ -16,6 +16,7 @@ from jtet import _io
 from jtet._errors import MeshFileError, MeshInputError
 from jtet._quality import tet_dihedrals
 from jtet._topology import CORNER
+from jtet.cli import main
 
 FORMATS = ["vtu", "vtk", "msh", "mesh", "meshb", "node", "ele", "xdmf"]
 
@@ -1317,3 +1318,37 @@ def test_msh_region_0_is_in_no_physical_group(tmp_path, label):
         groups = gmsh.model.getPhysicalGroups(3)
     assert groups == ([] if label == 0 else [(3, 1)])
     assert len(said) == (label == 0) and all(f"{mesh.n_tets} tet(s) of region 0" in m for m in said)
+
+
+def test_point_and_cell_arrays_not_carried_are_named(tmp_path):
+    """A field on the input (a temperature on the points, a material on the cells) does
+    not reach a TetMesh: a warning names it, while the region array and jtet's own
+    per-tet arrays (recomputed for each output) pass in silence."""
+    grid = jtet.demo_mesh().to_pyvista()
+    grid.point_data["temperature"] = np.arange(grid.n_points, dtype=float)
+    grid.cell_data["material"] = np.ones(grid.n_cells)
+    grid.save(tmp_path / "fields.vtu")
+    with pytest.warns(
+        UserWarning,
+        match=r"not read: 1 point array\(s\) \(temperature\) and 1 cell array\(s\) \(material\)",
+    ):
+        jtet.load(tmp_path / "fields.vtu")
+    out = tmp_path / "out.vtu"
+    assert (
+        main(
+            [
+                "improve",
+                str(tmp_path / "fields.vtu"),
+                str(out),
+                "-q",
+                "--max-passes",
+                "1",
+                "--perturb",
+                "0",
+            ]
+        )
+        == 0
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        jtet.load(out)  # region + quality_*, min/max_dihedral, volume: nothing to say
