@@ -183,8 +183,9 @@ def _field_entities(grid, name: str, k: int, source: str) -> np.ndarray | None:
 
 
 # arrays a mesh file holds that jtet reads, or writes itself (its per-tet quality
-# arrays: recomputed for every output), or that are bookkeeping of VTK and meshio
-_KNOWN_ARRAY_PREFIXES = ("quality_", "gmsh:", "medit:", "tetgen:", "vtk")
+# arrays: recomputed for every output), or that are bookkeeping of VTK and meshio (whose
+# names hold their format's tag: "gmsh:physical", "walls-gmsh:bounding_entities")
+_KNOWN_ARRAY_PREFIXES = ("quality_", "vtk")
 _KNOWN_ARRAYS = {*REGION_ARRAYS, "min_dihedral", "max_dihedral", "volume"}
 
 
@@ -197,7 +198,7 @@ def _warn_dropped_arrays(point_arrays: list, cell_arrays: list, source: str) -> 
         names = [
             n for n in names
             if isinstance(n, str) and n not in _KNOWN_ARRAYS
-            and not n.startswith(_KNOWN_ARRAY_PREFIXES)
+            and not n.startswith(_KNOWN_ARRAY_PREFIXES) and ":" not in n
         ]  # fmt: skip
         if names:
             shown = ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
