@@ -789,6 +789,6 @@ class TetMesh:
             + (f", {pv} protected vertices" if pv else "")
             + (f", {len(self.protected_tets)} protected tets" if len(self.protected_tets) else "")
             + (f", {len(self.periodic)} periodic links" if self.periodic else "")
-            + (f", {len(self.node_sets)} node sets" if self.node_sets else "")
+            + (f", {len(self.node_sets)} node set(s)" if self.node_sets else "")
             + ")"
         )

@@ -183,6 +183,42 @@ def format_table(
     return text_table(["", *labels], body)
 
 
+def mesh_groups(mesh) -> list[dict]:
+    """What a mesh file's groups became, for ``jtet stats --groups``: one dict per region,
+    label of protected faces, edges and vertices, and node set, with its kind ("region",
+    "surface", "curve", "point", "node set"), label (None for a node set without an
+    id), name ("" without) and count (tets, faces, edges, vertices)."""
+    names = mesh.label_names
+    out = []
+    for kind, dim, labels in (
+        ("region", 3, mesh.region),
+        ("surface", 2, mesh.protected_face_labels),
+        ("curve", 1, mesh.protected_edge_labels),
+        ("point", 0, mesh.protected_vertex_labels),
+    ):
+        found, counts = np.unique(labels, return_counts=True)
+        out += [
+            {"kind": kind, "label": int(k), "name": names.get((dim, int(k)), ""), "count": int(c)}
+            for k, c in zip(found.tolist(), counts.tolist(), strict=True)
+        ]
+    out += [
+        {"kind": "node set", "label": ns.label, "name": ns.name, "count": len(ns.ids)}
+        for ns in mesh.node_sets
+    ]
+    return out
+
+
+def format_groups(groups: list[dict]) -> str:
+    """``mesh_groups`` as a plain-text table."""
+    units = {"region": "tets", "surface": "faces", "curve": "edges"}
+    body = [
+        [g["kind"], "" if g["label"] is None else str(g["label"]), g["name"],
+         f"{g['count']} {units.get(g['kind'], 'vertices')}"]
+        for g in groups
+    ]  # fmt: skip
+    return text_table(["group", "label", "name", "size"], body, left=3)
+
+
 def text_table(head: list[str], body: list[list[str]], left: int = 1) -> str:
     """Rows of strings as plain-text columns padded to their widest cell, a rule under
     ``head``; the first ``left`` columns are left-aligned, the others right-aligned."""

@@ -437,7 +437,10 @@ def cmd_stats(args) -> int:
         raise JtetError(f"--worst must be >= 0, got {args.worst}")
     # every file is read before anything is printed: a bad one is the only output; one
     # mesh at a time is held, only its (small) results are kept
-    files = [_mesh_summary(path, args.worst, args.quality, args.by_region) for path in args.mesh]
+    files = [
+        _mesh_summary(path, args.worst, args.quality, args.by_region, args.groups)
+        for path in args.mesh
+    ]
     stats = [f["stats"] for f in files]
     labels = _column_labels(args.mesh)
     # a column per file, each followed, with --by-region, by one per region of it (one
@@ -463,6 +466,7 @@ def cmd_stats(args) -> int:
                 if args.by_region
                 else {}
             )
+            | ({"groups": f["groups"]} if args.groups else {})
             for path, f in zip(args.mesh, files, strict=True)
         ]
         if len(files) == 1:  # one mesh: its statistics, as before there were several
@@ -481,6 +485,12 @@ def cmd_stats(args) -> int:
         for path, f in zip(args.mesh, files, strict=True):
             report = f["validity"]
             print(f"{path}: valid" if report.ok else f"{path}: problems:\n{report}")
+    if args.groups:
+        from ._stats import format_groups
+
+        for path, f in zip(args.mesh, files, strict=True):
+            print(f"\n{path}: groups")
+            print(format_groups(f["groups"]))
     if args.worst:
         for path, f in zip(args.mesh, files, strict=True):
             print(f"\n{path}: the {len(f['worst'])} worst tets by {args.quality}")
@@ -490,13 +500,15 @@ def cmd_stats(args) -> int:
     return 0
 
 
-def _mesh_summary(path: str, n_worst: int, measure: str, by_region: bool = False) -> dict:
+def _mesh_summary(
+    path: str, n_worst: int, measure: str, by_region: bool = False, groups: bool = False
+) -> dict:
     """What ``jtet stats`` prints of one file: the mesh's one-line description, its
-    statistics (and, ``by_region``, those of each region), validity report and
-    ``n_worst`` worst tets by ``measure``."""
+    statistics (and, ``by_region``, those of each region), validity report, ``n_worst``
+    worst tets by ``measure`` and (``groups``) its regions, labels and node sets."""
     from ._io import load
     from ._quality import tet_all_measures
-    from ._stats import mesh_stats, region_stats, worst_tets
+    from ._stats import mesh_groups, mesh_stats, region_stats, worst_tets
 
     mesh = load(path)
     per_tet = tet_all_measures(mesh.points, mesh.tets)
@@ -511,6 +523,7 @@ def _mesh_summary(path: str, n_worst: int, measure: str, by_region: bool = False
         "names": dict(mesh.label_names),
         "validity": mesh.is_valid(),
         "worst": worst_tets(mesh, n_worst, measure, per_tet=per_tet) if n_worst else None,
+        "groups": mesh_groups(mesh) if groups else None,
     }
 
 
@@ -786,6 +799,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="a column for each region of each mesh too (at most 16 regions; --json: a "
         "'regions' object)",
+    )
+    ps.add_argument(
+        "--groups",
+        action="store_true",
+        help="list what the file's groups became: regions, labels of protected surfaces, "
+        "curves and points, node sets, with names and sizes (--json: a 'groups' list)",
     )
     ps.set_defaults(func=cmd_stats)
     pc = sub.add_parser(

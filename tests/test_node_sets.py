@@ -28,7 +28,7 @@ def test_sets_are_checked_and_normalized(mesh):
         ("b", [1], 7),
     ]
     assert not m.node_sets[0].ids.flags.writeable
-    assert "2 node sets" in repr(m)
+    assert "2 node set(s)" in repr(m)
     for bad, match in [
         ([("a", [mesh.n_points])], "out of range"),
         ([("a", [-1])], "out of range"),
@@ -80,3 +80,27 @@ def test_other_formats_say_they_drop_them(tmp_path, mesh, ext):
     m = mesh.replace(region=np.ones(mesh.n_tets, np.int64), node_sets=[("probe", [1, 2])])
     with pytest.warns(UserWarning, match=r"no node sets; not saved: 1 node set\(s\) \(probe\)"):
         jtet.save(m, tmp_path / f"m.{ext}")
+
+
+def test_stats_lists_the_groups(capsys):
+    """``jtet stats --groups``: what each group of the file became, with its size (the
+    Exodus fixture: two blocks, a side set, a node set; counted here with NumPy)."""
+    import json
+    from pathlib import Path
+
+    from jtet.cli import main
+
+    path = Path(__file__).parent / "data" / "exodus_classic.exo"
+    mesh = jtet.load(path)
+    assert main(["stats", str(path), "--groups", "--json"]) == 0
+    groups = json.loads(capsys.readouterr().out)["groups"]
+    x = mesh.points[mesh.tets].mean(axis=1)[:, 0]
+    assert groups == [
+        {"kind": "region", "label": 10, "name": "left", "count": int((x < 0.5).sum())},
+        {"kind": "region", "label": 20, "name": "right", "count": int((x >= 0.5).sum())},
+        {"kind": "surface", "label": 7, "name": "wall", "count": len(mesh.protected_faces)},
+        {"kind": "node set", "label": 4, "name": "probe", "count": 2},
+    ]
+    assert main(["stats", str(path), "--groups"]) == 0
+    text = capsys.readouterr().out
+    assert "node set  4      probe  2 vertices" in text
