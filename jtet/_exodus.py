@@ -113,6 +113,11 @@ class _Reader:
         """The file's attribute ``name`` (``default`` without it)."""
         return self._attrs.get(name, default)
 
+    def all_names(self, name: str) -> list[str]:
+        """Every name of a char variable (k, len_name); [] without it."""
+        a = self.array(name)
+        return self.names(name, len(a)) if a is not None and a.ndim == 2 else []
+
     def attr(self, var: str, name: str) -> str:
         v = self._vars[var]
         value = (v.attrs if hasattr(v, "attrs") else v._attributes).get(name, b"")
@@ -150,7 +155,7 @@ def read_exo(path: Path, source: str):
 
 
 def _read(r: _Reader, source: str):
-    from ._io import _non_tet_message
+    from ._io import _non_tet_message, _warn_dropped_arrays
 
     coords = [r.array(f"coord{c}") for c in "xyz"]
     if coords[0] is None and r.array("coord") is not None:
@@ -204,6 +209,8 @@ def _read(r: _Reader, source: str):
             cells[dim][0].append(conn)
             cells[dim][1].append(np.full(len(conn), label, np.int64))
             tet_of_element.append(np.full(len(conn), -1))
+    # a solver's results on the mesh (MOOSE's nodal and element variables): not carried
+    _warn_dropped_arrays(r.all_names("name_nod_var"), r.all_names("name_elem_var"), source)
     if others:
         raise MeshInputError(
             _non_tet_message(

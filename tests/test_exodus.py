@@ -226,3 +226,13 @@ def test_side_set_past_the_elements(tmp_path):
 
     with pytest.raises(MeshInputError, match="side set 1 names element 3"):
         jtet.load(_write_netcdf(tmp_path / "bad.exo", build))
+
+
+def test_variables_not_carried_are_named(tmp_path):
+    """A solver's element variables in the file (a stress) are named in a warning when
+    read; jtet's own per-tet arrays are not (they are recomputed for every output)."""
+    mesh = jtet.load(CLASSIC)
+    path = tmp_path / "results.exo"
+    jtet.save(mesh, path, cell_data={"quality_min_sine": mesh.quality(), "stress": mesh.volumes})
+    with pytest.warns(UserWarning, match=r"not read: 1 cell array\(s\) \(stress\)$"):
+        jtet.load(path)
