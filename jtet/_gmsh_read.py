@@ -120,31 +120,46 @@ def _physical_for_every_block(cell_data, cells, physical_tags) -> None:
         ]
 
 
-def _skip_data(f, tag, *args) -> None:
+def _skip_data(f, tag, skipped: dict) -> None:
     """meshio's ``$NodeData`` / ``$ElementData`` reader, replaced by a skip to the block's
     end: jtet reads no data arrays from Gmsh files, and meshio 5.3 refuses many of those
     it would read. Gmsh saves a view with its mesh (``PostProcessing.SaveMesh``) as data
     over the tets only, which meshio's binary reader rejects (element numbers not 1..n)
     and its ASCII reader puts on the wrong blocks; its 2.2 reader also splits any element
     data over two or more element blocks at element 2 (the length of a (type, cells)
-    tuple)."""
+    tuple). The view's name (its first string tag, ASCII in binary files too) goes to
+    ``skipped`` ("point" or "cell" -> names), for the warning that names what a mesh
+    does not carry."""
     from meshio.gmsh.common import _fast_forward_to_end_block
 
+    try:
+        if int(f.readline()) > 0:
+            name = f.readline().decode("utf-8", "replace").strip().strip('"')
+            kind = "point" if tag == "NodeData" else "cell"
+            if name not in skipped.setdefault(kind, []):
+                skipped[kind].append(name)
+    except ValueError:  # a damaged header: the skip to the end decides
+        pass
     _fast_forward_to_end_block(f, tag)
 
 
 @contextlib.contextmanager
 def gmsh_read_mends():
-    """Within it, meshio reads the Gmsh files described in the module docstring."""
+    """Within it, meshio reads the Gmsh files described in the module docstring; it gives
+    {"point" / "cell": names of the data views skipped} of the file read."""
     try:
         from meshio.gmsh import _gmsh22, _gmsh41
 
         read_buffer, read_elements = _gmsh41.read_buffer, _gmsh41._read_elements
         skip_block = _gmsh41._fast_forward_to_end_block
     except (ImportError, AttributeError):  # another meshio: its own readers as they are
-        yield
+        yield {}
         return
     state: dict = {}  # of the file being read: its format and its partitions
+    skipped: dict = {}  # "point" / "cell" -> names of the data views skipped
+
+    def skip_data(f, tag, *args):
+        _skip_data(f, tag, skipped)
 
     def mended_read_buffer(f, is_ascii, data_size):
         state.clear()
@@ -174,15 +189,15 @@ def gmsh_read_mends():
         (_gmsh41, "read_buffer", mended_read_buffer),
         (_gmsh41, "_fast_forward_to_end_block", mended_skip_block),
         (_gmsh41, "_read_elements", mended_read_elements),
-        (_gmsh41, "_read_data", _skip_data),
-        (_gmsh22, "_read_data", _skip_data),
+        (_gmsh41, "_read_data", skip_data),
+        (_gmsh22, "_read_data", skip_data),
     ]
     with _GMSH_READ:
         originals = [getattr(module, name) for module, name, _ in swaps]
         for module, name, mended in swaps:
             setattr(module, name, mended)
         try:
-            yield
+            yield skipped
         finally:
             for (module, name, _), original in zip(swaps, originals, strict=True):
                 setattr(module, name, original)

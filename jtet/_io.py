@@ -906,6 +906,8 @@ def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, required=No
     jtet keeps a required triangle exactly by protecting its edges and vertices too (a
     protected face alone may be flipped within a flat patch), a required edge by
     protecting its vertices too (with ``boundary="slide"`` they could slide)."""
+    # a Gmsh file's $NodeData / $ElementData views, a Medit file's solution: not carried
+    _warn_dropped_arrays(list(m.point_data), list(m.cell_data), source)
     keep_blocks, bad = [], {}
     for i, block in enumerate(m.cells):
         dim = getattr(block, "dim", 3)
@@ -1255,7 +1257,7 @@ def load(path: str | os.PathLike) -> TetMesh:
         captured = ""
         readable = _medit_without_unknown_sections(p) if ext == ".mesh" else None
         try:
-            with _quiet_meshio() as buf, gmsh_read_mends():
+            with _quiet_meshio() as buf, gmsh_read_mends() as views:
                 m = _meshio_module(fmt).read(str(readable or p))
         except Exception as e:
             captured = buf.getvalue()
@@ -1265,6 +1267,8 @@ def load(path: str | os.PathLike) -> TetMesh:
         finally:
             if readable is not None:
                 readable.unlink(missing_ok=True)
+        # the Gmsh views skipped while reading (a solution saved with the mesh)
+        _warn_dropped_arrays(views.get("point", []), views.get("cell", []), source)
         faces = _tetgen_faces(p.with_suffix(".node")) if fmt == "tetgen" else None
         required = None
         if ext == ".mesh":

@@ -1352,3 +1352,33 @@ def test_point_and_cell_arrays_not_carried_are_named(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         jtet.load(out)  # region + quality_*, min/max_dihedral, volume: nothing to say
+
+
+@pytest.mark.parametrize("fmt, binary", [("gmsh22", False), ("gmsh", True)])
+def test_gmsh_views_not_carried_are_named(tmp_path, fmt, binary):
+    """A Gmsh file's $NodeData / $ElementData (a solution saved with the mesh, written
+    here by meshio in MSH 2.2 ASCII and 4.1 binary) are skipped with a warning naming
+    them; jtet's own per-tet arrays in its .msh outputs are not named."""
+    mesh = jtet.demo_mesh()
+    m = meshio.Mesh(
+        mesh.points,
+        [("tetra", mesh.tets)],
+        point_data={"T": np.arange(mesh.n_points, dtype=float)},
+        cell_data={
+            "stress": [np.ones(mesh.n_tets)],
+            "gmsh:physical": [np.ones(mesh.n_tets, int)],
+            "gmsh:geometrical": [np.ones(mesh.n_tets, int)],
+        },
+    )
+    path = tmp_path / "views.msh"
+    meshio.write(path, m, file_format=fmt, binary=binary)
+    with pytest.warns(
+        UserWarning, match=r"not read: 1 point array\(s\) \(T\) and 1 cell array\(s\) \(stress\)"
+    ):
+        back = _io.load(path)
+    np.testing.assert_array_equal(back.tets, mesh.tets)
+    own = tmp_path / "own.msh"
+    _io.save(back, own, cell_data={"quality_min_sine": back.quality()})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _io.load(own)
