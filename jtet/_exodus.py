@@ -339,6 +339,7 @@ def write_exo(mesh, path: Path, cell_data: dict | None = None) -> None:
     all_names = [names.get((3, int(r)), "") for r in regions]
     all_names += [names.get((2, int(k)), "") for k in face_labels]
     all_names += [names.get((0, int(k)), "") for k in vertex_labels]
+    all_names += [ns.name for ns in mesh.node_sets]
     cell_data = dict(cell_data or {})
     all_names += list(cell_data)
     width = min(max([33] + [len(s.encode()) + 1 for s in all_names]), 256)

@@ -75,6 +75,16 @@ def test_formats_that_hold_them(tmp_path, mesh, ext):
         assert [s.label for s in back.node_sets] == [3, 4]  # the second takes a free id
 
 
+def test_long_node_set_names_come_back_whole(tmp_path, mesh):
+    """Exodus names are 32 characters unless the file says more: a longer node-set name
+    widens them (it was cut to 32, as no other name was that long)."""
+    name = "nodes of the inlet pressure boundary condition"  # 46 characters
+    m = mesh.replace(node_sets=[(name, [1, 2])])
+    for ext in ("exo", "vtu"):
+        jtet.save(m, tmp_path / f"m.{ext}")
+        assert jtet.load(tmp_path / f"m.{ext}").node_sets[0].name == name
+
+
 @pytest.mark.parametrize("ext", ["msh", "mesh", "xdmf", "node", "vol"])
 def test_other_formats_say_they_drop_them(tmp_path, mesh, ext):
     m = mesh.replace(region=np.ones(mesh.n_tets, np.int64), node_sets=[("probe", [1, 2])])
