@@ -134,12 +134,17 @@ def write_inp(mesh, path: Path) -> None:
     # a node set of each region and surface under its own name, as Gmsh's export writes
     # them (Mesh.SaveGroupsOfNodes): decks written for Gmsh's files (*BOUNDARY on a
     # physical group's name) run on jtet's
-    node_sets = [(name, mesh.tets[mesh.region == r]) for r, name in region_sets.items()]
-    node_sets += [(name, mesh.protected_faces[mesh.protected_face_labels == k])
-                  for k, name in surfaces.items()]  # fmt: skip
-    for name, cells in node_sets:
-        out.append(f"*NSET, NSET={_set_name(name, node_taken)}\n")
-        out.append(_id_lines(_nodes_of(cells, mesh.n_points) + 1))
+    surface_nodes = {
+        k: _nodes_of(mesh.protected_faces[mesh.protected_face_labels == k], mesh.n_points)
+        for k in surfaces
+    }  # also the <surface>_NODES sets below
+    node_sets = [
+        (name, _nodes_of(mesh.tets[mesh.region == r], mesh.n_points))
+        for r, name in region_sets.items()
+    ]
+    node_sets += [(name, surface_nodes[k]) for k, name in surfaces.items()]
+    for name, nodes in node_sets:
+        out.append(f"*NSET, NSET={_set_name(name, node_taken)}\n" + _id_lines(nodes + 1))
     for k, name in points.items():
         out.append(f"*NSET, NSET={name}\n")
         out.append(_id_lines(mesh.protected_vertices[mesh.protected_vertex_labels == k] + 1))
@@ -157,9 +162,8 @@ def write_inp(mesh, path: Path) -> None:
                     out.append(f"*ELSET, ELSET={name}_S{s}\n" + _id_lines(elements))
                     lines.append(f"{name}_S{s}, S{s}\n")
             out.append(f"*SURFACE, NAME={name}, TYPE=ELEMENT\n" + "".join(lines))
-            nodes = _nodes_of(mesh.protected_faces[mine], mesh.n_points) + 1
             out.append(f"*NSET, NSET={_set_name(name + '_NODES', node_taken)}\n")
-            out.append(_id_lines(nodes))
+            out.append(_id_lines(surface_nodes[k] + 1))
     path.write_text("".join(out))
 
 

@@ -158,8 +158,9 @@ def _read(r: _Reader, source: str):
     from ._io import _non_tet_message, _warn_dropped_arrays
 
     coords = [r.array(f"coord{c}") for c in "xyz"]
-    if coords[0] is None and r.array("coord") is not None:
-        coords = list(np.atleast_2d(r.array("coord")))
+    stacked = r.array("coord") if coords[0] is None else None  # the older layout
+    if stacked is not None:
+        coords = list(np.atleast_2d(stacked))
     coords = [c for c in coords if c is not None]
     if not coords:
         raise MeshInputError(f"{source}: the file has no node coordinates")
@@ -175,7 +176,7 @@ def _read(r: _Reader, source: str):
     block_names = r.names("eb_names", n_blocks)
     names: dict = {}
     tets, region = [], []
-    cells = {3: ([], []), 2: ([], []), 1: ([], []), 0: ([], [])}  # dim -> rows, labels
+    cells = {2: ([], []), 1: ([], []), 0: ([], [])}  # dim -> rows, labels (tets apart)
     others: dict[str, int] = {}
     tet_of_element = []  # per element of the file: its tet index, or -1
     n_tets = 0
@@ -469,7 +470,5 @@ def write_exo(mesh, path: Path, cell_data: dict | None = None) -> None:
         f.close()
 
 
-# Exodus side of the face opposite local vertex j: the face leaving out vertex 0 is side
-# 2 (1 2 3 -> nodes 2 3 4), vertex 1: side 3 (1 4 3), vertex 2: side 1 (1 2 4), vertex 3:
-# side 4 (1 3 2)
-_SIDE_OF_OPPOSITE = np.array([2, 3, 1, 4])
+# Exodus side (1-4) of the face opposite local vertex j: the side of ``SIDES`` without j
+_SIDE_OF_OPPOSITE = 1 + np.argmin((SIDES[None, :, :] == np.arange(4)[:, None, None]).any(2), 1)

@@ -1591,7 +1591,6 @@ def save(
         MeshInputError: ``cell_data`` does not have one value per tet.
     """
     p = Path(path)
-    ext = p.suffix.lower()
     fmt = output_format(p)
     cell_data = _check_cell_data(mesh, cell_data)
     if fmt in ("medit", "tetgen", "abaqus", "netgen", "exodus"):
@@ -1611,18 +1610,14 @@ def save(
             dropped.append("protected tets")
         if dropped:
             stored = {
-                ".mesh": "region labels and protected faces, edges, vertices and tets",
-                ".meshb": "region labels and protected faces, edges, vertices and tets",
-                ".inp": "regions (element sets, with their names), protected faces "
+                "medit": "region labels and protected faces, edges, vertices and tets",
+                "abaqus": "regions (element sets, with their names), protected faces "
                 "(element-face surfaces) and protected vertices (node sets)",
-                ".vol": "regions (materials, with their names) and protected faces, "
+                "netgen": "regions (materials, with their names) and protected faces, "
                 "edges and vertices (surface elements, edge segments, point elements)",
-            }.get(ext, "region labels and protected faces")
-            if fmt == "exodus":
-                stored = (
-                    "regions (element blocks), protected faces (side sets) and vertices "
-                    "(node sets), their names and the cell arrays (element variables)"
-                )
+                "exodus": "regions (element blocks), protected faces (side sets) and "
+                "vertices (node sets), their names and the cell arrays (element variables)",
+            }.get(fmt, "region labels and protected faces")
             warnings.warn(
                 f"{p}: the {_FORMAT_NAMES[fmt]} format stores only the {stored}; "
                 f"not saved: {', '.join(dropped)}",
