@@ -25,7 +25,7 @@ Mesh names: a file of ../shared/meshes, ``demo``, ``delaunay:N`` (random points 
 worst quality limited by its fixed flat-hull boundary), ``gmsh:SHAPE:H`` (an unoptimized
 Gmsh Delaunay mesh like the reference ones, any size) or ``tetwild:SHAPE:H`` (fTetWild's
 optimized output on the Gmsh surface of SHAPE, target edge length H); both are cached
-under $TMPDIR.
+under $TMPDIR; or the path of any mesh file ``jtet.load`` reads (a TetGen ``.ele``).
 
 Reference points (../shared/meshes/README.md, same kind of machine, one core): Stellar
 (flips + smoothing) 29-34 / 138-145 degrees at ~0.3 ms CPU per tet; Gmsh ~13 / 157;
@@ -80,6 +80,8 @@ def load_mesh(name: str) -> jtet.TetMesh:
                 made = meshgen.tetwild(shape, float(h), optimize=True)
             jtet.save(made, cache)
         return jtet.load(cache)
+    if Path(name).suffix and Path(name).exists():  # a mesh file of the user's
+        return jtet.load(name)
     return jtet.load(SHARED / f"{name}.vtu")
 
 
@@ -417,11 +419,11 @@ def main() -> None:
     )
     p.add_argument(
         "--perturb",
-        type=int,
+        type=lambda text: text if text == "auto" else int(text),
         default=jtet.Options().perturb,
         metavar="N",
-        help="improve's perturb option: up to N kept perturbation rounds after the climb "
-        "(default: jtet's)",
+        help="improve's perturb option: up to N kept perturbation rounds after the climb, "
+        "or auto (default: jtet's)",
     )
     for end in ("min", "max"):
         p.add_argument(

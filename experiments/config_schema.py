@@ -26,13 +26,15 @@ import jtet
 def _omegaconf_type(tp):
     """The OmegaConf-compatible version of a ``jtet.Options`` field annotation.
 
-    ``tuple[str, ...]`` -> ``list[str]`` (YAML lists); ``X | None`` -> ``Optional[X]``.
+    ``tuple[str, ...]`` -> ``list[str]`` (YAML lists); ``X | None`` -> ``Optional[X]``;
+    ``int | str`` (``perturb``: a count or "auto") -> ``Any``.
     """
     origin = typing.get_origin(tp)
     if origin in (types.UnionType, typing.Union):
         args = [a for a in typing.get_args(tp) if a is not type(None)]
         if len(args) != 1:
-            raise TypeError(f"unsupported option type {tp}")
+            # OmegaConf types no unions but Optional; jtet.Options checks the value
+            return Any
         return Optional[_omegaconf_type(args[0])]  # noqa: UP045 (OmegaConf wants Optional)
     if origin is tuple:
         item = typing.get_args(tp)[0]

@@ -29,12 +29,19 @@ def pinned_worst_tets(mesh, quality: np.ndarray) -> np.ndarray:
 
 
 def notes(
-    mesh, options, quality: np.ndarray, min_dihedral, max_dihedral, kept_rounds: int = 0
+    mesh,
+    options,
+    quality: np.ndarray,
+    min_dihedral,
+    max_dihedral,
+    kept_rounds: int = 0,
+    rounds: int | None = None,
 ) -> list[str]:
     """Sentences for the user about the result ``mesh`` of a run with ``options``:
     ``quality`` (m,) is its ``options.quality`` per tet, ``min_dihedral`` and
     ``max_dihedral`` (m,) its dihedral angle range per tet in degrees; ``kept_rounds``
-    the perturbation rounds the run kept (-1: it stopped for a goal or a time limit)."""
+    the perturbation rounds the run kept (-1: it stopped for a goal or a time limit) of
+    its limit ``rounds`` (None: ``options.perturb_rounds`` of ``mesh``)."""
     out = []
     missed = _missed_goals(options, min_dihedral, max_dihedral) if len(quality) else ""
     if missed:
@@ -45,11 +52,15 @@ def notes(
     good = options.good_quality
     if good is not None and len(quality) and quality.min() >= good:
         return out  # every tet is good enough: the run left them alone on purpose
-    if options.perturb and kept_rounds >= options.perturb:
+    if rounds is None:
+        rounds = options.perturb_rounds(mesh.n_tets)
+    if rounds and kept_rounds >= rounds:
+        which = "perturb auto: " if options.perturb == "auto" else f"perturb {rounds}: "
+        which += f"{rounds} kept rounds" if options.perturb == "auto" else "kept rounds"
         out.append(
-            f"the perturbation rounds stopped at their limit (perturb {options.perturb}: "
-            f"kept rounds) while they still raised the worst tet; more rounds (--perturb "
-            f"{2 * options.perturb}) may raise it further, at more time"
+            f"the perturbation rounds stopped at their limit ({which}) while "
+            f"they still raised the worst tet; more rounds (--perturb {2 * rounds}) may "
+            "raise it further, at more time"
         )
     if options.boundary == "fixed" and "smooth" in options.ops:  # only smoothing slides
         stuck = pinned_worst_tets(mesh, quality)

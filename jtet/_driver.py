@@ -279,6 +279,9 @@ class ImproveResult:
     # sentences for the user: why the worst tet stayed, which option may free it
     notes: list = field(default_factory=list)
     selected_stats: tuple | None = None
+    # the limit of kept perturbation rounds of the run: ``options.perturb``, or the
+    # automatic count for the mesh's size (``Options.perturb_rounds``)
+    perturb_rounds: int = 0
 
     def summary(self) -> str:
         from ._stats import format_table
@@ -295,7 +298,7 @@ class ImproveResult:
             stats += tuple(self.selected_stats)
             labels += (f"before ({which})", f"after ({which})")
         table = format_table(*stats, time_s=self.seconds, labels=labels)
-        phases = _phases(self.history)
+        phases = _phases(self.history, self.perturb_rounds)
         return "\n".join([table, *phases, *(f"note: {n}" for n in self.notes)])
 
     def plot(self, path, measure: str | None = None) -> None:
@@ -316,6 +319,7 @@ class ImproveResult:
             "stats_after": self.stats_after.as_dict(),
             "history": self.history,
             "notes": self.notes,
+            "perturb_rounds": self.perturb_rounds,
             **(
                 {
                     "selected_stats_before": self.selected_stats[0].as_dict(),
@@ -337,10 +341,11 @@ def _kept(kicks: list[dict]) -> int:
     return sum(e["successes"] > 0 for e in kicks)
 
 
-def _phases(history: list[dict]) -> list[str]:
-    """Lines for ``summary()``: what the climb and the perturbation rounds each took and
-    gave (seconds of their operations; the smallest dihedral angle after them), so that
-    a user sees whether the rounds (``--perturb``) are worth their time on a mesh."""
+def _phases(history: list[dict], rounds: int) -> list[str]:
+    """Lines for ``summary()``: what the climb and the perturbation rounds (at most
+    ``rounds`` kept) each took and gave (seconds of their operations; the smallest
+    dihedral angle after them), so that a user sees whether the rounds (``--perturb``)
+    are worth their time on a mesh."""
     if not history:
         return []
     kicks = _kicks(history)
@@ -355,7 +360,8 @@ def _phases(history: list[dict]) -> list[str]:
         )
     if kicks:
         lines.append(
-            f"perturbation rounds: {_kept(kicks)} of {len(kicks)} kicks kept in "
+            f"perturbation rounds: {_kept(kicks)} of {len(kicks)} kicks kept (at most "
+            f"{rounds} round{'s' if rounds != 1 else ''}) in "
             f"{sum(e['seconds'] for e in kicks):.2f} s, min dihedral -> "
             f"{kicks[-1]['min_dihedral']:.2f} deg"
         )
@@ -428,6 +434,7 @@ def improve(
     _, lo_t, hi_t, qualities = per_tet
     q = qualities[opts.quality]
     run = _Run(opts, mesh, q, lo_t, hi_t, callback)
+    rounds = opts.perturb_rounds(mesh.n_tets)  # of the input: a kept round adds vertices
     if opts.check:
         from ._invariants import InvariantChecker
 
@@ -439,10 +446,10 @@ def improve(
     try:
         ctrl_c.__enter__()
         status = run.climb(t0)
-        if status == "converged" and opts.perturb > 0:
+        if status == "converged" and rounds > 0:
             from ._perturb import perturb
 
-            status = perturb(run, t0)
+            status = perturb(run, t0, rounds)
     except _Stop as stop:
         status = stop.status
     except KeyboardInterrupt:
@@ -468,8 +475,15 @@ def improve(
         seconds=time.perf_counter() - t0,
         options=opts,
         notes=notes(
-            current, opts, run.q, run.lo_t, run.hi_t, kept if status == "converged" else -1
+            current,
+            opts,
+            run.q,
+            run.lo_t,
+            run.hi_t,
+            kept if status == "converged" else -1,
+            rounds,
         ),
+        perturb_rounds=rounds,
     )
 
 
@@ -604,6 +618,7 @@ def _improve_part(mesh: TetMesh, sel, opts: Options, callback, t0: float) -> Imp
         options=opts,
         notes=notes,
         selected_stats=(result.stats_before, result.stats_after),
+        perturb_rounds=result.perturb_rounds,
     )
 
 

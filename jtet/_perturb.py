@@ -396,9 +396,9 @@ def round_seeds(mesh, q: np.ndarray, good: float) -> np.ndarray:
     return narrow | (wide & _neighbourhood(mesh, narrow, LOCAL_RINGS))
 
 
-def perturb(run, t0: float) -> str:
+def perturb(run, t0: float, rounds: int) -> str:
     """Perturbation rounds on a converged ``run`` (a ``_driver._Run``), at most
-    ``opts.perturb`` kept ones; returns the run's status, "converged", or raises
+    ``rounds`` kept ones (``Options.perturb_rounds``); returns the run's status, "converged", or raises
     ``_driver._Stop`` (Ctrl-C, time limit, goals met after a kept round). Each attempt is
     one history entry, op "perturb"; its climb may run up to ``max_passes`` passes of
     its own. Attempts are judged in the round's order; a helper process
@@ -419,7 +419,7 @@ def perturb(run, t0: float) -> str:
     )
     kept_rounds = 0
     began = time.perf_counter()
-    while kept_rounds < opts.perturb and attempts:
+    while kept_rounds < rounds and attempts:
         worst = float(run.q.min())
         seeds = round_seeds(run.current, run.q, good)
         if not seeds.any():

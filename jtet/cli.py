@@ -46,6 +46,19 @@ def _regions(text: str) -> tuple[int | str, ...] | None:
     return tuple(int(r) if r.lstrip("+-").isdigit() else r for r in parts)
 
 
+def _perturb(text: str) -> int | str:
+    """``--perturb``: a count of kept rounds (>= 0) or ``auto``."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a count >= 0 or 'auto', got {text!r}")
+    return value
+
+
 def _add_quality(p: argparse.ArgumentParser, help: str) -> None:
     p.add_argument("--quality", choices=sorted(MEASURES), default=DEFAULTS.quality, help=help)
 
@@ -108,11 +121,13 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--perturb",
-        type=int,
+        type=_perturb,
         default=DEFAULTS.perturb,
         metavar="N",
-        help="after the climb converges, up to N rounds of flips that may lower the worst "
-        "tets a little, each kept only if the climb that follows ends better (0: off)",
+        help="after the climb converges, up to N kept rounds of kicks around the worst "
+        "tets (flips that may lower them a little, new vertices, random moves), each kept "
+        "only if the climb that follows ends better (0: off; 'auto', the default: 8 up to "
+        "100k tets, more on larger meshes: 14 at 1M)",
     )
     p.add_argument(
         "--time-limit",

@@ -126,6 +126,13 @@ def test_note_when_the_perturbation_rounds_hit_their_limit():
     for kept in (2, -1):
         assert not [n for n in notes(grid, opts, q, lo, hi, kept_rounds=kept) if "perturb" in n]
     assert not [n for n in notes(grid, jtet.Options(perturb=0), q, lo, hi) if "perturb" in n]
+    # "auto": the note names the count it stood for (8 on a small mesh, or the run's)
+    auto = jtet.Options()
+    (note,) = [n for n in notes(grid, auto, q, lo, hi, kept_rounds=8) if "perturb" in n]
+    assert "limit (perturb auto: 8 kept rounds)" in note and "(--perturb 16)" in note
+    assert not [n for n in notes(grid, auto, q, lo, hi, kept_rounds=7) if "perturb" in n]
+    (note,) = [n for n in notes(grid, auto, q, lo, hi, 14, rounds=14) if "perturb" in n]
+    assert "limit (perturb auto: 14 kept rounds)" in note and "(--perturb 28)" in note
 
 
 def test_improve_notes_rounds_cut_by_their_limit():

@@ -254,6 +254,24 @@ def test_improve_bad_option_exits_2(small, tmp_path, capsys):
     assert e.value.code == 2
     assert "flip" in capsys.readouterr().err
     assert not out.exists()
+    # --perturb takes a count or auto
+    for bad in ("-1", "many", "1.5"):
+        with pytest.raises(SystemExit) as e:
+            _improve(small, out, "--perturb", bad)
+        assert e.value.code == 2
+        assert "expected a count >= 0 or 'auto'" in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("value, expected", [("auto", "auto"), ("AUTO", "auto"), ("3", 3)])
+def test_improve_perturb_flag(small, tmp_path, capsys, value, expected):
+    report = tmp_path / "r.json"
+    args = ("--ops", "edge", "--max-passes", "1", "--report", report, "-q")
+    assert _improve(small, tmp_path / "o.vtu", "--perturb", value, *args) == 0
+    rep = json.loads(report.read_text())
+    assert rep["options"]["perturb"] == expected
+    assert rep["perturb_rounds"] == (8 if expected == "auto" else 3)
+    capsys.readouterr()
 
 
 def test_improve_refuses_to_overwrite_input(tmp_path, capsys):

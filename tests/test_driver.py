@@ -199,7 +199,8 @@ def test_summary_splits_the_climb_from_the_rounds(demo_run):
     ) in lines
     kept = sum(e["successes"] > 0 for e in kicks)
     assert (
-        f"perturbation rounds: {kept} of {len(kicks)} kicks kept in "
+        f"perturbation rounds: {kept} of {len(kicks)} kicks kept (at most "
+        f"{r.perturb_rounds} rounds) in "
         f"{sum(e['seconds'] for e in kicks):.2f} s, min dihedral -> "
         f"{r.stats_after.min_dihedral:.2f} deg"
     ) in lines

@@ -120,7 +120,7 @@ def test_every_group_option_composes_and_validates(group):
 def test_no_perturb_is_the_default_without_perturbation_rounds():
     cfg = _compose(["optimizer=no_perturb"])
     assert config_schema.to_options(cfg.optimizer) == jtet.Options(perturb=0)
-    assert jtet.Options().perturb > 0
+    assert jtet.Options().perturb_rounds(10_000) > 0
 
 
 def test_experiments_are_global_deltas():

@@ -333,10 +333,49 @@ def test_stop_inside_a_round_returns_the_converged_mesh(demo, demo_runs, monkeyp
 
 
 def test_perturb_option_validated():
-    with pytest.raises(jtet.JtetError, match="perturb"):
-        jtet.Options(perturb=-1)
-    with pytest.raises(jtet.JtetError, match="perturb"):
-        jtet.Options(perturb=1.5)
+    for bad in (-1, 1.5, "Auto", "8", True, None):
+        with pytest.raises(jtet.JtetError, match="perturb"):
+            jtet.Options(perturb=bad)
+    assert jtet.Options().perturb == "auto"
+    assert jtet.Options(perturb=np.int64(3)).perturb == 3
+    assert jtet.Options(perturb=3).perturb_rounds(10**7) == 3  # a count is exact
+
+
+def test_auto_perturb_rounds_grow_with_the_fourth_root_of_the_size():
+    """8 rounds up to 100k tets (the reference meshes' runs as before), then 8 times the
+    fourth root of the size in units of 100k, rounded (closed form)."""
+    from jtet._options import auto_perturb_rounds
+
+    auto = jtet.Options(perturb="auto")
+    for n in (0, 1, 4, 10_000, 33_271, 100_000):
+        assert auto.perturb_rounds(n) == auto_perturb_rounds(n) == 8
+    for n, expected in ((182_000, 9), (500_000, 12), (983_140, 14), (2_901_815, 19)):
+        assert auto.perturb_rounds(n) == expected == round(8 * (n / 1e5) ** 0.25)
+    sizes = np.unique(np.geomspace(1, 1e8, 200).astype(int))
+    counts = [auto_perturb_rounds(int(n)) for n in sizes]
+    assert counts == sorted(counts)  # never fewer rounds for a larger mesh
+
+
+def test_improve_runs_the_auto_rounds_of_its_input_size(demo, monkeypatch):
+    """``improve`` hands the perturbation the limit of its input's size (here made to
+    exceed 8 by a smaller reference size), reports it and names it in the limit note."""
+    from jtet import _options
+
+    monkeypatch.setattr(_options, "PERTURB_AUTO_TETS", 1000)
+    limit = jtet.Options().perturb_rounds(demo.n_tets)
+    assert limit == round(8 * (demo.n_tets / 1000) ** 0.25) > 8
+    seen = []
+
+    def rounds_seen(run, t0, rounds):
+        seen.append(rounds)
+        return "converged"
+
+    monkeypatch.setattr(jtet._perturb, "perturb", rounds_seen)
+    r = jtet.improve(demo, patience=1)  # the climb converges: the rounds start
+    assert seen == [limit] and r.perturb_rounds == limit
+    assert r.as_dict()["perturb_rounds"] == limit
+    assert jtet.improve(demo, patience=1, perturb=3).perturb_rounds == 3
+    assert seen == [limit, 3]
 
 
 def _protected_area(mesh) -> float:
