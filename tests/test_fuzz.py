@@ -186,7 +186,9 @@ def _improve(spec, opts):
         assert len(climb) == len(opts.ops) * len({h["pass"] for h in climb})
     # perturbation rounds only after a converged climb; each reports a kept or restored mesh
     rounds = [h for h in result.history if h["op"] == "perturb"]
-    assert not rounds or opts.perturb > 0
+    assert result.perturb_rounds == opts.perturb_rounds(mesh.n_tets)
+    assert not rounds or result.perturb_rounds > 0
+    assert sum(h["successes"] > 0 for h in rounds) <= result.perturb_rounds
     assert all(h["worst_quality"] >= q0.min() for h in rounds)
 
 
