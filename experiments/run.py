@@ -147,6 +147,8 @@ def run(cfg: DictConfig, out: Path, choices: dict) -> dict:
             status=result.status,
             valid=bool(report.ok),
             passes=1 + max((e["pass"] for e in result.history), default=-1),
+            # the limit of kept perturbation rounds (perturb, or auto's count for the mesh)
+            perturb_rounds=result.perturb_rounds,
             regions=int(len(set(result.mesh.region.tolist()))),
         )
         if cfg.save_mesh:

@@ -347,6 +347,8 @@ def _check_sweep(sweep: Path, n_runs: int) -> dict[str, dict]:
         assert row["valid"] is True
         assert row["min_dihedral_after"] >= row["min_dihedral_before"]
         assert row["worst_quality_after"] >= row["worst_quality_before"]
+        report = json.loads((sweep / str(row["job"]) / "report.json").read_text())
+        assert row["perturb_rounds"] == report["perturb_rounds"] >= 0
         run_dir = sweep / str(row["job"])
         for name in ("improved.vtu", "report.json", "history.csv", "metrics.json"):
             assert (run_dir / name).is_file(), (run_dir, name)
