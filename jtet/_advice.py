@@ -55,8 +55,8 @@ def notes(
     if rounds is None:
         rounds = options.perturb_rounds(mesh.n_tets)
     if rounds and kept_rounds >= rounds:
-        which = "perturb auto: " if options.perturb == "auto" else f"perturb {rounds}: "
-        which += f"{rounds} kept rounds" if options.perturb == "auto" else "kept rounds"
+        auto = options.perturb == "auto"
+        which = f"perturb auto: {rounds} kept rounds" if auto else f"perturb {rounds}: kept rounds"
         out.append(
             f"the perturbation rounds stopped at their limit ({which}) while "
             f"they still raised the worst tet; more rounds (--perturb {2 * rounds}) may "

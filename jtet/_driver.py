@@ -434,7 +434,8 @@ def improve(
     _, lo_t, hi_t, qualities = per_tet
     q = qualities[opts.quality]
     run = _Run(opts, mesh, q, lo_t, hi_t, callback)
-    rounds = opts.perturb_rounds(mesh.n_tets)  # of the input: a kept round adds vertices
+    # counted on the input's tets (the rounds' 1-4 splits add some)
+    rounds = opts.perturb_rounds(mesh.n_tets)
     if opts.check:
         from ._invariants import InvariantChecker
 

@@ -84,8 +84,9 @@ class Options:
         perturb: at most this many kept perturbation rounds after the climb converges
             (0: none), or "auto" (the default): 8 on meshes of up to 100k tets, more on
             larger ones (``auto_perturb_rounds``: 9 at 182k tets, 14 at 1M, 19 at 3M),
-            which have more places about as bad as their worst for the rounds to free. A round kicks the worst tets (flips that may lower them a little,
-            a new vertex inside them, random moves of the free vertices around them,
+            which have more places about as bad as their worst for the rounds to free.
+            A round kicks the worst tets (flips that may lower them a little, a new
+            vertex inside them, random moves of the free vertices around them,
             single deep flips), climbs again around them, and keeps the result only if
             the worst quality rose (or stayed and one of several tets tied near it was
             fixed); otherwise the mesh goes back. Stops at the first round that keeps
