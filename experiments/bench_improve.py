@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 import jtet
+from jtet.cli import _perturb as perturb_count  # --perturb N|auto, as jtet improve reads it
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "meshes"
 MESHES = ("gmsh_cube", "gmsh_sphere", "gmsh_torus", "gmsh_holeplate")
@@ -419,7 +420,7 @@ def main() -> None:
     )
     p.add_argument(
         "--perturb",
-        type=lambda text: text if text == "auto" else int(text),
+        type=perturb_count,
         default=jtet.Options().perturb,
         metavar="N",
         help="improve's perturb option: up to N kept perturbation rounds after the climb, "

@@ -398,11 +398,11 @@ def round_seeds(mesh, q: np.ndarray, good: float) -> np.ndarray:
 
 def perturb(run, t0: float, rounds: int) -> str:
     """Perturbation rounds on a converged ``run`` (a ``_driver._Run``), at most
-    ``rounds`` kept ones (``Options.perturb_rounds``); returns the run's status, "converged", or raises
-    ``_driver._Stop`` (Ctrl-C, time limit, goals met after a kept round). Each attempt is
-    one history entry, op "perturb"; its climb may run up to ``max_passes`` passes of
-    its own. Attempts are judged in the round's order; a helper process
-    (``_helper_process``) runs some of them side by side, with the same result."""
+    ``rounds`` kept ones (``Options.perturb_rounds``); returns the run's status,
+    "converged", or raises ``_driver._Stop`` (Ctrl-C, time limit, goals met after a kept
+    round). Each attempt is one history entry, op "perturb"; its climb may run up to
+    ``max_passes`` passes of its own. Attempts are judged in the round's order; a helper
+    process (``_helper_process``) runs some of them side by side, with the same result."""
     from . import _helper_process
 
     opts = run.opts
