@@ -227,9 +227,12 @@ class _Run:
         need = np.maximum(self.opts.min_progress * np.abs(before), self.opts.min_improvement)
         return bool((self.objective() > before + need).any())
 
-    def climb(self, t0: float, record: bool = True, patience: int | None = None) -> str:
+    def climb(
+        self, t0: float, record: bool = True, patience: int | None = None, give_up=None
+    ) -> str:
         """Passes of every operation until ``patience`` (default: the option's) passes in a
-        row make no progress ("converged") or ``max_passes`` ("max passes"); raises
+        row make no progress ("converged"), ``max_passes`` ("max passes") or ``give_up``
+        (a test of the (m,) qualities after each pass) returns True ("gave up"); raises
         ``_Stop`` (Ctrl-C, time limit, or the goals met before an operation or at the
         end)."""
         opts = self.opts
@@ -246,6 +249,8 @@ class _Run:
                     run_op = functools.partial(run_op, forbidden=self.forbidden)
                 self.step(op, run_op, workable, record)
             stall = 0 if self.progressed(before) else stall + 1
+            if give_up is not None and give_up(self.q):
+                return "gave up"
             if stall >= patience:
                 self.check_goal()  # its last operation may have reached it
                 return "converged"

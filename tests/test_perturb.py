@@ -11,6 +11,8 @@ from jtet import _driver
 from jtet._apply import split_tets
 from jtet._invariants import InvariantChecker
 from jtet._perturb import (
+    GIVE_UP_PASSES,
+    GIVE_UP_SPAN,
     JIGGLE,
     JIGGLES,
     MIN_RAISE,
@@ -20,6 +22,7 @@ from jtet._perturb import (
     WINDOWS,
     _Baseline,
     _neighbourhood,
+    attempt_give_up,
     better,
     jiggle_step,
     kicks,
@@ -304,6 +307,65 @@ def test_perturbation_starts_from_the_converged_mesh_and_never_loses(demo_runs):
     assert perturbed.mesh.is_valid().ok
 
 
+def reference_give_up(trace, worst):
+    """Whether the climb is given up after the last entry of ``trace`` (the kicked
+    worst, then the worst after each pass): the rise over the last GIVE_UP_SPAN passes,
+    extrapolated linearly GIVE_UP_PASSES passes on, stays below ``worst``."""
+    if len(trace) <= GIVE_UP_SPAN:
+        return False
+    rise = trace[-1] - trace[-1 - GIVE_UP_SPAN]
+    return trace[-1] + rise * GIVE_UP_PASSES / GIVE_UP_SPAN < worst
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_attempt_give_up_against_its_extrapolation(seed):
+    rng = np.random.default_rng(seed)
+    worst = 0.5
+    # non-decreasing worst qualities (the climb never lowers it), from well below to
+    # around the round's worst, with flat stretches, creeping rises and jumps
+    trace = [worst - rng.uniform(0.01, 0.4)]
+    for _ in range(12):
+        trace.append(trace[-1] + rng.choice([0.0, rng.uniform(0, 0.002), rng.uniform(0, 0.1)]))
+    give_up = attempt_give_up(trace[0], worst)
+    for k in range(1, len(trace)):
+        q = np.array([trace[k], 0.9, 1.0])  # the submesh's qualities after pass k
+        expected = reference_give_up(trace[: k + 1], worst)
+        assert give_up(q) == expected
+        if expected:
+            break
+
+
+def test_attempt_give_up_cases():
+    worst = 0.5
+    # never before GIVE_UP_SPAN passes, however flat and far below
+    give_up = attempt_give_up(0.1, worst)
+    assert not any(give_up(np.array([0.1])) for _ in range(GIVE_UP_SPAN - 1))
+    assert give_up(np.array([0.1]))
+    # a climb at or above the round's worst is never given up
+    give_up = attempt_give_up(0.1, worst)
+    assert not any(give_up(np.array([w])) for w in (0.3, 0.5, 0.5, 0.5, 0.5))
+    # a slow rise that reaches the worst within GIVE_UP_PASSES passes goes on
+    step = 0.3 / GIVE_UP_PASSES * 1.01
+    give_up = attempt_give_up(0.2, worst)
+    assert not any(give_up(np.array([0.2 + k * step])) for k in range(1, 6))
+
+
+def test_climb_stops_when_it_gives_up(demo):
+    opts = jtet.Options(perturb=0)
+    q, lo, hi = _driver._tet_measures(demo.points, demo.tets, opts.quality)
+    run = _driver._Run(opts, demo, q, lo, hi, None)
+    seen = []
+
+    def give_up(q):
+        seen.append(float(q.min()))
+        return len(seen) == 2
+
+    assert run.climb(0.0, record=True, give_up=give_up) == "gave up"
+    assert run.passes == 2
+    assert seen == sorted(seen)  # the climb never lowers the worst
+    assert {e["pass"] for e in run.history} == {0, 1}
+
+
 def test_perturb_zero_and_no_flips_mean_no_rounds(demo, demo_runs):
     plain, _ = demo_runs
     assert not [e for e in plain.history if e["op"] == "perturb"]
@@ -318,11 +380,11 @@ def test_stop_inside_a_round_returns_the_converged_mesh(demo, demo_runs, monkeyp
     calls = []
     climb = _driver._Run.climb
 
-    def climb_then_interrupt(self, t0, record=True, patience=None):
+    def climb_then_interrupt(self, t0, record=True, patience=None, give_up=None):
         calls.append(record)
         if not record:  # the perturbation's climb, right after a kick was applied
             raise KeyboardInterrupt
-        return climb(self, t0, record, patience)
+        return climb(self, t0, record, patience, give_up)
 
     monkeypatch.setattr(_driver._Run, "climb", climb_then_interrupt)
     r = jtet.improve(demo, perturb=8)
