@@ -364,9 +364,12 @@ def _phases(history: list[dict], rounds: int) -> list[str]:
             f"{climb[-1]['min_dihedral']:.2f} deg"
         )
     if kicks:
+        gave_up = sum(bool(e.get("gave_up")) for e in kicks)
         lines.append(
             f"perturbation rounds: {_kept(kicks)} of {len(kicks)} kicks kept (at most "
-            f"{rounds} round{'s' if rounds != 1 else ''}) in "
+            f"{rounds} round{'s' if rounds != 1 else ''}"
+            + (f"; {gave_up} climb{'s' if gave_up != 1 else ''} given up" if gave_up else "")
+            + ") in "
             f"{sum(e['seconds'] for e in kicks):.2f} s, min dihedral -> "
             f"{kicks[-1]['min_dihedral']:.2f} deg"
         )

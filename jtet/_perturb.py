@@ -288,11 +288,14 @@ class Outcome:
 
     ``key`` is the kick's change (None: nothing to kick, or no change); ``mesh`` the
     submesh after the climb (None for a kick already tried) and ``q`` its qualities;
-    ``stop`` the status of a climb that stopped (time limit, Ctrl-C)."""
+    ``stop`` the status of a climb that stopped (time limit, Ctrl-C); ``gave_up`` whether
+    the climb was given up (``attempt_give_up``)."""
 
-    def __init__(self, key=None, mesh=None, q=None, stats=None, seconds=0.0, stop=None):
+    def __init__(
+        self, key=None, mesh=None, q=None, stats=None, seconds=0.0, stop=None, gave_up=False
+    ):
         self.key, self.mesh, self.q, self.stats = key, mesh, q, stats
-        self.seconds, self.stop = seconds, stop
+        self.seconds, self.stop, self.gave_up = seconds, stop, gave_up
 
     def for_pipe(self) -> Outcome:
         """This outcome with the submesh as plain arrays (``submesh`` rebuilds it)."""
@@ -302,7 +305,7 @@ class Outcome:
                     mesh.protected_edges, mesh.protected_face_labels,
                     mesh.protected_vertices, mesh.protected_edge_labels,
                     mesh.protected_vertex_labels, mesh._feature_angle)  # fmt: skip
-        return Outcome(self.key, mesh, self.q, self.stats, self.seconds, self.stop)
+        return Outcome(self.key, mesh, self.q, self.stats, self.seconds, self.stop, self.gave_up)
 
     def submesh(self):
         """The submesh after the climb, as a ``TetMesh``."""
@@ -380,8 +383,9 @@ class RoundState:
             if step.keep is not None:  # the climb may not undo the kick's flips
                 sub.forbidden = self.start_state[0].tets[~step.keep]
             give_up = attempt_give_up(float(sub.q.min()), self.worst)
-            sub.climb(self.t0, record=False, patience=CLIMB_PATIENCE, give_up=give_up)
-            return Outcome(key, sub.current, sub.q, step.stats, time.perf_counter() - ts)
+            status = sub.climb(self.t0, record=False, patience=CLIMB_PATIENCE, give_up=give_up)
+            seconds = time.perf_counter() - ts
+            return Outcome(key, sub.current, sub.q, step.stats, seconds, None, status == "gave up")
         except _Stop as stop:
             return Outcome(stop=stop.status)
         finally:
@@ -534,6 +538,7 @@ def _judge_round(run, t0, part, state, attempts, ladder, tried, baseline, began)
             "site": site,
             "slack": slack,
             "changes": int(outcome.stats.successes),
+            "gave_up": outcome.gave_up,
             "tets": int(part.sel.sum()),
         }
         run.record(entry, outcome.seconds)

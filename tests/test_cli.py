@@ -151,7 +151,10 @@ def test_improve_prints_summary(improved, small):
     rounds = [e for e in rep["history"] if e["op"] == "perturb"]
     assert rounds, "the small mesh leaves work for the perturbation rounds"
     lines = [ln for ln in improved["stderr"].splitlines() if "] perturb " in ln]
-    expected = [f"perturb {e['kick']:6s} {'kept' if e['successes'] else 'undone'}" for e in rounds]
+    verdicts = [
+        "kept" if e["successes"] else "gave up" if e["gave_up"] else "undone" for e in rounds
+    ]
+    expected = [f"perturb {e['kick']:6s} {v}" for e, v in zip(rounds, verdicts, strict=True)]
     assert len(lines) == len(expected)
     assert all(want in line for want, line in zip(expected, lines, strict=True))
 

@@ -198,9 +198,11 @@ def test_summary_splits_the_climb_from_the_rounds(demo_run):
         f"min dihedral -> {climb[-1]['min_dihedral']:.2f} deg"
     ) in lines
     kept = sum(e["successes"] > 0 for e in kicks)
+    gave_up = sum(e["gave_up"] for e in kicks)
+    given_up = f"; {gave_up} climb{'s' if gave_up != 1 else ''} given up" if gave_up else ""
     assert (
         f"perturbation rounds: {kept} of {len(kicks)} kicks kept (at most "
-        f"{r.perturb_rounds} rounds) in "
+        f"{r.perturb_rounds} rounds{given_up}) in "
         f"{sum(e['seconds'] for e in kicks):.2f} s, min dihedral -> "
         f"{r.stats_after.min_dihedral:.2f} deg"
     ) in lines

@@ -292,6 +292,9 @@ def test_perturbation_starts_from_the_converged_mesh_and_never_loses(demo_runs):
     worst = [plain.history[-1]["worst_quality"]] + [e["worst_quality"] for e in rounds]
     assert worst == sorted(worst)
     assert {e["successes"] for e in rounds} <= {0, 1}
+    # a climb given up ends below the round's worst: its attempt is never kept
+    assert all(isinstance(e["gave_up"], bool) for e in rounds)
+    assert not any(e["gave_up"] and e["successes"] for e in rounds)
     assert all(
         e["attempts"] == 1 and e["kick"] in {k[2] for k in kicks(("edge", "face", "smooth"))}
         for e in rounds
