@@ -382,7 +382,9 @@ class RoundState:
                 return Outcome(key)
             if step.keep is not None:  # the climb may not undo the kick's flips
                 sub.forbidden = self.start_state[0].tets[~step.keep]
-            give_up = attempt_give_up(float(sub.q.min()), self.worst)
+            # an inserted vertex is connected by flips after it has been smoothed: its
+            # climb's worst can sit flat for passes and then jump (GIVE_UP_SPAN)
+            give_up = None if op == "insert" else attempt_give_up(float(sub.q.min()), self.worst)
             status = sub.climb(self.t0, record=False, patience=CLIMB_PATIENCE, give_up=give_up)
             seconds = time.perf_counter() - ts
             return Outcome(key, sub.current, sub.q, step.stats, seconds, None, status == "gave up")
@@ -397,20 +399,23 @@ class RoundState:
 # last GIVE_UP_SPAN passes, would still be below the round's worst GIVE_UP_PASSES passes
 # later: such an attempt is almost never kept (``better`` wants the worst not to fall),
 # and failed attempts are most of a round's time (on coarse TetGen meshes their climbs
-# run 6-22 passes, the worst creeping up towards a limit below the round's). Offline, on
-# the per-pass worst of 429 attempts (holeplate and demo seeds 0-2, six TetGen meshes):
-# the rule saves 18 % of the attempt time and gives up 1 of 102 kept attempts (a flip
-# that jumped the worst up after 9 flat passes); a span of 1 gave up kept attempts whose
-# worst paused for one pass before a jump, and 12 passes lost 3. Seeds 0-2 of the four
-# reference meshes and the demo, seeds 0-1 of five TetGen meshes: the same angles in all
-# 25 runs; TetGen 90 -> 75 s (the all-boundary `-p` mesh 20.5 -> 12.2 s), the reference
-# meshes and the demo within noise (experiments/results/bench_improve.md, session 37).
+# run 6-22 passes, the worst creeping up towards a limit below the round's). Not after
+# vertex insertions: every kept attempt the rule lost was one (a new vertex is connected
+# by flips once smoothed, and the worst can sit flat for passes and then jump). Offline,
+# on the per-pass worst of 429 attempts (holeplate and demo seeds 0-2, six TetGen
+# meshes): 14 % of the attempt time saved, none of the 102 kept attempts lost (with the
+# insertions: 18 % and 1 lost; a span of 1 lost kept attempts whose worst paused for one
+# pass before a jump). Seeds 0-6 of the four reference meshes and the demo, seeds 0-3 of
+# five TetGen meshes, the 983k-tet cube seeds 0-2: the same angles in all 58 runs; the
+# TetGen runs 195 -> 150 s, the reference meshes within noise
+# (experiments/results/bench_improve.md, session 37).
 GIVE_UP_SPAN = 2
 GIVE_UP_PASSES = 20
 
 
 def attempt_give_up(start: float, worst: float):
-    """A ``_Run.climb`` ``give_up`` test for the climb after a kick: ``start`` is the
+    """A ``_Run.climb`` ``give_up`` test for the climb after a kick (not an insertion,
+    see ``GIVE_UP_SPAN``): ``start`` is the
     kicked submesh's worst quality, ``worst`` the round's. Called with the (m,) qualities
     after each pass; True when the worst, rising at its mean rate of the last
     ``GIVE_UP_SPAN`` passes for ``GIVE_UP_PASSES`` more passes, would stay below

@@ -658,6 +658,36 @@ def test_the_step_after_a_kick_does_not_create_the_removed_tets_again(
     InvariantChecker(after).check(tabu.mesh, 0, op)
 
 
+def test_only_insertions_climb_without_giving_up(demo_runs, monkeypatch):
+    """Every attempt's climb gets a give-up test (``attempt_give_up``) but those after a
+    vertex insertion, which may sit flat for passes before a flip connects the vertex."""
+    from jtet._perturb import RoundState, round_seeds
+
+    plain, _ = demo_runs
+    mesh, opts = plain.mesh, jtet.Options(perturb=0)
+    q = mesh.quality(opts.quality)
+    lo, hi = np.zeros_like(q), np.full_like(q, 180.0)
+    seeds = round_seeds(mesh, q, opts.good_quality)
+    state = RoundState(mesh, q, lo, hi, opts, float(q.min()), opts.good_quality, 0.0, seeds)
+    given = []
+    climb = _driver._Run.climb
+
+    def recording_climb(self, t0, record=True, patience=None, give_up=None):
+        given.append(give_up is not None)
+        return climb(self, t0, record, patience, give_up)
+
+    monkeypatch.setattr(_driver._Run, "climb", recording_climb)
+    climbed = set()
+    for attempt in [a for a in kicks(opts.ops) if a[2] in ("edge", "insert")][:8]:
+        given.clear()
+        outcome = state.attempt(attempt)
+        if outcome.key is not None:  # the kick changed the submesh: its climb ran
+            assert given == [attempt[2] != "insert"]
+            assert not (outcome.gave_up and attempt[2] == "insert")
+            climbed.add(attempt[2])
+    assert climbed == {"edge", "insert"}
+
+
 def test_attempts_forget_their_forbidden_tets(demo_runs):
     """The forbidden tets last for one attempt's climb only: the round's state has none
     before or after an attempt."""
