@@ -138,6 +138,7 @@ def run(cfg: DictConfig, out: Path, choices: dict) -> dict:
             jtet.save(mesh, out / f"input{ext}", cell_data=quality_cell_data(mesh))
         result = jtet.improve(mesh, opts)
         report = result.mesh.is_valid()
+        kicks = [e for e in result.history if e["op"] == "perturb"]
         row.update(
             _stats_columns(result.stats_before, "before", opts.quality)
             | _stats_columns(result.stats_after, "after", opts.quality)
@@ -149,6 +150,10 @@ def run(cfg: DictConfig, out: Path, choices: dict) -> dict:
             passes=1 + max((e["pass"] for e in result.history), default=-1),
             # the limit of kept perturbation rounds (perturb, or auto's count for the mesh)
             perturb_rounds=result.perturb_rounds,
+            # the rounds' attempts: kept, tried, and those whose climb was given up
+            perturb_kept=sum(e["successes"] for e in kicks),
+            perturb_tried=len(kicks),
+            perturb_gave_up=sum(e["gave_up"] for e in kicks),
             regions=int(len(set(result.mesh.region.tolist()))),
         )
         if cfg.save_mesh:

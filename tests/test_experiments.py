@@ -349,6 +349,10 @@ def _check_sweep(sweep: Path, n_runs: int) -> dict[str, dict]:
         assert row["worst_quality_after"] >= row["worst_quality_before"]
         report = json.loads((sweep / str(row["job"]) / "report.json").read_text())
         assert row["perturb_rounds"] == report["perturb_rounds"] >= 0
+        kicks = [e for e in report["history"] if e["op"] == "perturb"]
+        assert row["perturb_tried"] == len(kicks)
+        assert row["perturb_kept"] == sum(e["successes"] for e in kicks) <= row["perturb_rounds"]
+        assert row["perturb_gave_up"] == sum(e["gave_up"] for e in kicks)
         run_dir = sweep / str(row["job"])
         for name in ("improved.vtu", "report.json", "history.csv", "metrics.json"):
             assert (run_dir / name).is_file(), (run_dir, name)
