@@ -415,11 +415,10 @@ GIVE_UP_PASSES = 20
 
 def attempt_give_up(start: float, worst: float):
     """A ``_Run.climb`` ``give_up`` test for the climb after a kick (not an insertion,
-    see ``GIVE_UP_SPAN``): ``start`` is the
-    kicked submesh's worst quality, ``worst`` the round's. Called with the (m,) qualities
-    after each pass; True when the worst, rising at its mean rate of the last
-    ``GIVE_UP_SPAN`` passes for ``GIVE_UP_PASSES`` more passes, would stay below
-    ``worst``."""
+    see ``GIVE_UP_SPAN``): ``start`` is the kicked submesh's worst quality, ``worst`` the
+    round's. Called with the (m,) qualities after each pass; True when the worst, rising
+    at its mean rate of the last ``GIVE_UP_SPAN`` passes for ``GIVE_UP_PASSES`` more
+    passes, would stay below ``worst``."""
     trace = [start]
 
     def give_up(q: np.ndarray) -> bool:
