@@ -658,9 +658,8 @@ def test_the_step_after_a_kick_does_not_create_the_removed_tets_again(
     InvariantChecker(after).check(tabu.mesh, 0, op)
 
 
-def test_only_insertions_climb_without_giving_up(demo_runs, monkeypatch):
-    """Every attempt's climb gets a give-up test (``attempt_give_up``) but those after a
-    vertex insertion, which may sit flat for passes before a flip connects the vertex."""
+def _demo_round(demo_runs):
+    """(options, ``RoundState``) of a round on the demo's converged mesh."""
     from jtet._perturb import RoundState, round_seeds
 
     plain, _ = demo_runs
@@ -669,6 +668,13 @@ def test_only_insertions_climb_without_giving_up(demo_runs, monkeypatch):
     lo, hi = np.zeros_like(q), np.full_like(q, 180.0)
     seeds = round_seeds(mesh, q, opts.good_quality)
     state = RoundState(mesh, q, lo, hi, opts, float(q.min()), opts.good_quality, 0.0, seeds)
+    return opts, state
+
+
+def test_only_insertions_climb_without_giving_up(demo_runs, monkeypatch):
+    """Every attempt's climb gets a give-up test (``attempt_give_up``) but those after a
+    vertex insertion, which may sit flat for passes before a flip connects the vertex."""
+    opts, state = _demo_round(demo_runs)
     given = []
     climb = _driver._Run.climb
 
@@ -691,14 +697,7 @@ def test_only_insertions_climb_without_giving_up(demo_runs, monkeypatch):
 def test_attempts_forget_their_forbidden_tets(demo_runs):
     """The forbidden tets last for one attempt's climb only: the round's state has none
     before or after an attempt."""
-    from jtet._perturb import RoundState, kicks, round_seeds
-
-    plain, _ = demo_runs
-    mesh, opts = plain.mesh, jtet.Options(perturb=0)
-    q = mesh.quality(opts.quality)
-    lo, hi = np.zeros_like(q), np.full_like(q, 180.0)
-    seeds = round_seeds(mesh, q, opts.good_quality)
-    state = RoundState(mesh, q, lo, hi, opts, float(q.min()), opts.good_quality, 0.0, seeds)
+    opts, state = _demo_round(demo_runs)
     assert state.sub.forbidden is None
     outcomes = [state.attempt(a) for a in kicks(opts.ops)[:6]]
     assert any(o.key is not None for o in outcomes)
