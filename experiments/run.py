@@ -47,6 +47,7 @@ import meshgen  # noqa: E402
 
 import jtet  # noqa: E402
 from jtet import _helper_process  # noqa: E402
+from jtet._driver import _gave_up, _kept, _kicks  # noqa: E402
 from jtet._io import output_format  # noqa: E402
 from jtet._report import quality_cell_data, write_report, write_text_atomic  # noqa: E402
 
@@ -138,7 +139,7 @@ def run(cfg: DictConfig, out: Path, choices: dict) -> dict:
             jtet.save(mesh, out / f"input{ext}", cell_data=quality_cell_data(mesh))
         result = jtet.improve(mesh, opts)
         report = result.mesh.is_valid()
-        kicks = [e for e in result.history if e["op"] == "perturb"]
+        kicks = _kicks(result.history)
         row.update(
             _stats_columns(result.stats_before, "before", opts.quality)
             | _stats_columns(result.stats_after, "after", opts.quality)
@@ -151,9 +152,9 @@ def run(cfg: DictConfig, out: Path, choices: dict) -> dict:
             # the limit of kept perturbation rounds (perturb, or auto's count for the mesh)
             perturb_rounds=result.perturb_rounds,
             # the rounds' attempts: kept, tried, and those whose climb was given up
-            perturb_kept=sum(e["successes"] for e in kicks),
+            perturb_kept=_kept(kicks),
             perturb_tried=len(kicks),
-            perturb_gave_up=sum(e["gave_up"] for e in kicks),
+            perturb_gave_up=_gave_up(kicks),
             regions=int(len(set(result.mesh.region.tolist()))),
         )
         if cfg.save_mesh:

@@ -249,11 +249,13 @@ class _Run:
                     run_op = functools.partial(run_op, forbidden=self.forbidden)
                 self.step(op, run_op, workable, record)
             stall = 0 if self.progressed(before) else stall + 1
-            if give_up is not None and give_up(self.q):
-                return "gave up"
             if stall >= patience:
                 self.check_goal()  # its last operation may have reached it
                 return "converged"
+            # tested after convergence: a climb that stopped anyway was not cut short
+            if give_up is not None and give_up(self.q):
+                self.check_goal()
+                return "gave up"
         self.check_goal()
         return "max passes"
 
@@ -346,6 +348,11 @@ def _kept(kicks: list[dict]) -> int:
     return sum(e["successes"] > 0 for e in kicks)
 
 
+def _gave_up(kicks: list[dict]) -> int:
+    """How many of ``kicks`` had their climb given up (``_perturb.attempt_give_up``)."""
+    return sum(e["gave_up"] for e in kicks)
+
+
 def _phases(history: list[dict], rounds: int) -> list[str]:
     """Lines for ``summary()``: what the climb and the perturbation rounds (at most
     ``rounds`` kept) each took and gave (seconds of their operations; the smallest
@@ -364,7 +371,7 @@ def _phases(history: list[dict], rounds: int) -> list[str]:
             f"{climb[-1]['min_dihedral']:.2f} deg"
         )
     if kicks:
-        gave_up = sum(bool(e.get("gave_up")) for e in kicks)
+        gave_up = _gave_up(kicks)
         lines.append(
             f"perturbation rounds: {_kept(kicks)} of {len(kicks)} kicks kept (at most "
             f"{rounds} round{'s' if rounds != 1 else ''}"

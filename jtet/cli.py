@@ -211,7 +211,7 @@ class _Progress:
         frac = min((e["pass"] + 1) / self.max_passes, 1.0)
         bar = "#" * int(20 * frac) + "." * (20 - int(20 * frac))
         if e["op"] == "perturb":  # one attempt of a perturbation round
-            verdict = "kept" if e["successes"] else "gave up" if e.get("gave_up") else "undone"
+            verdict = "kept" if e["successes"] else "gave up" if e["gave_up"] else "undone"
             what = f"perturb {e['kick']:6s} {verdict:7s}"
         else:
             what = f"pass {e['pass'] + 1} {e['op']:6s} {e['successes']:6d}/{e['attempts']:<7d}"

@@ -369,6 +369,17 @@ def test_climb_stops_when_it_gives_up(demo):
     assert {e["pass"] for e in run.history} == {0, 1}
 
 
+def test_a_climb_that_converges_is_not_counted_as_given_up(demo):
+    """On a pass that both ends the climb (no progress, patience 1) and fails the give-up
+    test, the climb converged: it was not cut short, so it is not a climb given up."""
+    opts = jtet.Options(perturb=0)
+    q, lo, hi = _driver._tet_measures(demo.points, demo.tets, opts.quality)
+    run = _driver._Run(opts, demo, q, lo, hi, None)
+    run.progressed = lambda before: False
+    assert run.climb(0.0, patience=1, give_up=lambda q: True) == "converged"
+    assert run.passes == 1
+
+
 def test_perturb_zero_and_no_flips_mean_no_rounds(demo, demo_runs):
     plain, _ = demo_runs
     assert not [e for e in plain.history if e["op"] == "perturb"]
