@@ -12,6 +12,7 @@ times and the kernel builds (experiments/results/compile.md).
     python experiments/bench_improve.py --meshes gmsh_cube --ops edge,face
     python experiments/bench_improve.py --boundary slide      # flat facets' vertices slide
     python experiments/bench_improve.py --perturb 0           # without perturbation rounds
+    python experiments/bench_improve.py --no-insert --seeds 3  # rounds without new vertices
     python experiments/bench_improve.py --seeds 5             # quality over seeds 0-4
     python experiments/bench_improve.py --compile --meshes gmsh_cube   # compile overhead
     python experiments/bench_improve.py --cli --repeat 5      # the jtet command, end to end
@@ -426,6 +427,12 @@ def main() -> None:
         help="improve's perturb option: up to N kept perturbation rounds after the climb, "
         "or auto (default: jtet's)",
     )
+    p.add_argument(
+        "--no-insert",
+        dest="insert",
+        action="store_false",
+        help="improve's insert=False: the perturbation rounds add no vertex",
+    )
     for end in ("min", "max"):
         p.add_argument(
             f"--goal-{end}-dihedral",
@@ -486,7 +493,7 @@ def main() -> None:
     if args.settings:
         quality_settings(names, ops, args.settings.split(","))
         return
-    options = {"boundary": args.boundary, "perturb": args.perturb}
+    options = {"boundary": args.boundary, "perturb": args.perturb, "insert": args.insert}
     goals = {
         f"goal_{end}_dihedral": getattr(args, f"goal_{end}_dihedral") for end in ("min", "max")
     }
@@ -512,6 +519,7 @@ def main() -> None:
     print_table(
         rows,
         f"jtet.improve(ops={ops}), boundary {args.boundary}, perturb {args.perturb}"
+        + ("" if args.insert else ", no insertion")
         + "".join(f", {k} {v:g}" for k, v in goals.items())
         + ": wall time of a second run on each mesh "
         "(steady state) and of the first (with compilation)",

@@ -93,6 +93,11 @@ class Options:
             nothing. It frees worst tets whose vertices are all pinned (boundary fixed)
             and local optima of the climb: holeplate 29.1-29.5 -> 32.7-34.3 degrees over
             seeds 0-4, for +0.6-1.3 s. Inserted vertices are appended to the points.
+        insert: whether the perturbation rounds may add vertices (a new vertex inside the
+            worst tets is one of their kicks). False keeps the mesh's points: the output
+            has exactly the input's vertices, in their order (smoothing may still move
+            the free ones; ``ops=("edge", "face")`` keeps them in place too), as MMG's
+            ``-noinsert`` and Stellar with vertex insertion disabled do.
         time_limit: seconds of wall time, or None.
         goal_min_dihedral, goal_max_dihedral: degrees, or None (default: no goal). The
             run stops ("goal reached") as soon as the smallest dihedral angle of the mesh
@@ -133,6 +138,7 @@ class Options:
     max_passes: int = 50
     patience: int = 2
     perturb: int | str = "auto"
+    insert: bool = True
     time_limit: float | None = None
     goal_min_dihedral: float | None = None
     goal_max_dihedral: float | None = None
@@ -164,7 +170,7 @@ class Options:
             if not math.isfinite(value):
                 raise JtetError(f"{name} must be finite, got {value!r}")
             object.__setattr__(self, name, float(value))
-        for name in ("check", "progress"):
+        for name in ("insert", "check", "progress"):
             if not isinstance(getattr(self, name), bool):
                 raise JtetError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if self.seed < 0:

@@ -85,19 +85,21 @@ SITES = 5
 SITE_SLACK = 0.6
 
 
-def kicks(ops: tuple[str, ...]) -> list[tuple[float | None, float, str, int | None]]:
+def kicks(
+    ops: tuple[str, ...], insert: bool = True
+) -> list[tuple[float | None, float, str, int | None]]:
     """(slack, window, kick, site) of every attempt of a round, in the order they are
     tried: edge removal at each slack (site None: every site at once), then vertex
-    insertion ("insert", no slack) when ``ops`` also smooth, then the jiggles ("jiggle0"
-    ..., random moves of free vertices) when ``ops`` smooth, then each flip site of the
-    worst tets on its own, then multi-face removal at each slack."""
+    insertion ("insert", no slack) when ``insert`` and ``ops`` also smooth, then the
+    jiggles ("jiggle0" ..., random moves of free vertices) when ``ops`` smooth, then each
+    flip site of the worst tets on its own, then multi-face removal at each slack."""
     flips = [op for op in ("edge", "face") if op in ops]
 
     def batched(op):  # gentlest slack first, the narrow window before the wide one
         return [(s, w, op, None) for s in SLACKS for w in WINDOWS] if op in flips else []
 
     ladder = batched("edge")
-    if flips and "smooth" in ops:  # a new vertex pays off once smoothed and connected
+    if insert and flips and "smooth" in ops:  # a new vertex pays off once smoothed, connected
         ladder += [(None, w, "insert", None) for w in WINDOWS]
     if "smooth" in ops:  # random restarts of the smoothing around the worst tets
         ladder += [(None, WINDOWS[-1], f"jiggle{draw}", None) for draw in range(JIGGLES)]
@@ -451,7 +453,7 @@ def perturb(run, t0: float, rounds: int) -> str:
     from . import _helper_process
 
     opts = run.opts
-    attempts = kicks(opts.ops)
+    attempts = kicks(opts.ops, opts.insert)
     good = np.inf if opts.good_quality is None else opts.good_quality
     # the cut faces pin the submesh's boundary vertices; "slide" would let them move.
     # The goals are the whole mesh's: the submesh's climbs never stop for them

@@ -130,6 +130,13 @@ def _add_options(p: argparse.ArgumentParser) -> None:
         "100k tets, more on larger meshes: 14 at 1M)",
     )
     p.add_argument(
+        "--insert",
+        action=argparse.BooleanOptionalAction,
+        default=DEFAULTS.insert,
+        help="let the perturbation rounds add vertices (the default); --no-insert keeps the "
+        "input's points: the output has exactly its vertices, in their order",
+    )
+    p.add_argument(
         "--time-limit",
         type=float,
         default=None,

@@ -574,6 +574,7 @@ def test_options_file_and_flags_over_it(small, tmp_path, capsys):
     assert used["ops"] == ["edge", "smooth"] and used["max_passes"] == 1 and used["seed"] == 3
     assert used["max_ring"] == 6
     assert used["perturb"] == jtet.Options().perturb  # left out of the file: the default
+    assert used["insert"] is True
     # a report runs again with exactly its options, to the same mesh
     again_report = tmp_path / "r2.json"
     assert _improve(small, again, "--options", report, "--report", again_report, "-q") == 0
@@ -581,6 +582,22 @@ def test_options_file_and_flags_over_it(small, tmp_path, capsys):
     a, b = jtet.load(first), jtet.load(again)
     np.testing.assert_array_equal(a.tets, b.tets)
     np.testing.assert_array_equal(a.points, b.points)
+    capsys.readouterr()
+
+
+def test_no_insert_flag_and_over_a_file(small, tmp_path, capsys):
+    """``--no-insert`` reaches ``Options.insert`` and keeps the input's points;
+    ``--insert`` wins over ``insert: false`` in an options file."""
+    out, report = tmp_path / "o.vtu", tmp_path / "r.json"
+    assert _improve(small, out, "--no-insert", "--perturb", "2", "--report", report, "-q") == 0
+    assert json.loads(report.read_text())["options"]["insert"] is False
+    assert jtet.load(out).n_points == jtet.load(small).n_points
+    opts = tmp_path / "o.yaml"
+    opts.write_text("insert: false\nmax_passes: 1\nperturb: 0\n")
+    assert _improve(small, out, "--options", opts, "--report", report, "-q") == 0
+    assert json.loads(report.read_text())["options"]["insert"] is False
+    assert _improve(small, out, "--options", opts, "--insert", "--report", report, "-q") == 0
+    assert json.loads(report.read_text())["options"]["insert"] is True
     capsys.readouterr()
 
 

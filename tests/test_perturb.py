@@ -159,6 +159,9 @@ def test_kicks_order_and_ops():
     assert kicks(("face", "smooth")) == inserts + jiggles + face_sites + face
     assert kicks(("edge", "face")) == edge + sites + face  # no smoothing
     assert kicks(("smooth",)) == jiggles
+    # insert=False: the same ladder without the insertions
+    assert kicks(("edge", "face", "smooth"), insert=False) == edge + jiggles + sites + face
+    assert kicks(("edge", "face"), insert=False) == kicks(("edge", "face"))
 
 
 def _jiggled(mesh, workable, draw, seed=0):
@@ -485,6 +488,29 @@ def test_kept_rounds_with_regions_and_protected_faces(seed, kick):
     # protected triangles may be flipped only into triangles covering the same area
     assert _protected_area(r.mesh) == pytest.approx(_protected_area(mesh), rel=1e-12)
     assert r.mesh.topology.subfacet.sum() >= 1  # the protected faces are faces (build ok)
+
+
+def test_no_insert_keeps_the_points():
+    """``insert=False`` on the mesh whose rounds keep an insertion (seed 6 above): no
+    insertion is tried, the output has exactly the input's points, the fixed boundary
+    ones where they were, and it is never worse than the climb alone."""
+    mesh = delaunay_mesh(300, seed=6, surface_points=40)
+    plain = jtet.improve(mesh, perturb=0)
+    r = jtet.improve(mesh, perturb=6, insert=False, check=True)
+    rounds = [e for e in r.history if e["op"] == "perturb"]
+    assert rounds and "insert" not in {e["kick"] for e in rounds}
+    assert r.options.insert is False
+    assert r.mesh.n_points == mesh.n_points
+    fixed = mesh.topology.vertex_kind != 0  # FREE = 0: only free vertices may move
+    np.testing.assert_array_equal(r.mesh.points[fixed], mesh.points[fixed])
+    q0, q1 = plain.mesh.quality(r.options.quality), r.mesh.quality(r.options.quality)
+    assert q1.min() >= q0.min()
+    assert r.mesh.is_valid().ok
+
+
+def test_insert_option_validated():
+    with pytest.raises(jtet.JtetError, match="insert must be True or False"):
+        jtet.Options(insert=1)
 
 
 def _tet_set(mesh) -> set:
