@@ -197,6 +197,7 @@ def options(draw, ops: tuple[str, ...] | None = None) -> jtet.Options:
         max_passes=draw(st.integers(1, 3)),
         patience=draw(st.integers(1, 2)),
         perturb=draw(st.sampled_from([0, 0, 0, 2, 2, "auto"])),
+        insert=draw(st.sampled_from([True, True, False])),
         seed=draw(st.integers(0, 1000)),
         goal_min_dihedral=draw(st.sampled_from([None, None, None, 5.0, 20.0, 35.0])),
         goal_max_dihedral=draw(st.sampled_from([None, None, None, 170.0, 150.0, 130.0])),

@@ -190,6 +190,10 @@ def _improve(spec, opts):
     assert not rounds or result.perturb_rounds > 0
     assert sum(h["successes"] > 0 for h in rounds) <= result.perturb_rounds
     assert all(h["worst_quality"] >= q0.min() for h in rounds)
+    # insert=False: no insertion kick, exactly the input's points
+    if not opts.insert:
+        assert "insert" not in {h["kick"] for h in rounds}
+        assert result.mesh.n_points == mesh.n_points
 
 
 @_cases("improve")
