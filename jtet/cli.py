@@ -219,7 +219,7 @@ class _Progress:
         bar = "#" * int(20 * frac) + "." * (20 - int(20 * frac))
         if e["op"] == "perturb":  # one attempt of a perturbation round
             verdict = "kept" if e["successes"] else "gave up" if e["gave_up"] else "undone"
-            what = f"perturb {e['kick']:6s} {verdict:7s}"
+            what = f"perturb {e['kick']:7s} {verdict:7s}"  # 7: the longest kick name (jiggle0)
         else:
             what = f"pass {e['pass'] + 1} {e['op']:6s} {e['successes']:6d}/{e['attempts']:<7d}"
         msg = (

@@ -154,7 +154,7 @@ def test_improve_prints_summary(improved, small):
     verdicts = [
         "kept" if e["successes"] else "gave up" if e["gave_up"] else "undone" for e in rounds
     ]
-    expected = [f"perturb {e['kick']:6s} {v}" for e, v in zip(rounds, verdicts, strict=True)]
+    expected = [f"perturb {e['kick']:7s} {v}" for e, v in zip(rounds, verdicts, strict=True)]
     assert len(lines) == len(expected)
     assert all(want in line for want, line in zip(expected, lines, strict=True))
 
