@@ -29,6 +29,7 @@ from jtet._perturb import (
 )
 from jtet._predicates import orient3d_tets
 from jtet._submesh import Submesh
+from jtet._topology import FREE
 
 
 def reference_better(new_q, old_q, near, tol):
@@ -501,7 +502,7 @@ def test_no_insert_keeps_the_points():
     assert rounds and "insert" not in {e["kick"] for e in rounds}
     assert r.options.insert is False
     assert r.mesh.n_points == mesh.n_points
-    fixed = mesh.topology.vertex_kind != 0  # FREE = 0: only free vertices may move
+    fixed = mesh.topology.vertex_kind != FREE  # only free vertices may move
     np.testing.assert_array_equal(r.mesh.points[fixed], mesh.points[fixed])
     q0, q1 = plain.mesh.quality(r.options.quality), r.mesh.quality(r.options.quality)
     assert q1.min() >= q0.min()
