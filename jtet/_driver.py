@@ -410,6 +410,8 @@ def improve(
     from ._stats import mesh_stats
 
     opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
+    if mesh.point_data:
+        return _improve_carrying_point_data(mesh, opts, callback)
     t0 = time.perf_counter()
     # the run's topologies (the checks', every step's) treat subfacets bent by less than
     # the feature angle as one surface; the caller's mesh object is left as it was
@@ -500,6 +502,31 @@ def improve(
             rounds,
         ),
         perturb_rounds=rounds,
+    )
+
+
+def _improve_carrying_point_data(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
+    """``improve`` of a mesh with point data (``TetMesh.point_data``): the run works on
+    the mesh without it, and the result's vertices that the run moved or inserted get
+    values read off the input mesh at their positions (``carried_point_data``)."""
+    import dataclasses
+
+    from ._point_data import carried_point_data
+
+    result = improve(mesh.replace(point_data=None), opts, callback=callback)
+    t0 = time.perf_counter()
+    data, n_outside = carried_point_data(mesh, result.mesh)
+    notes = list(result.notes)
+    if n_outside:
+        notes.append(
+            f"{n_outside} moved vertices lie in no tet of the input mesh; their point data "
+            "are those of the nearest input vertex"
+        )
+    return dataclasses.replace(
+        result,
+        mesh=result.mesh.replace(point_data=data),
+        notes=notes,
+        seconds=result.seconds + time.perf_counter() - t0,
     )
 
 

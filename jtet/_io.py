@@ -191,8 +191,9 @@ _KNOWN_ARRAYS = {*REGION_ARRAYS, "min_dihedral", "max_dihedral", "volume"}
 
 def _warn_dropped_arrays(point_arrays: list, cell_arrays: list, source: str) -> None:
     """Warn that a file's point and cell arrays (a temperature, a material id) do not
-    reach the output: a ``TetMesh`` holds none (flips replace tets, so per-tet values
-    have no tets to go with), only the region labels and what jtet computes itself."""
+    reach the output: a ``TetMesh`` holds no cell data but its region labels (flips
+    replace tets, so per-tet values have no tets to go with; jtet computes its own), and
+    point data only as VTK files give it (``grid_point_data``)."""
     groups = []
     for what, names in (("point", point_arrays), ("cell", cell_arrays)):
         names = [
@@ -205,8 +206,8 @@ def _warn_dropped_arrays(point_arrays: list, cell_arrays: list, source: str) -> 
             groups.append(f"{len(names)} {what} array(s) ({shown})")
     if groups:
         warnings.warn(
-            f"{source}: jtet carries no point or cell data but the region labels; not "
-            f"read: {' and '.join(groups)}",
+            f"{source}: jtet carries the region labels and the point arrays of numbers "
+            f"of .vtu / .vtk files, no other data; not read: {' and '.join(groups)}",
             stacklevel=3,
         )
 
@@ -286,7 +287,7 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     points = np.asarray(grid.points, dtype=np.float64)
     # by name: a damaged file may hold an array without one (pyvista then refuses dict())
     cell_arrays = {k: grid.cell_data[k] for k in grid.cell_data.keys() if isinstance(k, str)}
-    _warn_dropped_arrays(list(grid.point_data.keys()), list(cell_arrays), source)
+    _warn_dropped_arrays([], list(cell_arrays), source)  # point arrays: grid_point_data
     region = _pick_region(cell_arrays, n_cells, is_tet, source)
     pf = _field_entities(grid, PROTECTED_FACES_ARRAY, 3, source)
     pe = _field_entities(grid, PROTECTED_EDGES_ARRAY, 2, source)
@@ -373,6 +374,8 @@ def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
     grid.cell_data["region"] = np.array(mesh.region, dtype=np.int64)
     for name, a in extra.items():
         grid.cell_data[name] = np.array(a)
+    for name, a in mesh.point_data.items():
+        grid.point_data[name] = np.array(a)
     if len(mesh.protected_faces):
         grid.field_data[PROTECTED_FACES_ARRAY] = np.array(mesh.protected_faces)
         grid.field_data[PROTECTED_FACE_LABELS_ARRAY] = np.array(mesh.protected_face_labels)
@@ -500,7 +503,30 @@ def grid_extras(grid, source: str = "pyvista grid") -> dict:
         "periodic": grid_periodic(grid, source),
         "protected_tets": _field_entities(grid, PROTECTED_TETS_ARRAY, 4, source),
         "node_sets": grid_node_sets(grid, source),
+        "point_data": grid_point_data(grid, source),
     }
+
+
+def grid_point_data(grid, source: str = "pyvista grid") -> dict:
+    """The point arrays of ``grid`` as ``TetMesh.point_data`` takes them: those of real
+    numbers, one value or one row of values per point. VTK's and meshio's bookkeeping
+    (``vtkOriginalPointIds``, names with a format's tag ``gmsh:...``) is left out; other
+    arrays (strings, tensors) are left out with a warning."""
+    out, dropped = {}, []
+    for name in grid.point_data.keys():
+        if not isinstance(name, str) or name.startswith("vtk") or ":" in name:
+            continue
+        try:
+            a = np.asarray(grid.point_data[name])
+        except Exception:
+            a = np.zeros(0, object)
+        numeric = a.dtype.kind in "biuf"
+        if numeric and a.ndim in (1, 2) and len(a) == grid.n_points:
+            out[name] = a
+        else:
+            dropped.append(name)
+    _warn_dropped_arrays(dropped, [], source)
+    return out
 
 
 def grid_node_sets(grid, source: str = "pyvista grid") -> list | None:
@@ -1250,6 +1276,7 @@ def load(path: str | os.PathLike) -> TetMesh:
             "protected_tets": None
             if found["protected"] is None
             else found["blocks"][0][1][found["protected"]],
+            "point_data": found["point_data"],
         }
     elif ext == ".meshb":
         arrays, extras = _meshb_arrays(p, source)
@@ -1665,6 +1692,14 @@ def save(
                 "protected triangles, lines or points) (use .vtu)",
                 stacklevel=2,
             )
+    if mesh.point_data and fmt not in ("vtu", "vtk", "xdmf"):
+        names = list(mesh.point_data)
+        warnings.warn(
+            f"{p}: jtet writes point data to .vtu, .vtk and .xdmf files only; not saved: "
+            f"{len(names)} point array(s) ({', '.join(names[:3])}"
+            f"{', ...' if len(names) > 3 else ''})",
+            stacklevel=2,
+        )
     if mesh.node_sets and fmt not in ("vtu", "vtk", "abaqus", "exodus"):
         warnings.warn(
             f"{p}: the {_FORMAT_NAMES[fmt]} format has no node sets; not saved: "

@@ -23,9 +23,9 @@ def _readonly(a: np.ndarray) -> np.ndarray:
     return a
 
 
-class LabelNames(Mapping):
-    """A read-only mapping (dimension, label) -> name (``TetMesh.label_names``); unlike
-    ``types.MappingProxyType`` it pickles, as the meshes that hold it do."""
+class _ReadOnlyMapping(Mapping):
+    """A read-only mapping that, unlike ``types.MappingProxyType``, pickles, as the
+    meshes that hold it do."""
 
     def __init__(self, items: dict):
         self._items = dict(items)
@@ -39,8 +39,50 @@ class LabelNames(Mapping):
     def __len__(self) -> int:
         return len(self._items)
 
+
+class LabelNames(_ReadOnlyMapping):
+    """A read-only mapping (dimension, label) -> name (``TetMesh.label_names``)."""
+
     def __repr__(self) -> str:
         return f"LabelNames({self._items!r})"
+
+
+class PointData(_ReadOnlyMapping):
+    """A read-only mapping name -> read-only (n,) or (n, k) array of one value (or k
+    components) per vertex (``TetMesh.point_data``): a temperature, a displacement, a
+    node marker."""
+
+    def __repr__(self) -> str:
+        shapes = ", ".join(f"{k!r}: {a.dtype}{list(a.shape)}" for k, a in self._items.items())
+        return f"PointData({{{shapes}}})"
+
+
+def _checked_point_data(data, n_points: int) -> PointData:
+    """``TetMesh.point_data`` as a read-only mapping of read-only (n,) or (n, k) arrays
+    of real numbers (integers kept integers, bools as int8)."""
+    if isinstance(data, PointData) and all(len(a) == n_points for a in data.values()):
+        return data
+    if data is None:
+        return PointData({})
+    if not hasattr(data, "items"):
+        raise MeshInputError(f"point_data must be a mapping name -> array, got {data!r}")
+    out = {}
+    for name, values in data.items():
+        if not isinstance(name, str) or not name:
+            raise MeshInputError(f"point_data names must be non-empty strings, got {name!r}")
+        a = np.asarray(values)
+        if a.dtype == np.bool_:
+            a = a.astype(np.int8)
+        numeric = np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)
+        if not numeric:
+            raise MeshInputError(f"point_data[{name!r}] holds {a.dtype} values, not numbers")
+        if a.ndim not in (1, 2) or len(a) != n_points:
+            raise MeshInputError(
+                f"point_data[{name!r}] has shape {a.shape}; it needs one value or one row "
+                f"of values per vertex: ({n_points},) or ({n_points}, k)"
+            )
+        out[name] = _readonly(a)
+    return PointData(out)
 
 
 def _checked_names(names) -> LabelNames:
@@ -321,6 +363,11 @@ class TetMesh:
         node_sets: tuple of ``NodeSet`` (Abaqus ``*NSET``, Exodus node sets): named
             vertex sets a solver's input refers to, which may overlap. ``improve`` never
             moves their vertices and never renumbers vertices, so each set stays valid.
+        point_data: read-only mapping name -> (n,) or (n, k) array of values at the
+            vertices (a temperature, a displacement; VTK point arrays). ``improve``
+            interpolates them onto the vertices it moves and inserts, linearly in the
+            input tet that holds the new position (integer arrays: the value of that
+            tet's nearest vertex); the vertices it leaves in place keep their values.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it
@@ -340,6 +387,7 @@ class TetMesh:
     periodic: tuple = field(default=None)
     protected_tets: Int[np.ndarray, "k 4"] = field(default=None)
     node_sets: tuple = field(default=None)
+    point_data: dict = field(default=None)
 
     def __post_init__(self):
         points = _checked_points(self.points)
@@ -361,6 +409,7 @@ class TetMesh:
         object.__setattr__(self, "label_names", _checked_names(self.label_names))
         object.__setattr__(self, "periodic", _checked_periodic(self.periodic, len(points)))
         object.__setattr__(self, "node_sets", _checked_node_sets(self.node_sets, len(points)))
+        object.__setattr__(self, "point_data", _checked_point_data(self.point_data, len(points)))
         pt = self._entity_array(self.protected_tets, 4, "protected_tets", len(points))
         object.__setattr__(self, "protected_tets", _readonly(pt))
 
@@ -422,6 +471,15 @@ class TetMesh:
         if "node_sets" in changes or len(points) < self.n_points:
             node_sets = _checked_node_sets(changes.get("node_sets", node_sets), len(points))
         object.__setattr__(out, "node_sets", node_sets)
+        point_data = self.point_data
+        if "point_data" in changes:
+            point_data = _checked_point_data(changes["point_data"], len(points))
+        elif len(points) != self.n_points and point_data:
+            raise MeshInputError(
+                f"the mesh's point_data has {self.n_points} rows, the new points "
+                f"{len(points)}: pass point_data for the new points too (or point_data=None)"
+            )
+        object.__setattr__(out, "point_data", point_data)
         pt = self.protected_tets
         if "protected_tets" in changes or len(points) < self.n_points:
             pt = self._entity_array(
@@ -551,6 +609,7 @@ class TetMesh:
         periodic=None,
         protected_tets=None,
         node_sets=None,
+        point_data=None,
         source: str = "input",
     ) -> TetMesh:
         """Build a mesh from user arrays, fixing a globally reversed orientation.
@@ -566,7 +625,7 @@ class TetMesh:
         mesh = cls(
             points, tets, region, protected_faces, protected_edges, protected_face_labels,
             protected_vertices, protected_edge_labels, protected_vertex_labels, label_names,
-            periodic, protected_tets, node_sets,
+            periodic, protected_tets, node_sets, point_data,
         )  # fmt: skip
         vol = _orient_volumes6(mesh.points, mesh.tets)
         neg, pos = int((vol < 0).sum()), int((vol > 0).sum())
@@ -790,5 +849,6 @@ class TetMesh:
             + (f", {len(self.protected_tets)} protected tets" if len(self.protected_tets) else "")
             + (f", {len(self.periodic)} periodic links" if self.periodic else "")
             + (f", {len(self.node_sets)} node set(s)" if self.node_sets else "")
+            + (f", point data {', '.join(self.point_data)}" if self.point_data else "")
             + ")"
         )

@@ -157,10 +157,10 @@ def write_xdmf(mesh, xdmf: Path, heavy: Path, heavy_name: str, cell_data: dict) 
         item(ET.SubElement(g, "Geometry", {"GeometryType": "XYZ"}), "Mesh/mesh/geometry")
         return g
 
-    def attribute(g: ET.Element, name: str, key: str) -> None:
+    def attribute(g: ET.Element, name: str, key: str, center: str = "Cell") -> None:
         a = datasets[key]
         kind = "Scalar" if a.ndim == 1 else "Vector" if a.shape[1:] == (3,) else "Matrix"
-        attrs = {"Name": name, "AttributeType": kind, "Center": "Cell"}
+        attrs = {"Name": name, "AttributeType": kind, "Center": center}
         item(ET.SubElement(g, "Attribute", attrs), key)
 
     main = grid("mesh", "Tetrahedron", 4, "Mesh/mesh/topology")
@@ -175,6 +175,9 @@ def write_xdmf(mesh, xdmf: Path, heavy: Path, heavy_name: str, cell_data: dict) 
         a = a.astype(np.uint8) if a.dtype == bool else a  # HDF5 has no bool type
         datasets[f"Mesh/mesh/cell_data/{i}"] = a.reshape(len(a), -1) if a.ndim > 2 else a
         attribute(main, name, f"Mesh/mesh/cell_data/{i}")
+    for i, (name, values) in enumerate(mesh.point_data.items()):
+        datasets[f"Mesh/mesh/point_data/{i}"] = np.asarray(values)
+        attribute(main, name, f"Mesh/mesh/point_data/{i}", "Node")
     cell_tags = grid(TAG_GRIDS[3], "Tetrahedron", 4, "Mesh/mesh/topology")
     attribute(cell_tags, TAG_GRIDS[3], "Mesh/mesh/region")
     for dim, cells, labels, topology in (
@@ -513,6 +516,22 @@ def _attributes(g: ET.Element, data: _Data, what: str, n_cells: int) -> dict:
     return out
 
 
+def _node_attributes(g: ET.Element, data: _Data, what: str, n_points: int) -> dict:
+    """Node attributes of a grid of numbers, one value or one row of values per point:
+    name -> (n_points,) or (n_points, k) array (``TetMesh.point_data``)."""
+    out = {}
+    for a in g.findall("Attribute"):
+        name = a.get("Name") or ""
+        if (a.get("Center") or "Node").lower() != "node" or not name or name in out:
+            continue
+        values = np.asarray(data.read(a.find("DataItem"), f"{what} attribute {name!r}"))
+        if values.dtype.kind not in "biuf" or values.size % max(n_points, 1):
+            continue
+        values = values.reshape(n_points, -1)
+        out[name] = values[:, 0] if values.shape[1] == 1 else values
+    return out
+
+
 def _read_xdmf_arrays(path: Path, source: str) -> dict:
     """Everything ``load`` needs of an XDMF file, as plain arrays (picklable: the work of
     the forked child): points, cell blocks [(type, ids, labels or None)], protected-tet
@@ -541,6 +560,7 @@ def _read_xdmf_arrays(path: Path, source: str) -> dict:
         if points is None:
             raise data.fail(f"{what} has no Geometry")
         attrs = _attributes(g, data, what, n_main)
+        point_data = _node_attributes(g, data, what, len(points))
         region_name = next((a for a in (*REGION_ARRAYS, TAG_GRIDS[3]) if a in attrs), None)
         labels = None if region_name is None else _labels(attrs[region_name], region_name, source)
         # the tets of the main grid as one block (a Mixed topology may hold several runs)
@@ -588,7 +608,13 @@ def _read_xdmf_arrays(path: Path, source: str) -> dict:
                 names = json.loads(info.get("Value") or info.text or "[]")
             except ValueError:
                 raise MeshInputError(f"{source}: damaged {LABEL_NAMES_INFO} information") from None
-    return {"points": points, "blocks": blocks, "protected": protected, "names": names}
+    return {
+        "points": points,
+        "blocks": blocks,
+        "protected": protected,
+        "names": names,
+        "point_data": point_data,
+    }
 
 
 def _tag_region(

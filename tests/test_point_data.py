@@ -1,0 +1,144 @@
+"""Point data (``TetMesh.point_data``): checked on construction, carried through
+``improve`` onto moved and inserted vertices, read and written by the VTK and XDMF
+formats."""
+
+import warnings
+
+import numpy as np
+import pytest
+from helpers import delaunay_mesh
+
+import jtet
+from jtet import MeshInputError
+from jtet._point_data import carried_point_data, moved_vertices
+
+# a linear field f(x) = A . x + B and a linear vector field x -> M x: interpolation that
+# is linear in a tet reproduces both exactly, to rounding
+A, B = np.array([1.3, -0.7, 2.1]), 0.5
+M = np.array([[1.0, 2.0, 0.0], [0.0, -1.0, 3.0], [0.5, 0.0, 1.0]])
+# rounding of a barycentric combination of O(1) values: a few ulps (weights in [0, 1]
+# summing to 1, or slightly outside within VTK's locator tolerance)
+ATOL = 1e-12
+
+
+def _fields(points: np.ndarray, marker: np.ndarray) -> dict:
+    return {"f": points @ A + B, "v": (points @ M.T).astype(np.float32), "marker": marker}
+
+
+def _nearest(points: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """Brute-force nearest point of ``points`` to each of ``where``."""
+    return np.argmin(((where[:, None, :] - points[None, :, :]) ** 2).sum(axis=2), axis=1)
+
+
+def test_improve_carries_point_data():
+    """After a run with smoothing, insertion and flips the linear fields hold at every
+    vertex, the vertices left in place keep their values bit for bit, and the integer
+    marker of a moved vertex is that of the input vertex nearest to it."""
+    mesh = delaunay_mesh(150, seed=1)
+    rng = np.random.default_rng(0)
+    marker = rng.integers(0, 1000, mesh.n_points).astype(np.int32)
+    with_data = mesh.replace(point_data=_fields(mesh.points, marker))
+    r = jtet.improve(with_data, seed=0)
+    plain = jtet.improve(mesh, seed=0)  # the data changes nothing of the run
+    np.testing.assert_array_equal(r.mesh.points, plain.mesh.points)
+    np.testing.assert_array_equal(r.mesh.tets, plain.mesh.tets)
+    out = r.mesh
+    data = out.point_data
+    assert list(data) == ["f", "v", "marker"]
+    assert [a.dtype for a in data.values()] == [np.float64, np.float32, np.int32]
+    np.testing.assert_allclose(data["f"], out.points @ A + B, rtol=0, atol=ATOL)
+    # float32 storage: its own rounding (values of O(1))
+    np.testing.assert_allclose(data["v"], out.points @ M.T, rtol=0, atol=1e-6)
+    moved = moved_vertices(with_data, out)
+    assert moved.any()  # smoothing moved some
+    still = np.flatnonzero(~moved)
+    for name, a in with_data.point_data.items():
+        np.testing.assert_array_equal(data[name][still], a[still])
+    near = _nearest(mesh.points, out.points[moved])
+    np.testing.assert_array_equal(data["marker"][moved], marker[near])
+    assert out.is_valid().ok
+
+
+def test_carried_onto_moved_new_and_outside_vertices():
+    """``carried_point_data`` on a hand-made result: interior vertices moved, vertices
+    appended inside the mesh and one outside it, against the closed form (inside) and
+    the brute-force nearest input vertex (outside, and integers)."""
+    before = delaunay_mesh(120, seed=2)
+    marker = np.arange(before.n_points) * 3
+    before = before.replace(point_data=_fields(before.points, marker))
+    rng = np.random.default_rng(1)
+    free = before.topology.vertex_kind == 0
+    points = before.points.copy()
+    points[free] += rng.uniform(-0.01, 0.01, (int(free.sum()), 3))
+    new = np.vstack([rng.uniform(0.1, 0.9, (5, 3)), [[1.5, 0.5, 0.5]]])
+    after = jtet.TetMesh(np.vstack([points, new]), before.tets)
+    data, n_outside = carried_point_data(before, after)
+    assert n_outside == 1
+    inside = np.ones(after.n_points, bool)
+    inside[-1] = False
+    np.testing.assert_allclose(data["f"][inside], after.points[inside] @ A + B, atol=ATOL)
+    far = before.point_data["f"][_nearest(before.points, new[-1:])]
+    np.testing.assert_array_equal(data["f"][-1:], far)
+    moved = moved_vertices(before, after)
+    np.testing.assert_array_equal(moved, np.concatenate([free, np.ones(len(new), bool)]))
+    near = _nearest(before.points, after.points[moved])
+    np.testing.assert_array_equal(data["marker"][moved], marker[near])
+    still = np.flatnonzero(~moved)  # all among the input's vertices
+    np.testing.assert_array_equal(data["marker"][still], marker[still])
+
+
+def test_nothing_moved_keeps_the_arrays():
+    mesh = delaunay_mesh(60, seed=3)
+    mesh = mesh.replace(point_data={"t": np.arange(mesh.n_points, dtype=float)})
+    data, n_outside = carried_point_data(mesh, mesh.replace(point_data=None))
+    assert n_outside == 0 and data["t"] is mesh.point_data["t"]
+
+
+def test_point_data_checked():
+    mesh = delaunay_mesh(40, seed=4)
+    n = mesh.n_points
+    with pytest.raises(MeshInputError, match=r"point_data\['t'\] has shape \(3,\)"):
+        mesh.replace(point_data={"t": np.zeros(3)})
+    with pytest.raises(MeshInputError, match=r"has shape \(\d+, 2, 2\)"):
+        mesh.replace(point_data={"t": np.zeros((n, 2, 2))})
+    with pytest.raises(MeshInputError, match="not numbers"):
+        mesh.replace(point_data={"t": np.array(["a"] * n)})
+    with pytest.raises(MeshInputError, match="non-empty strings"):
+        mesh.replace(point_data={"": np.zeros(n)})
+    with pytest.raises(MeshInputError, match="mapping name -> array"):
+        mesh.replace(point_data=[np.zeros(n)])
+    with_data = mesh.replace(point_data={"b": np.ones(n, bool)})
+    assert with_data.point_data["b"].dtype == np.int8
+    assert not with_data.point_data["b"].flags.writeable
+    with pytest.raises(TypeError):
+        with_data.point_data["c"] = np.zeros(n)
+    # new points of another count need their own point data
+    more = np.vstack([mesh.points, [[0.5, 0.5, 0.5]]])
+    with pytest.raises(MeshInputError, match="pass point_data for the new points"):
+        with_data.replace(points=more)
+    assert not with_data.replace(points=more, point_data=None).point_data
+    assert "point data b" in repr(with_data)
+
+
+@pytest.mark.parametrize("ext", ["vtu", "vtk", "xdmf"])
+def test_point_data_round_trip(tmp_path, ext):
+    """The formats that store point data give back every array exactly, dtype and all."""
+    mesh = delaunay_mesh(80, seed=5)
+    marker = (np.arange(mesh.n_points) % 7).astype(np.int64)
+    mesh = mesh.replace(point_data={**_fields(mesh.points, marker), "on": marker > 3})
+    path = jtet.save(mesh, tmp_path / f"m.{ext}")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back = jtet.load(path)
+    assert list(back.point_data) == list(mesh.point_data)
+    for name, a in mesh.point_data.items():
+        assert back.point_data[name].dtype == a.dtype, name
+        np.testing.assert_array_equal(back.point_data[name], a)
+
+
+@pytest.mark.parametrize("ext", ["msh", "mesh", "inp"])
+def test_formats_without_point_data_say_so(tmp_path, ext):
+    mesh = delaunay_mesh(40, seed=6).relabel({0: 1})
+    mesh = mesh.replace(point_data={"T": np.zeros(mesh.n_points)})
+    with pytest.warns(UserWarning, match=r"not saved: 1 point array\(s\) \(T\)"):
+        jtet.save(mesh, tmp_path / f"m.{ext}")
