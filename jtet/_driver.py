@@ -511,16 +511,23 @@ def _improve_carrying_point_data(mesh: TetMesh, opts: Options, callback) -> Impr
     values read off the input mesh at their positions (``carried_point_data``)."""
     import dataclasses
 
-    from ._point_data import carried_point_data
+    from ._point_data import carried_point_data, moved_vertices
 
     result = improve(mesh.replace(point_data=None), opts, callback=callback)
     t0 = time.perf_counter()
     data, n_outside = carried_point_data(mesh, result.mesh)
-    notes = list(result.notes)
+    n_moved = int(moved_vertices(mesh, result.mesh).sum())
+    names = ", ".join(mesh.point_data)
+    notes = [
+        *result.notes,
+        f"point data ({names}): read off the input mesh at the {n_moved} vertices the run "
+        "moved or inserted (linear in the input tet; integer arrays: the nearest input "
+        "vertex's value)",
+    ]
     if n_outside:
         notes.append(
-            f"{n_outside} moved vertices lie in no tet of the input mesh; their point data "
-            "are those of the nearest input vertex"
+            f"{n_outside} of those vertices lie in no tet of the input mesh; their point "
+            "data are those of the nearest input vertex"
         )
     return dataclasses.replace(
         result,

@@ -51,6 +51,8 @@ def test_improve_carries_point_data():
     np.testing.assert_allclose(data["v"], out.points @ M.T, rtol=0, atol=1e-6)
     moved = moved_vertices(with_data, out)
     assert moved.any()  # smoothing moved some
+    said = f"point data (f, v, marker): read off the input mesh at the {moved.sum()} vertices"
+    assert any(n.startswith(said) for n in r.notes), r.notes
     still = np.flatnonzero(~moved)
     for name, a in with_data.point_data.items():
         np.testing.assert_array_equal(data[name][still], a[still])
