@@ -156,6 +156,11 @@ def test_smooth_pass(spec, measure, boundary):
 def _improve(spec, opts):
     mesh = build_mesh(spec)
     assume(mesh is not None)
+    # a linear field of O(1) values over the mesh: what the run carries to its moved and
+    # new vertices must be that field there (interpolation linear in a tet is exact)
+    lo, hi = mesh.points.min(axis=0), mesh.points.max(axis=0)
+    unit = (mesh.points - lo) / np.where(hi > lo, hi - lo, 1.0)
+    mesh = mesh.replace(point_data={"f": unit @ [1.0, -2.0, 0.5]})
     tets, points = mesh.tets.copy(), mesh.points.copy()
     result = jtet.improve(mesh, opts)
     assert not result.status.startswith("invariant violation"), (spec, opts, result.status)
@@ -194,6 +199,15 @@ def _improve(spec, opts):
     if not opts.insert:
         assert "insert" not in {h["kick"] for h in rounds}
         assert result.mesh.n_points == mesh.n_points
+    # the point data: the input's values where vertices stayed, the field elsewhere (but
+    # at positions in no input tet, which the notes count: the nearest vertex's value)
+    f = result.mesh.point_data["f"]
+    n = mesh.n_points
+    stayed = (result.mesh.points[:n] == mesh.points).all(axis=1)
+    np.testing.assert_array_equal(f[:n][stayed], mesh.point_data["f"][stayed])
+    if not any("lie in no tet" in note for note in result.notes):
+        pts = (result.mesh.points - lo) / np.where(hi > lo, hi - lo, 1.0)
+        np.testing.assert_allclose(f, pts @ [1.0, -2.0, 0.5], rtol=0, atol=1e-9)
 
 
 @_cases("improve")
