@@ -1104,6 +1104,60 @@ def _tetgen_faces(node: Path) -> tuple[np.ndarray, np.ndarray] | None:
     return table[:, 1:4] - base, markers
 
 
+def _tetgen_attributes(mesh: TetMesh) -> dict:
+    """``mesh.point_data`` as meshio's TetGen writer takes point attributes: one float
+    column per name, ``name[i]`` for the columns of an (n, k) array (meshio writes the
+    names in a comment line, which ``_tetgen_point_data`` reads), and a boundary marker
+    column of zeros when there are any (without a ``:ref`` array meshio would write the
+    first attribute as the markers)."""
+    columns = {}
+    for name, a in mesh.point_data.items():
+        a = np.asarray(a, np.float64)
+        if a.ndim == 1:
+            columns[name] = a
+        else:
+            columns.update({f"{name}[{i}]": a[:, i] for i in range(a.shape[1])})
+    if columns:
+        columns["tetgen:ref"] = np.zeros(mesh.n_points, np.int64)
+    return columns
+
+
+_TETGEN_NAMES = "# attribute and marker names:"
+
+
+def _tetgen_point_data(m, node: Path) -> dict:
+    """``TetMesh.point_data`` of the point attributes meshio read from the TetGen
+    ``.node`` file (``tetgen:attr1``, ...): named as the file's names comment says
+    (meshio's and jtet's files; ``name[i]`` columns joined into an (n, k) array), else
+    ``attr1``, ``attr2``, ..."""
+    attrs = []
+    while f"tetgen:attr{len(attrs) + 1}" in m.point_data:
+        attrs.append(np.asarray(m.point_data[f"tetgen:attr{len(attrs) + 1}"], np.float64))
+    if not attrs:
+        return {}
+    names = [f"attr{k + 1}" for k in range(len(attrs))]
+    with open(node, errors="replace") as f:
+        for line in itertools.islice(f, 8):
+            if line.startswith(_TETGEN_NAMES):
+                given = [n.strip() for n in line[len(_TETGEN_NAMES) :].split(",")]
+                if len(given) >= len(attrs) and all(given[: len(attrs)]):
+                    names = given[: len(attrs)]
+                break
+    out: dict = {}
+    i = 0
+    while i < len(names):
+        first = re.fullmatch(r"(.+)\[0\]", names[i])
+        if first and first.group(1) not in out:  # columns name[0], name[1], ...
+            base, j = first.group(1), i
+            while j < len(names) and names[j] == f"{base}[{j - i}]":
+                j += 1
+            out[base], i = np.column_stack(attrs[i:j]), j
+            continue
+        out.setdefault(names[i], attrs[i])
+        i += 1
+    return out
+
+
 def _meshio_mesh(mesh: TetMesh, fmt: str, cell_data: dict):
     import meshio
 
@@ -1111,7 +1165,10 @@ def _meshio_mesh(mesh: TetMesh, fmt: str, cell_data: dict):
     blocks = [meshio.CellBlock("tetra", np.array(mesh.tets, dtype=np.int64))]
     if fmt == "tetgen":
         return meshio.Mesh(
-            np.array(mesh.points, np.float64), blocks, cell_data={"tetgen:ref": [region]}
+            np.array(mesh.points, np.float64),
+            blocks,
+            cell_data={"tetgen:ref": [region]},
+            point_data=_tetgen_attributes(mesh),
         )
     data = {name: [region] for name in _TAG_ARRAYS[fmt]}
     extra = _lower_blocks(mesh, fmt)
@@ -1222,7 +1279,8 @@ def load(path: str | os.PathLike) -> TetMesh:
     protected faces, ``_netgen``). Triangles that are faces of the tets become protected
     faces, labelled by their physical tags / references / markers; lines and points (Medit: ``Edges``, ``RequiredVertices``) that are edges and
     vertices of the tets become protected edges and vertices. Point arrays of numbers
-    (``.vtu``, ``.vtk``; ``.xdmf`` node attributes) become ``TetMesh.point_data``. A
+    (``.vtu``, ``.vtk``; ``.xdmf`` node attributes; TetGen point attributes) become
+    ``TetMesh.point_data``. A
     globally reversed orientation is fixed with a warning (see ``TetMesh.from_arrays``).
 
     Raises:
@@ -1308,6 +1366,8 @@ def load(path: str | os.PathLike) -> TetMesh:
                 "label_names": _gmsh_label_names(m, source),
                 "periodic": _gmsh_periodic(m, source),
             }
+        if fmt == "tetgen":
+            extras = {"point_data": _tetgen_point_data(m, p.with_suffix(".node"))}
         if ext == ".mesh":
             extras["protected_tets"] = _medit_required_tets(
                 required["RequiredTetrahedra"], arrays[1], p
@@ -1590,7 +1650,8 @@ def save(
     ``.vtu`` (zlib-compressed binary XML) and ``.vtk`` (binary legacy) store the region as a
     ``region`` cell array plus every array of ``cell_data`` (name -> one value per tet) and
     the protected entities as field data, and ``mesh.point_data`` as point arrays (also
-    ``.xdmf``: node attributes; the other formats leave it out with a warning). ``.msh`` (Gmsh 2.2 binary, which every
+    ``.xdmf``: node attributes, TetGen: point attributes, float64 columns named in a
+    comment line; the other formats leave it out with a warning). ``.msh`` (Gmsh 2.2 binary, which every
     Gmsh-aware tool reads) stores the region as physical and elementary tags, the
     protected faces as triangles tagged with their labels, edges and vertices as line and
     point elements, and ``cell_data`` as element data when there are no protected
@@ -1694,10 +1755,10 @@ def save(
                 "protected triangles, lines or points) (use .vtu)",
                 stacklevel=2,
             )
-    if mesh.point_data and fmt not in ("vtu", "vtk", "xdmf"):
+    if mesh.point_data and fmt not in ("vtu", "vtk", "xdmf", "tetgen"):
         names = list(mesh.point_data)
         warnings.warn(
-            f"{p}: jtet writes point data to .vtu, .vtk and .xdmf files only; not saved: "
+            f"{p}: jtet writes point data to .vtu, .vtk, .xdmf and TetGen files only; not saved: "
             f"{len(names)} point array(s) ({', '.join(names[:3])}"
             f"{', ...' if len(names) > 3 else ''})",
             stacklevel=2,

@@ -1,6 +1,6 @@
 """Point data (``TetMesh.point_data``): checked on construction, carried through
 ``improve`` onto moved and inserted vertices, read and written by the VTK and XDMF
-formats."""
+formats (TetGen: as point attributes)."""
 
 import warnings
 
@@ -139,6 +139,32 @@ def test_point_data_round_trip(tmp_path, ext):
     for name, a in mesh.point_data.items():
         assert back.point_data[name].dtype == a.dtype, name
         np.testing.assert_array_equal(back.point_data[name], a)
+
+
+def test_tetgen_point_attributes(tmp_path):
+    """TetGen ``.node`` files hold point attributes, reals without names: jtet writes
+    its arrays as attribute columns (an (n, k) array as k columns) named in a comment
+    line, and reads them back as float64 arrays of those names; a file without the
+    names line gives ``attr1``, ``attr2``, ..."""
+    mesh = delaunay_mesh(60, seed=7)
+    marker = np.arange(mesh.n_points) % 5
+    mesh = mesh.replace(point_data=_fields(mesh.points, marker))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back = jtet.load(jtet.save(mesh, tmp_path / "m.node"))
+    assert list(back.point_data) == ["f", "v", "marker"]
+    for name, a in mesh.point_data.items():
+        assert back.point_data[name].dtype == np.float64
+        np.testing.assert_array_equal(back.point_data[name], a.astype(np.float64))
+    # TetGen's own layout: no names, attributes then a boundary marker
+    lines = [f"{mesh.n_points} 3 2 1"]
+    for i, (x, y, z) in enumerate(mesh.points.tolist()):
+        lines.append(f"{i} {x!r} {y!r} {z!r} {x + y!r} {2.5 * i!r} 0")
+    (tmp_path / "m.node").write_text("\n".join(lines) + "\n")
+    plain = jtet.load(tmp_path / "m.node")
+    assert list(plain.point_data) == ["attr1", "attr2"]
+    np.testing.assert_array_equal(plain.point_data["attr1"], mesh.points[:, 0] + mesh.points[:, 1])
+    np.testing.assert_array_equal(plain.point_data["attr2"], 2.5 * np.arange(mesh.n_points))
 
 
 @pytest.mark.parametrize("ext", ["msh", "mesh", "inp"])
