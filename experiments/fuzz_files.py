@@ -59,6 +59,7 @@ def _mesh():
         periodic=[(2, (2, 1), None, np.unique(faces)[:4].reshape(-1, 2))],
         protected_tets=mesh.tets[:3],
         node_sets=[("probe", [2, 3]), ("tip", [3, 4], 9)],
+        point_data={"T": points[:, 0], "u": points, "marker": np.arange(len(points)) % 3},
     )
 
 
@@ -123,8 +124,14 @@ def run_format(fmt: str, tries: int, seed: int, keep: Path) -> dict:
             jtet.load(path).is_valid()
 
     # TetGen: the .node, the .ele and the .face of the protected faces; XDMF: the .xdmf
-    # and its heavy data, the .h5 it names (renamed: the mutated copy's)
-    names = {"node": ["src.node", "src.ele", "src.face"], "xdmf": ["src.xdmf", "src.h5"]}
+    # and its heavy data, the .h5 it names (renamed: the mutated copy's); Medit: the mesh
+    # and the .sol of its point data
+    names = {
+        "node": ["src.node", "src.ele", "src.face"],
+        "xdmf": ["src.xdmf", "src.h5"],
+        "mesh": ["src.mesh", "src.sol"],
+        "meshb": ["src.meshb", "src.sol"],
+    }
     names = names.get(fmt, [f"src.{fmt}"])
     originals = {n: (work / n).read_bytes() for n in names}
     if fmt == "xdmf":

@@ -1106,17 +1106,13 @@ def _tetgen_faces(node: Path) -> tuple[np.ndarray, np.ndarray] | None:
 
 def _tetgen_attributes(mesh: TetMesh) -> dict:
     """``mesh.point_data`` as meshio's TetGen writer takes point attributes: one float
-    column per name, ``name[i]`` for the columns of an (n, k) array (meshio writes the
-    names in a comment line, which ``_tetgen_point_data`` reads), and a boundary marker
-    column of zeros when there are any (without a ``:ref`` array meshio would write the
-    first attribute as the markers)."""
-    columns = {}
-    for name, a in mesh.point_data.items():
-        a = np.asarray(a, np.float64)
-        if a.ndim == 1:
-            columns[name] = a
-        else:
-            columns.update({f"{name}[{i}]": a[:, i] for i in range(a.shape[1])})
+    column per name (``scalar_columns``; meshio writes the names in a comment line,
+    which ``_tetgen_point_data`` reads), and a boundary marker column of zeros when there
+    are any (without a ``:ref`` array meshio would write the first attribute as the
+    markers)."""
+    from ._point_data import scalar_columns
+
+    columns = scalar_columns(mesh.point_data)
     if columns:
         columns["tetgen:ref"] = np.zeros(mesh.n_points, np.int64)
     return columns
@@ -1128,8 +1124,10 @@ _TETGEN_NAMES = "# attribute and marker names:"
 def _tetgen_point_data(m, node: Path) -> dict:
     """``TetMesh.point_data`` of the point attributes meshio read from the TetGen
     ``.node`` file (``tetgen:attr1``, ...): named as the file's names comment says
-    (meshio's and jtet's files; ``name[i]`` columns joined into an (n, k) array), else
+    (meshio's and jtet's files; columns ``name[i]`` joined into an (n, k) array), else
     ``attr1``, ``attr2``, ..."""
+    from ._point_data import joined_columns
+
     attrs = []
     while f"tetgen:attr{len(attrs) + 1}" in m.point_data:
         attrs.append(np.asarray(m.point_data[f"tetgen:attr{len(attrs) + 1}"], np.float64))
@@ -1143,19 +1141,7 @@ def _tetgen_point_data(m, node: Path) -> dict:
                 if len(given) >= len(attrs) and all(given[: len(attrs)]):
                     names = given[: len(attrs)]
                 break
-    out: dict = {}
-    i = 0
-    while i < len(names):
-        first = re.fullmatch(r"(.+)\[0\]", names[i])
-        if first and first.group(1) not in out:  # columns name[0], name[1], ...
-            base, j = first.group(1), i
-            while j < len(names) and names[j] == f"{base}[{j - i}]":
-                j += 1
-            out[base], i = np.column_stack(attrs[i:j]), j
-            continue
-        out.setdefault(names[i], attrs[i])
-        i += 1
-    return out
+    return joined_columns(dict(zip(names, attrs, strict=True)))
 
 
 def _meshio_mesh(mesh: TetMesh, fmt: str, cell_data: dict):
@@ -1372,11 +1358,31 @@ def load(path: str | os.PathLike) -> TetMesh:
             extras["protected_tets"] = _medit_required_tets(
                 required["RequiredTetrahedra"], arrays[1], p
             )
+    if fmt == "medit":
+        extras = {**extras, "point_data": _medit_point_data(p, len(arrays[0]), source)}
     try:
         return TetMesh.from_arrays(*arrays, **extras, source=source)
     except MeshInputError as e:
         msg = str(e)
         raise MeshInputError(msg if msg.startswith(source) else f"{source}: {msg}") from None
+
+
+def _medit_point_data(path: Path, n_points: int, source: str) -> dict:
+    """The point data of the Medit mesh ``path`` (``n_points`` vertices): the values at
+    its vertices in the ``.sol`` file beside it, as MMG reads them (``_medit_sol``);
+    none without one (a binary ``.solb`` is not read: a warning says so)."""
+    from ._medit_sol import read_sol, sol_path
+
+    sol = sol_path(path)
+    if sol.is_file():
+        return read_sol(sol, n_points, source)
+    if sol.with_suffix(".solb").is_file():
+        warnings.warn(
+            f"{source}: the binary solution file {sol.with_suffix('.solb').name} is not "
+            "read (jtet reads .sol files)",
+            stacklevel=3,
+        )
+    return {}
 
 
 def _candidate_arrays(read, path: Path, source: str):
@@ -1492,6 +1498,10 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str 
     if fmt in ("vtu", "vtk"):
         _write_vtk_file(mesh_to_grid(mesh, cell_data), tmp, fmt)
         return
+    if fmt == "medit" and mesh.point_data:
+        from ._medit_sol import sol_path, write_sol
+
+        write_sol(sol_path(tmp), mesh.point_data)
     if fmt == "medit" and tmp.suffix.lower() == ".meshb":
         from ._meshb import write_meshb
 
@@ -1577,7 +1587,8 @@ def output_format(path) -> str:
 def written_files(path) -> list[Path]:
     """The files ``save(mesh, path)`` may write or replace: ``path``; for TetGen the
     ``.node``, ``.ele`` and ``.face`` files of its name; for XDMF ``path`` and the
-    ``.h5`` file of its name (its heavy data)."""
+    ``.h5`` file of its name (its heavy data); for Medit ``path`` and the ``.sol`` file
+    of its name (its point data)."""
     p = Path(path)
     fmt = output_format(p)
     if fmt == "tetgen":
@@ -1586,6 +1597,10 @@ def written_files(path) -> list[Path]:
         from ._xdmf import companion
 
         return [p, companion(p)]
+    if fmt == "medit":
+        from ._medit_sol import sol_path
+
+        return [p, sol_path(p)]
     return [p]
 
 
@@ -1596,8 +1611,8 @@ def _tetgen_files(p: Path) -> list[Path]:
 
 def read_files(path) -> list[Path]:
     """The files ``load(path)`` reads: ``path``; for TetGen its ``.node``, ``.ele`` and
-    ``.face`` files; for XDMF the HDF5 and binary files it names too. Unknown
-    extensions: ``[path]``."""
+    ``.face`` files; for XDMF the HDF5 and binary files it names too; for Medit the
+    ``.sol`` file of its name when there is one. Unknown extensions: ``[path]``."""
     p = Path(path)
     fmt = _READ_FORMATS.get(p.suffix.lower())
     if fmt == "tetgen":
@@ -1606,6 +1621,10 @@ def read_files(path) -> list[Path]:
         from ._xdmf import heavy_files
 
         return [p, *heavy_files(p)]
+    if fmt == "medit":
+        from ._medit_sol import sol_path
+
+        return [p, sol_path(p)] if sol_path(p).is_file() else [p]
     return [p]
 
 
@@ -1755,10 +1774,11 @@ def save(
                 "protected triangles, lines or points) (use .vtu)",
                 stacklevel=2,
             )
-    if mesh.point_data and fmt not in ("vtu", "vtk", "xdmf", "tetgen"):
+    if mesh.point_data and fmt not in ("vtu", "vtk", "xdmf", "tetgen", "medit"):
         names = list(mesh.point_data)
         warnings.warn(
-            f"{p}: jtet writes point data to .vtu, .vtk, .xdmf and TetGen files only; not saved: "
+            f"{p}: jtet writes point data to .vtu, .vtk, .xdmf, TetGen and Medit files "
+            "only; not saved: "
             f"{len(names)} point array(s) ({', '.join(names[:3])}"
             f"{', ...' if len(names) > 3 else ''})",
             stacklevel=2,
@@ -1784,14 +1804,23 @@ def save(
                     f"{_FORMAT_NAMES[fmt]} format"
                 )
     targets = [p] if fmt != "xdmf" else written_files(p)
-    stale = None  # a TetGen .face file of the mesh being replaced, which holds no faces
+    # a companion of the mesh being replaced that the new one has nothing for: a TetGen
+    # .face file (no protected faces), a Medit .sol file (no point data). Left in
+    # place, ``load`` (and MMG, for the .sol) would read it as the new mesh's.
+    stale = None
     if fmt == "tetgen":
         targets = [p.with_suffix(".node"), p.with_suffix(".ele")]
         if len(mesh.protected_faces):
             targets.append(p.with_suffix(".face"))
         elif p.with_suffix(".face").exists():
-            # left in place, ``load`` would read its faces as the new mesh's
             stale = p.with_suffix(".face")
+    if fmt == "medit":
+        from ._medit_sol import sol_path
+
+        if mesh.point_data:
+            targets.append(sol_path(p))
+        elif sol_path(p).exists():
+            stale = sol_path(p)
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise MeshFileError(f"{p}: {parent} is not an existing directory")
@@ -1807,9 +1836,10 @@ def save(
             temps = [new_temp_file(parent, f".{p.stem}.tmp-", targets[0].suffix)]
         except OSError as e:
             raise MeshFileError(f"{p}: cannot create a file in {parent} ({_reason(e)})") from None
-        if fmt in ("tetgen", "xdmf"):
+        if fmt in ("tetgen", "xdmf", "medit"):
             # meshio writes the .ele next to the .node, with the same stem, and
-            # ``_write_tetgen_faces`` the .face; ``write_xdmf`` the .h5 beside the .xdmf
+            # ``_write_tetgen_faces`` the .face; ``write_xdmf`` the .h5 beside the .xdmf;
+            # ``write_sol`` the .sol beside the .mesh
             temps += [temps[0].with_suffix(s.suffix) for s in targets[1:]]
         try:
             _write(mesh, temps[0], fmt, cell_data, heavy_name=targets[-1].name)
@@ -1824,8 +1854,8 @@ def save(
                     stale.unlink()
                 except OSError as e:
                     warnings.warn(
-                        f"{stale}: could not remove the old face file ({_reason(e)}); "
-                        "delete it, or loading the new mesh reads its faces",
+                        f"{stale}: could not remove the old file ({_reason(e)}); delete "
+                        "it, or loading the new mesh reads it as its own",
                         stacklevel=2,
                     )
         except MeshFileError:

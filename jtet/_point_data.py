@@ -1,7 +1,11 @@
-"""Point data through a run: the values at the vertices a run moved or inserted, read
-off the input mesh at their new positions."""
+"""Point data (``TetMesh.point_data``): carried through a run (the values at the
+vertices a run moved or inserted, read off the input mesh at their new positions), and
+split into and joined from the scalar columns of the formats that have no arrays
+(TetGen point attributes, Medit solutions of odd widths)."""
 
 from __future__ import annotations
+
+import re
 
 import numpy as np
 from jaxtyping import Bool, Float
@@ -79,3 +83,36 @@ def carried_point_data(before: TetMesh, after: TetMesh) -> tuple[dict, int]:
             out[moved] = a[nearest]
         carried[name] = out
     return carried, n_outside
+
+
+def scalar_columns(point_data: dict) -> dict:
+    """``point_data`` as float64 scalar columns {name: (n,)}: an (n, k) array as the k
+    columns ``name[0]`` ... ``name[k-1]`` (``joined_columns`` joins them again)."""
+    out = {}
+    for name, a in point_data.items():
+        a = np.asarray(a, np.float64)
+        if a.ndim == 1:
+            out[name] = a
+        else:
+            out.update({f"{name}[{i}]": a[:, i] for i in range(a.shape[1])})
+    return out
+
+
+def joined_columns(columns: dict) -> dict:
+    """The arrays of ``scalar_columns``' output: runs of columns ``name[0]``,
+    ``name[1]``, ... become one (n, k) array ``name``; other entries stay as they are."""
+    names = list(columns)
+    out: dict = {}
+    i = 0
+    while i < len(names):
+        first = re.fullmatch(r"(.+)\[0\]", names[i])
+        if first and first.group(1) not in columns and first.group(1) not in out:
+            base, j = first.group(1), i
+            while j < len(names) and names[j] == f"{base}[{j - i}]":
+                j += 1
+            out[base] = np.column_stack([columns[n] for n in names[i:j]])
+            i = j
+            continue
+        out.setdefault(names[i], columns[names[i]])
+        i += 1
+    return out

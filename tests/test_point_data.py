@@ -167,9 +167,87 @@ def test_tetgen_point_attributes(tmp_path):
     np.testing.assert_array_equal(plain.point_data["attr2"], 2.5 * np.arange(mesh.n_points))
 
 
-@pytest.mark.parametrize("ext", ["msh", "mesh", "inp"])
+@pytest.mark.parametrize("ext", ["msh", "inp", "vol"])
 def test_formats_without_point_data_say_so(tmp_path, ext):
     mesh = delaunay_mesh(40, seed=6).relabel({0: 1})
     mesh = mesh.replace(point_data={"T": np.zeros(mesh.n_points)})
     with pytest.warns(UserWarning, match=r"not saved: 1 point array\(s\) \(T\)"):
         jtet.save(mesh, tmp_path / f"m.{ext}")
+
+
+def _mmg_sol(n: int, types: str, rows: list[str]) -> str:
+    """A solution file as MMG writes it: no names, a comment, blank lines."""
+    body = "\n".join(rows)
+    return (
+        "# written by a test\nMeshVersionFormatted 2\n\nDimension 3\n\n"
+        f"SolAtVertices\n{n}\n{types}\n{body}\n\nEnd\n"
+    )
+
+
+@pytest.mark.parametrize("ext", ["mesh", "meshb"])
+def test_medit_solution_file(tmp_path, ext):
+    """Point data of a Medit mesh lives in the ``.sol`` file beside it, as MMG reads
+    and writes it: jtet writes its arrays there (scalars, vectors, symmetric 3 x 3
+    matrices as MMG's types 1-3, other widths as scalar columns) and reads them back,
+    names from its comment line; an MMG file without names gives ``sol``, ``sol1``,
+    ...; a file for another vertex count is ignored with a warning; saving a mesh
+    without point data removes the old ``.sol`` of that name."""
+    mesh = delaunay_mesh(50, seed=8)
+    n = mesh.n_points
+    metric = np.tile([1.0, 0.0, 2.0, 0.0, 0.0, 3.0], (n, 1))
+    data = {"T": mesh.points @ A, "u": mesh.points, "metric": metric, "w": np.ones((n, 2))}
+    path = tmp_path / f"m.{ext}"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        jtet.save(mesh.replace(point_data=data), path)
+        back = jtet.load(path)
+    text = (tmp_path / "m.sol").read_text()
+    assert "SolAtVertices" in text and "4 1 2 3 1 1" not in text  # w: two scalars
+    assert f"{n}\n5 1 2 3 1 1\n" in text
+    assert list(back.point_data) == ["T", "u", "metric", "w"]
+    for name, a in data.items():
+        np.testing.assert_array_equal(back.point_data[name], a)
+    # MMG's own file: two solutions, no names
+    rows = [f"{i}.5 {x!r} {y!r} {z!r}" for i, (x, y, z) in enumerate(mesh.points.tolist())]
+    (tmp_path / "m.sol").write_text(_mmg_sol(n, "2 1 2", rows))
+    mmg = jtet.load(path)
+    assert list(mmg.point_data) == ["sol1", "sol2"]
+    np.testing.assert_array_equal(mmg.point_data["sol1"], np.arange(n) + 0.5)
+    np.testing.assert_array_equal(mmg.point_data["sol2"], mesh.points)
+    (tmp_path / "m.sol").write_text(_mmg_sol(n - 1, "1 1", ["1.0"] * (n - 1)))
+    with pytest.warns(UserWarning, match=f"values at {n - 1} vertices, the mesh has {n}"):
+        assert not jtet.load(path).point_data
+    jtet.save(mesh, path)
+    assert not (tmp_path / "m.sol").exists()
+
+
+def test_damaged_solution_file_refused(tmp_path):
+    mesh = delaunay_mesh(30, seed=9)
+    path = jtet.save(mesh, tmp_path / "m.mesh")
+    (tmp_path / "m.sol").write_text(_mmg_sol(mesh.n_points, "1 1", ["1.0"] * 3))
+    with pytest.raises(
+        MeshInputError, match=r"m.sol: SolAtVertices holds fewer than \d+ rows of 1 numbers"
+    ):
+        jtet.load(path)
+    (tmp_path / "m.sol").write_text(_mmg_sol(mesh.n_points, "1 7", ["1.0"]))
+    with pytest.raises(MeshInputError, match=r"solution types \[7\]"):
+        jtet.load(path)
+    (tmp_path / "m.sol").write_text("MeshVersionFormatted x\n")
+    with pytest.raises(MeshInputError, match="not a readable Medit solution file"):
+        jtet.load(path)
+
+
+def test_cli_keeps_the_input_solution_file(tmp_path):
+    """``jtet improve m.mesh m.meshb`` would replace m.sol, the input's point data: it
+    is refused without --overwrite; to another name the .sol goes along."""
+    from jtet.cli import main
+
+    mesh = delaunay_mesh(40, seed=10)
+    path = jtet.save(mesh.replace(point_data={"T": mesh.points[:, 0]}), tmp_path / "m.mesh")
+    before = (tmp_path / "m.sol").read_bytes()
+    assert main(["improve", str(path), str(tmp_path / "m.meshb"), "-q", "--perturb", "0"]) == 2
+    assert (tmp_path / "m.sol").read_bytes() == before
+    out = tmp_path / "out.mesh"
+    assert main(["improve", str(path), str(out), "-q", "--perturb", "0"]) == 0
+    carried = jtet.load(out).point_data["T"]
+    np.testing.assert_allclose(carried, jtet.load(out).points[:, 0], rtol=0, atol=ATOL)
