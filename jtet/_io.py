@@ -1265,8 +1265,8 @@ def load(path: str | os.PathLike) -> TetMesh:
     protected faces, ``_netgen``). Triangles that are faces of the tets become protected
     faces, labelled by their physical tags / references / markers; lines and points (Medit: ``Edges``, ``RequiredVertices``) that are edges and
     vertices of the tets become protected edges and vertices. Point arrays of numbers
-    (``.vtu``, ``.vtk``; ``.xdmf`` node attributes; TetGen point attributes) become
-    ``TetMesh.point_data``. A
+    (``.vtu``, ``.vtk``; ``.xdmf`` node attributes; TetGen point attributes; the Medit
+    ``.sol`` file beside a ``.mesh`` / ``.meshb``) become ``TetMesh.point_data``. A
     globally reversed orientation is fixed with a warning (see ``TetMesh.from_arrays``).
 
     Raises:
@@ -1669,8 +1669,9 @@ def save(
     ``.vtu`` (zlib-compressed binary XML) and ``.vtk`` (binary legacy) store the region as a
     ``region`` cell array plus every array of ``cell_data`` (name -> one value per tet) and
     the protected entities as field data, and ``mesh.point_data`` as point arrays (also
-    ``.xdmf``: node attributes, TetGen: point attributes, float64 columns named in a
-    comment line; the other formats leave it out with a warning). ``.msh`` (Gmsh 2.2 binary, which every
+    ``.xdmf``: node attributes; TetGen: point attributes, float64 columns named in a
+    comment line; Medit: the ``.sol`` file beside the mesh, ``_medit_sol``; the other
+    formats leave it out with a warning). ``.msh`` (Gmsh 2.2 binary, which every
     Gmsh-aware tool reads) stores the region as physical and elementary tags, the
     protected faces as triangles tagged with their labels, edges and vertices as line and
     point elements, and ``cell_data`` as element data when there are no protected
