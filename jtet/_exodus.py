@@ -28,6 +28,7 @@ node set is one of ``TetMesh.node_sets``, kept as it is (overlaps included).
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -210,8 +211,10 @@ def _read(r: _Reader, source: str):
             cells[dim][0].append(conn)
             cells[dim][1].append(np.full(len(conn), label, np.int64))
             tet_of_element.append(np.full(len(conn), -1))
-    # a solver's results on the mesh (MOOSE's nodal and element variables): not carried
-    _warn_dropped_arrays(r.all_names("name_nod_var"), r.all_names("name_elem_var"), source)
+    # a solver's results on the mesh (MOOSE's element variables): not carried; its nodal
+    # variables are point data
+    _warn_dropped_arrays([], r.all_names("name_elem_var"), source)
+    point_data = _nodal_variables(r, n, source)
     if others:
         raise MeshInputError(
             _non_tet_message(
@@ -249,7 +252,41 @@ def _read(r: _Reader, source: str):
     pins = np.concatenate([pins, spheres.reshape(-1)])
     pin_labels = np.concatenate([pin_labels, sphere_labels])
     return (points, tets, region, faces, face_labels, lines, line_labels, pins, pin_labels,
-            {"label_names": names, "node_sets": node_sets})  # fmt: skip
+            {"label_names": names, "node_sets": node_sets, "point_data": point_data})  # fmt: skip
+
+
+def _nodal_variables(r: _Reader, n: int, source: str) -> dict:
+    """The nodal variables of the file at its last time step (a solver's final
+    solution; a warning says so when there are several), as ``TetMesh.point_data``:
+    {name: (n,) float64}, runs ``name[0]``, ``name[1]``, ... joined into (n, k) arrays.
+    Both layouts: one variable per nodal variable (``vals_nod_var1``, ...) and the
+    older single (time, variable, node) array ``vals_nod_var``."""
+    from ._point_data import joined_columns
+
+    names = r.all_names("name_nod_var")
+    if not names:
+        return {}
+    stacked = r.array("vals_nod_var")
+    columns, steps = {}, 0
+    for k, name in enumerate(names):
+        a = r.array(f"vals_nod_var{k + 1}")
+        if a is None and stacked is not None and stacked.ndim == 3 and k < stacked.shape[1]:
+            a = stacked[:, k, :]
+        if a is None or a.dtype.kind not in "biuf" or a.size == 0 or a.shape[-1] != n:
+            raise MeshInputError(
+                f"{source}: nodal variable {name or k + 1!r} does not hold one value per node"
+            )
+        a = np.asarray(a, np.float64).reshape(-1, n)
+        steps = max(steps, len(a))
+        columns[name or f"nod_var{k + 1}"] = a[-1]
+    if steps > 1:
+        times = r.array("time_whole")
+        when = f" (time {float(times[-1]):g})" if times is not None and len(times) else ""
+        warnings.warn(
+            f"{source}: the nodal variables are read at the last of {steps} time steps{when}",
+            stacklevel=4,
+        )
+    return joined_columns(columns)
 
 
 def _side_sets(r: _Reader, tets, tet_of_element, names, source):
@@ -343,6 +380,10 @@ def write_exo(mesh, path: Path, cell_data: dict | None = None) -> None:
     all_names += [ns.name for ns in mesh.node_sets]
     cell_data = dict(cell_data or {})
     all_names += list(cell_data)
+    from ._point_data import scalar_columns
+
+    nodal = scalar_columns(mesh.point_data)  # an (n, k) array: k variables name[i]
+    all_names += list(nodal)
     width = min(max([33] + [len(s.encode()) + 1 for s in all_names]), 256)
 
     f = netcdf_file(str(path), "w", version=2)
@@ -449,6 +490,15 @@ def write_exo(mesh, path: Path, cell_data: dict | None = None) -> None:
             for s, (_, nodes, _) in enumerate(node_sets):
                 f.createDimension(f"num_nod_ns{s + 1}", len(nodes))
                 ids_variable(f"node_ns{s + 1}", f"num_nod_ns{s + 1}", nodes)
+        if nodal:
+            f.createDimension("num_nod_var", len(nodal))
+            f.createVariable("name_nod_var", "c", ("num_nod_var", "len_name"))[:] = _chars(
+                list(nodal), width
+            )
+            f.variables["time_whole"][0] = 0.0
+            for v, values in enumerate(nodal.values()):
+                var = f.createVariable(f"vals_nod_var{v + 1}", "f8", ("time_step", "num_nodes"))
+                var[0, :] = values
         if cell_data:
             f.createDimension("num_elem_var", len(cell_data))
             f.createVariable("name_elem_var", "c", ("num_elem_var", "len_name"))[:] = _chars(

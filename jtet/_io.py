@@ -193,7 +193,7 @@ def _warn_dropped_arrays(point_arrays: list, cell_arrays: list, source: str) -> 
     """Warn that a file's point and cell arrays (a temperature, a material id) do not
     reach the output: a ``TetMesh`` holds no cell data but its region labels (flips
     replace tets, so per-tet values have no tets to go with; jtet computes its own), and
-    point data only as VTK files give it (``grid_point_data``)."""
+    point data only as arrays of numbers (``grid_point_data``), not from Gmsh views."""
     groups = []
     for what, names in (("point", point_arrays), ("cell", cell_arrays)):
         names = [
@@ -206,8 +206,8 @@ def _warn_dropped_arrays(point_arrays: list, cell_arrays: list, source: str) -> 
             groups.append(f"{len(names)} {what} array(s) ({shown})")
     if groups:
         warnings.warn(
-            f"{source}: jtet carries the region labels and the point arrays of numbers "
-            f"of .vtu / .vtk files, no other data; not read: {' and '.join(groups)}",
+            f"{source}: jtet carries the region labels and point arrays of numbers (but "
+            f"Gmsh views), no other data; not read: {' and '.join(groups)}",
             stacklevel=3,
         )
 
@@ -1266,7 +1266,8 @@ def load(path: str | os.PathLike) -> TetMesh:
     faces, labelled by their physical tags / references / markers; lines and points (Medit: ``Edges``, ``RequiredVertices``) that are edges and
     vertices of the tets become protected edges and vertices. Point arrays of numbers
     (``.vtu``, ``.vtk``; ``.xdmf`` node attributes; TetGen point attributes; the Medit
-    ``.sol`` file beside a ``.mesh`` / ``.meshb``) become ``TetMesh.point_data``. A
+    ``.sol`` file beside a ``.mesh`` / ``.meshb``; Exodus nodal variables at the last
+    time step) become ``TetMesh.point_data``. A
     globally reversed orientation is fixed with a warning (see ``TetMesh.from_arrays``).
 
     Raises:
@@ -1670,8 +1671,8 @@ def save(
     ``region`` cell array plus every array of ``cell_data`` (name -> one value per tet) and
     the protected entities as field data, and ``mesh.point_data`` as point arrays (also
     ``.xdmf``: node attributes; TetGen: point attributes, float64 columns named in a
-    comment line; Medit: the ``.sol`` file beside the mesh, ``_medit_sol``; the other
-    formats leave it out with a warning). ``.msh`` (Gmsh 2.2 binary, which every
+    comment line; Medit: the ``.sol`` file beside the mesh, ``_medit_sol``; Exodus:
+    nodal variables; the other formats leave it out with a warning). ``.msh`` (Gmsh 2.2 binary, which every
     Gmsh-aware tool reads) stores the region as physical and elementary tags, the
     protected faces as triangles tagged with their labels, edges and vertices as line and
     point elements, and ``cell_data`` as element data when there are no protected
@@ -1726,7 +1727,8 @@ def save(
                 "netgen": "regions (materials, with their names) and protected faces, "
                 "edges and vertices (surface elements, edge segments, point elements)",
                 "exodus": "regions (element blocks), protected faces (side sets) and "
-                "vertices (node sets), their names and the cell arrays (element variables)",
+                "vertices (node sets), their names, the cell arrays (element variables) "
+                "and the point data (nodal variables)",
             }.get(fmt, "region labels and protected faces")
             warnings.warn(
                 f"{p}: the {_FORMAT_NAMES[fmt]} format stores only the {stored}; "
@@ -1775,11 +1777,11 @@ def save(
                 "protected triangles, lines or points) (use .vtu)",
                 stacklevel=2,
             )
-    if mesh.point_data and fmt not in ("vtu", "vtk", "xdmf", "tetgen", "medit"):
+    if mesh.point_data and fmt not in ("vtu", "vtk", "xdmf", "tetgen", "medit", "exodus"):
         names = list(mesh.point_data)
         warnings.warn(
-            f"{p}: jtet writes point data to .vtu, .vtk, .xdmf, TetGen and Medit files "
-            "only; not saved: "
+            f"{p}: jtet writes point data to .vtu, .vtk, .xdmf, TetGen, Medit and Exodus "
+            "files only; not saved: "
             f"{len(names)} point array(s) ({', '.join(names[:3])}"
             f"{', ...' if len(names) > 3 else ''})",
             stacklevel=2,

@@ -236,3 +236,66 @@ def test_variables_not_carried_are_named(tmp_path):
     jtet.save(mesh, path, cell_data={"quality_min_sine": mesh.quality(), "stress": mesh.volumes})
     with pytest.warns(UserWarning, match=r"not read: 1 cell array\(s\) \(stress\)$"):
         jtet.load(path)
+
+
+def _solution_file(path, values, stacked=False):
+    """Two tets over 5 nodes with nodal variables "T" and "u_x" at len(values) time
+    steps (``values``: (steps, 2, 5)), as MOOSE writes results; ``stacked``: the older
+    single (time, variable, node) array ``vals_nod_var``."""
+
+    def build(f):
+        f.createDimension("time_step", None)
+        f.createDimension("len_name", 33)
+        f.createVariable("time_whole", "f8", ("time_step",))
+        _base(f)
+        f.variables["coordy"][:] = [0, 0, 1, 0, 0]
+        f.variables["coordz"][:] = [0, 0, 0, 1, -1]
+        _block(f, 1, [[1, 2, 3, 4], [1, 3, 2, 5]], "TETRA4")
+        f.createDimension("num_nod_var", 2)
+        f.createVariable("name_nod_var", "c", ("num_nod_var", "len_name"))[:] = np.array(
+            [list("T".ljust(33, "\0")), list("u_x".ljust(33, "\0"))], "S1"
+        )
+        f.variables["time_whole"][: len(values)] = np.arange(len(values)) * 0.5
+        if stacked:
+            v = f.createVariable("vals_nod_var", "f8", ("time_step", "num_nod_var", "num_nodes"))
+            v[:] = values
+        else:
+            for k in range(2):
+                v = f.createVariable(f"vals_nod_var{k + 1}", "f8", ("time_step", "num_nodes"))
+                v[:] = values[:, k]
+
+    return _write_netcdf(path, build)
+
+
+@pytest.mark.parametrize("stacked", [False, True])
+def test_nodal_variables_at_the_last_time_step(tmp_path, stacked):
+    """A solver's nodal variables are point data, read at the last time step (with a
+    warning naming it); jtet writes them back as nodal variables at one time step."""
+    values = np.arange(30, dtype=float).reshape(3, 2, 5)
+    path = _solution_file(tmp_path / "results.exo", values, stacked)
+    with pytest.warns(UserWarning, match=r"last of 3 time steps \(time 1\)"):
+        mesh = jtet.load(path)
+    assert list(mesh.point_data) == ["T", "u_x"]
+    np.testing.assert_array_equal(mesh.point_data["T"], values[-1, 0])
+    np.testing.assert_array_equal(mesh.point_data["u_x"], values[-1, 1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back = jtet.load(jtet.save(mesh, tmp_path / "out.exo"))
+    for name, a in mesh.point_data.items():
+        np.testing.assert_array_equal(back.point_data[name], a)
+
+
+def test_nodal_variable_of_another_length_refused(tmp_path):
+    def build(f):
+        f.createDimension("len_name", 33)
+        _base(f)
+        _block(f, 1, [[1, 2, 3, 4]], "TETRA4")
+        f.createDimension("num_nod_var", 1)
+        f.createDimension("three", 3)
+        f.createVariable("name_nod_var", "c", ("num_nod_var", "len_name"))[:] = np.array(
+            [list("T".ljust(33, "\0"))], "S1"
+        )
+        f.createVariable("vals_nod_var1", "f8", ("three",))[:] = [1, 2, 3]
+
+    with pytest.raises(MeshInputError, match="nodal variable 'T' does not hold one value per"):
+        jtet.load(_write_netcdf(tmp_path / "bad.exo", build))
