@@ -366,8 +366,10 @@ class TetMesh:
         point_data: read-only mapping name -> (n,) or (n, k) array of values at the
             vertices (a temperature, a displacement; VTK point arrays). ``improve``
             interpolates them onto the vertices it moves and inserts, linearly in the
-            input tet that holds the new position (integer arrays: the value of that
-            tet's nearest vertex); the vertices it leaves in place keep their values.
+            input tet that holds the new position (integer arrays: the value of the
+            nearest input vertex); the vertices it leaves in place keep their values.
+            Read and written by the VTK, XDMF, TetGen (point attributes), Medit
+            (``.sol``) and Exodus (nodal variables) formats.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it
