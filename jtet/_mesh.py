@@ -488,6 +488,13 @@ class TetMesh:
                 changes.get("protected_tets", pt), 4, "protected_tets", len(points)
             )
         object.__setattr__(out, "protected_tets", _readonly(pt))
+        if set(changes) == {"point_data"}:
+            # nothing the topology and the volumes depend on changed: keep what this
+            # mesh computed of them (``improve`` strips a mesh's point data for its run;
+            # not a bare copy: ``_with_feature_angle`` changes the topology's angle)
+            for cached in ("topology", "volumes"):
+                if cached in self.__dict__:
+                    out.__dict__[cached] = self.__dict__[cached]
         return out
 
     def relabel(self, mapping) -> TetMesh:

@@ -253,3 +253,16 @@ def test_cli_keeps_the_input_solution_file(tmp_path):
     assert main(["improve", str(path), str(out), "-q", "--perturb", "0"]) == 0
     carried = jtet.load(out).point_data["T"]
     np.testing.assert_allclose(carried, jtet.load(out).points[:, 0], rtol=0, atol=ATOL)
+
+
+def test_point_data_change_keeps_the_cached_topology():
+    """A change of point data alone keeps the topology and volumes a mesh computed
+    (``improve`` strips the point data for its run); other changes and another feature
+    angle do not."""
+    mesh = delaunay_mesh(40, seed=11)
+    topology, volumes = mesh.topology, mesh.volumes
+    with_data = mesh.replace(point_data={"T": np.zeros(mesh.n_points)})
+    assert with_data.topology is topology and with_data.volumes is volumes
+    assert with_data.replace(point_data=None).topology is topology
+    assert "topology" not in mesh._with_feature_angle(10.0).__dict__
+    assert "topology" not in mesh.replace(region=np.ones(mesh.n_tets, int)).__dict__
