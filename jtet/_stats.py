@@ -185,9 +185,11 @@ def format_table(
 
 def mesh_groups(mesh) -> list[dict]:
     """What a mesh file's groups became, for ``jtet stats --groups``: one dict per region,
-    label of protected faces, edges and vertices, and node set, with its kind ("region",
-    "surface", "curve", "point", "node set"), label (None for a node set without an
-    id), name ("" without) and count (tets, faces, edges, vertices)."""
+    label of protected faces, edges and vertices, node set and point data array, with its
+    kind ("region", "surface", "curve", "point", "node set", "point data"), label (None
+    for a node set without an id and for point data), name ("" without) and count (tets,
+    faces, edges, vertices; values per component); point data also with its
+    "components" and the "min" and "max" of its finite values (None without)."""
     names = mesh.label_names
     out = []
     for kind, dim, labels in (
@@ -205,17 +207,34 @@ def mesh_groups(mesh) -> list[dict]:
         {"kind": "node set", "label": ns.label, "name": ns.name, "count": len(ns.ids)}
         for ns in mesh.node_sets
     ]
+    for name, a in mesh.point_data.items():
+        finite = a[np.isfinite(a)] if a.dtype.kind == "f" else a
+        out.append({
+            "kind": "point data", "label": None, "name": name, "count": len(a),
+            "components": 1 if a.ndim == 1 else int(a.shape[1]),
+            "min": float(finite.min()) if finite.size else None,
+            "max": float(finite.max()) if finite.size else None,
+        })  # fmt: skip
     return out
 
 
 def format_groups(groups: list[dict]) -> str:
     """``mesh_groups`` as a plain-text table."""
     units = {"region": "tets", "surface": "faces", "curve": "edges"}
+
+    def size(g: dict) -> str:
+        if g["kind"] != "point data":
+            return f"{g['count']} {units.get(g['kind'], 'vertices')}"
+        k = g["components"]
+        values = f"{g['count']} x {k} values" if k > 1 else f"{g['count']} values"
+        if g["min"] is None:
+            return values
+        return f"{values} in [{g['min']:.6g}, {g['max']:.6g}]"
+
     body = [
-        [g["kind"], "" if g["label"] is None else str(g["label"]), g["name"],
-         f"{g['count']} {units.get(g['kind'], 'vertices')}"]
+        [g["kind"], "" if g["label"] is None else str(g["label"]), g["name"], size(g)]
         for g in groups
-    ]  # fmt: skip
+    ]
     return text_table(["group", "label", "name", "size"], body, left=3)
 
 

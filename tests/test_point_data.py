@@ -2,6 +2,7 @@
 ``improve`` onto moved and inserted vertices, read and written by the VTK and XDMF
 formats (TetGen: as point attributes)."""
 
+import re
 import warnings
 
 import numpy as np
@@ -266,3 +267,27 @@ def test_point_data_change_keeps_the_cached_topology():
     assert with_data.replace(point_data=None).topology is topology
     assert "topology" not in mesh._with_feature_angle(10.0).__dict__
     assert "topology" not in mesh.replace(region=np.ones(mesh.n_tets, int)).__dict__
+
+
+def test_stats_groups_list_the_point_data(tmp_path, capsys):
+    """``jtet stats --groups`` lists each point array with its components and the range
+    of its finite values (NaN, a missing value in a field, left out)."""
+    import json
+
+    from jtet.cli import main
+
+    mesh = delaunay_mesh(40, seed=12)
+    t = mesh.points[:, 2] * 5.0
+    t[3] = np.nan
+    path = jtet.save(mesh.replace(point_data={"T": t, "u": mesh.points}), tmp_path / "m.vtu")
+    assert main(["stats", str(path), "--groups", "--json"]) == 0
+    groups = [g for g in json.loads(capsys.readouterr().out)["groups"] if g["label"] is None]
+    n = mesh.n_points
+    assert groups == [
+        {"kind": "point data", "label": None, "name": "T", "count": n, "components": 1,
+         "min": float(np.nanmin(t)), "max": float(np.nanmax(t))},
+        {"kind": "point data", "label": None, "name": "u", "count": n, "components": 3,
+         "min": float(mesh.points.min()), "max": float(mesh.points.max())},
+    ]  # fmt: skip
+    assert main(["stats", str(path), "--groups"]) == 0
+    assert re.search(rf"point data +u +{n} x 3 values in \[", capsys.readouterr().out)
