@@ -206,7 +206,7 @@ def _warn_dropped_arrays(point_arrays: list, cell_arrays: list, source: str) -> 
             groups.append(f"{len(names)} {what} array(s) ({shown})")
     if groups:
         warnings.warn(
-            f"{source}: jtet carries the region labels and point arrays of numbers (but "
+            f"{source}: jtet carries the region labels and point arrays of numbers (not "
             f"Gmsh views), no other data; not read: {' and '.join(groups)}",
             stacklevel=3,
         )
@@ -1267,8 +1267,8 @@ def load(path: str | os.PathLike) -> TetMesh:
     vertices of the tets become protected edges and vertices. Point arrays of numbers
     (``.vtu``, ``.vtk``; ``.xdmf`` node attributes; TetGen point attributes; the Medit
     ``.sol`` file beside a ``.mesh`` / ``.meshb``; Exodus nodal variables at the last
-    time step) become ``TetMesh.point_data``. A
-    globally reversed orientation is fixed with a warning (see ``TetMesh.from_arrays``).
+    time step) become ``TetMesh.point_data``. A globally reversed orientation is fixed
+    with a warning (see ``TetMesh.from_arrays``).
 
     Raises:
         MeshFileError: the file is missing, a directory, of unknown extension, or unreadable.
