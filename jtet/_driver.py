@@ -412,6 +412,8 @@ def improve(
     opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
     if mesh.point_data:
         return _improve_carrying_point_data(mesh, opts, callback)
+    if mesh.cell_data:
+        return _improve_carrying_cell_data(mesh, opts, callback)
     t0 = time.perf_counter()
     # the run's topologies (the checks', every step's) treat subfacets bent by less than
     # the feature angle as one surface; the caller's mesh object is left as it was
@@ -532,6 +534,77 @@ def _improve_carrying_point_data(mesh: TetMesh, opts: Options, callback) -> Impr
     return dataclasses.replace(
         result,
         mesh=result.mesh.replace(point_data=data),
+        notes=notes,
+        seconds=result.seconds + time.perf_counter() - t0,
+    )
+
+
+def _improve_carrying_cell_data(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
+    """``improve`` of a mesh with cell data (``TetMesh.cell_data``): the run works on
+    the mesh without it, with the faces where an integer array changes value inside a
+    region protected (a label of their own, removed from the result), so no tet of the
+    result straddles two values; the result's tets then take the values of the input
+    tets they overlap (``carried_cell_data``)."""
+    import dataclasses
+
+    from ._cell_data import carried_cell_data, id_arrays, interface_faces
+
+    faces = interface_faces(mesh)
+    run_mesh = mesh.replace(cell_data=None)
+    label = min(0, int(mesh.protected_face_labels.min(initial=0))) - 2
+    if len(faces):
+        # listed after the mesh's own: a face protected already keeps its own label
+        run_mesh = run_mesh.replace(
+            protected_faces=np.concatenate([mesh.protected_faces, faces]),
+            protected_face_labels=np.concatenate(
+                [mesh.protected_face_labels, np.full(len(faces), label)]
+            ),
+        )
+    result = improve(run_mesh, opts, callback=callback)
+    t0 = time.perf_counter()
+    out = result.mesh
+    if len(faces):
+        own = out.protected_face_labels != label
+        out = out.replace(
+            protected_faces=out.protected_faces[own],
+            protected_face_labels=out.protected_face_labels[own],
+        )
+    data, n_new, n_unconfirmed = carried_cell_data(mesh, out)
+    names = ", ".join(mesh.cell_data)
+    notes = [
+        *result.notes,
+        f"cell data ({names}): the {n_new} new or changed tets take the values of the "
+        "input tet they overlap",
+    ]
+    ids = id_arrays(mesh)
+    if ids:
+        notes.append(
+            f"{', '.join(ids)}: a distinct integer in every input tet, taken for element "
+            "ids: a new tet has the id of an input tet it overlaps"
+        )
+    if len(faces):
+        worst = result.mesh.tets[int(np.argmin(result.mesh.quality(opts.quality)))]
+        kept_faces = result.mesh.protected_faces[result.mesh.protected_face_labels == label]
+        at_interface = np.isin(worst, kept_faces).any()
+        notes.append(
+            f"the faces where an integer cell array changes value inside a region "
+            f"({len(faces)} in the input) were kept in place, as region interfaces are"
+            + (
+                "; the worst tet touches them: if an array is no label of pieces "
+                "(materials, parts), drop it from the input for a freer run"
+                if at_interface
+                else ""
+            )
+        )
+    if n_unconfirmed:
+        notes.append(
+            f"{n_unconfirmed} of those tets overlap no input tet found at their centroid "
+            "(a tet slid off a curved boundary); they take the values of the input tet "
+            "with the nearest centroid"
+        )
+    return dataclasses.replace(
+        result,
+        mesh=out.replace(cell_data=data),
         notes=notes,
         seconds=result.seconds + time.perf_counter() - t0,
     )

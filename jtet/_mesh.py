@@ -47,42 +47,59 @@ class LabelNames(_ReadOnlyMapping):
         return f"LabelNames({self._items!r})"
 
 
-class PointData(_ReadOnlyMapping):
+class _ArrayData(_ReadOnlyMapping):
+    """A read-only mapping name -> read-only array of one value (or one row of k
+    components) per vertex or per tet."""
+
+    def __repr__(self) -> str:
+        shapes = ", ".join(f"{k!r}: {a.dtype}{list(a.shape)}" for k, a in self._items.items())
+        return f"{type(self).__name__}({{{shapes}}})"
+
+
+class PointData(_ArrayData):
     """A read-only mapping name -> read-only (n,) or (n, k) array of one value (or k
     components) per vertex (``TetMesh.point_data``): a temperature, a displacement, a
     node marker."""
 
-    def __repr__(self) -> str:
-        shapes = ", ".join(f"{k!r}: {a.dtype}{list(a.shape)}" for k, a in self._items.items())
-        return f"PointData({{{shapes}}})"
+
+class CellData(_ArrayData):
+    """A read-only mapping name -> read-only (m,) or (m, k) array of one value (or k
+    components) per tet (``TetMesh.cell_data``): a material id, a partition, a density."""
 
 
-def _checked_point_data(data, n_points: int) -> PointData:
-    """``TetMesh.point_data`` as a read-only mapping of read-only (n,) or (n, k) arrays
+def _checked_arrays(data, n: int, kind: type[_ArrayData]) -> _ArrayData:
+    """``TetMesh.point_data`` (``kind`` ``PointData``, ``n`` vertices) or ``cell_data``
+    (``CellData``, ``n`` tets) as a read-only mapping of read-only (n,) or (n, k) arrays
     of real numbers (integers kept integers, bools as int8)."""
-    if isinstance(data, PointData) and all(len(a) == n_points for a in data.values()):
+    if isinstance(data, kind) and all(len(a) == n for a in data.values()):
         return data
     if data is None:
-        return PointData({})
+        return kind({})
+    field_name, per = ("point_data", "vertex") if kind is PointData else ("cell_data", "tet")
     if not hasattr(data, "items"):
-        raise MeshInputError(f"point_data must be a mapping name -> array, got {data!r}")
+        raise MeshInputError(f"{field_name} must be a mapping name -> array, got {data!r}")
     out = {}
     for name, values in data.items():
         if not isinstance(name, str) or not name:
-            raise MeshInputError(f"point_data names must be non-empty strings, got {name!r}")
+            raise MeshInputError(f"{field_name} names must be non-empty strings, got {name!r}")
+        if kind is CellData and name == "region":
+            raise MeshInputError(
+                "cell_data may not hold 'region': it is the mesh's own region array "
+                "(TetMesh.region)"
+            )
         a = np.asarray(values)
         if a.dtype == np.bool_:
             a = a.astype(np.int8)
         numeric = np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)
         if not numeric:
-            raise MeshInputError(f"point_data[{name!r}] holds {a.dtype} values, not numbers")
-        if a.ndim not in (1, 2) or len(a) != n_points:
+            raise MeshInputError(f"{field_name}[{name!r}] holds {a.dtype} values, not numbers")
+        if a.ndim not in (1, 2) or len(a) != n:
             raise MeshInputError(
-                f"point_data[{name!r}] has shape {a.shape}; it needs one value or one row "
-                f"of values per vertex: ({n_points},) or ({n_points}, k)"
+                f"{field_name}[{name!r}] has shape {a.shape}; it needs one value or one row "
+                f"of values per {per}: ({n},) or ({n}, k)"
             )
         out[name] = _readonly(a)
-    return PointData(out)
+    return kind(out)
 
 
 def _checked_names(names) -> LabelNames:
@@ -370,6 +387,12 @@ class TetMesh:
             nearest input vertex); the vertices it leaves in place keep their values.
             Read and written by the VTK, XDMF, TetGen (point attributes), Medit
             (``.sol``) and Exodus (nodal variables) formats.
+        cell_data: read-only mapping name -> (m,) or (m, k) array of values per tet (a
+            material id, a partition, a density; VTK cell arrays). ``improve`` gives the
+            tets it leaves in place their values and every new tet the values of the
+            input tet that holds its centroid; it keeps the surfaces where an integer
+            array changes value in place, as it keeps region interfaces, so integer
+            arrays come through exactly. Read and written by the VTK and XDMF formats.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it
@@ -390,6 +413,7 @@ class TetMesh:
     protected_tets: Int[np.ndarray, "k 4"] = field(default=None)
     node_sets: tuple = field(default=None)
     point_data: dict = field(default=None)
+    cell_data: dict = field(default=None)
 
     def __post_init__(self):
         points = _checked_points(self.points)
@@ -411,7 +435,10 @@ class TetMesh:
         object.__setattr__(self, "label_names", _checked_names(self.label_names))
         object.__setattr__(self, "periodic", _checked_periodic(self.periodic, len(points)))
         object.__setattr__(self, "node_sets", _checked_node_sets(self.node_sets, len(points)))
-        object.__setattr__(self, "point_data", _checked_point_data(self.point_data, len(points)))
+        object.__setattr__(
+            self, "point_data", _checked_arrays(self.point_data, len(points), PointData)
+        )
+        object.__setattr__(self, "cell_data", _checked_arrays(self.cell_data, len(tets), CellData))
         pt = self._entity_array(self.protected_tets, 4, "protected_tets", len(points))
         object.__setattr__(self, "protected_tets", _readonly(pt))
 
@@ -475,22 +502,31 @@ class TetMesh:
         object.__setattr__(out, "node_sets", node_sets)
         point_data = self.point_data
         if "point_data" in changes:
-            point_data = _checked_point_data(changes["point_data"], len(points))
+            point_data = _checked_arrays(changes["point_data"], len(points), PointData)
         elif len(points) != self.n_points and point_data:
             raise MeshInputError(
                 f"the mesh's point_data has {self.n_points} rows, the new points "
                 f"{len(points)}: pass point_data for the new points too (or point_data=None)"
             )
         object.__setattr__(out, "point_data", point_data)
+        cell_data = self.cell_data
+        if "cell_data" in changes:
+            cell_data = _checked_arrays(changes["cell_data"], len(tets), CellData)
+        elif len(tets) != self.n_tets and cell_data:
+            raise MeshInputError(
+                f"the mesh's cell_data has {self.n_tets} rows, the new tets {len(tets)}: "
+                "pass cell_data for the new tets too (or cell_data=None)"
+            )
+        object.__setattr__(out, "cell_data", cell_data)
         pt = self.protected_tets
         if "protected_tets" in changes or len(points) < self.n_points:
             pt = self._entity_array(
                 changes.get("protected_tets", pt), 4, "protected_tets", len(points)
             )
         object.__setattr__(out, "protected_tets", _readonly(pt))
-        if set(changes) == {"point_data"}:
+        if changes and set(changes) <= {"point_data", "cell_data"}:
             # nothing the topology and the volumes depend on changed: keep what this
-            # mesh computed of them (``improve`` strips a mesh's point data for its run;
+            # mesh computed of them (``improve`` strips a mesh's data arrays for its run;
             # not a bare copy: ``_with_feature_angle`` changes the topology's angle)
             for cached in ("topology", "volumes"):
                 if cached in self.__dict__:
@@ -619,6 +655,7 @@ class TetMesh:
         protected_tets=None,
         node_sets=None,
         point_data=None,
+        cell_data=None,
         source: str = "input",
     ) -> TetMesh:
         """Build a mesh from user arrays, fixing a globally reversed orientation.
@@ -634,7 +671,7 @@ class TetMesh:
         mesh = cls(
             points, tets, region, protected_faces, protected_edges, protected_face_labels,
             protected_vertices, protected_edge_labels, protected_vertex_labels, label_names,
-            periodic, protected_tets, node_sets, point_data,
+            periodic, protected_tets, node_sets, point_data, cell_data,
         )  # fmt: skip
         vol = _orient_volumes6(mesh.points, mesh.tets)
         neg, pos = int((vol < 0).sum()), int((vol > 0).sum())
@@ -859,5 +896,6 @@ class TetMesh:
             + (f", {len(self.periodic)} periodic links" if self.periodic else "")
             + (f", {len(self.node_sets)} node set(s)" if self.node_sets else "")
             + (f", point data {', '.join(self.point_data)}" if self.point_data else "")
+            + (f", cell data {', '.join(self.cell_data)}" if self.cell_data else "")
             + ")"
         )

@@ -1,0 +1,160 @@
+"""Cell data (``TetMesh.cell_data``) carried through a run: the surfaces where an
+integer array changes value are kept for the run, as region interfaces are, and every
+tet of the result takes the values of an input tet it overlaps."""
+
+from __future__ import annotations
+
+import numpy as np
+from jaxtyping import Bool, Float, Int
+
+from ._mesh import TetMesh
+from ._point_data import moved_vertices
+from ._predicates import orient3d
+
+# Points inside a tet (barycentric weights, rows) at which a new tet looks for the input
+# tet that holds it: the centroid, then four points nearer one corner each, for when the
+# centroid lies on a face of the input mesh (a test whose answer is not strict).
+_SAMPLE_WEIGHTS = np.array(
+    [[0.25, 0.25, 0.25, 0.25]] + [[0.4 if i == j else 0.2 for j in range(4)] for i in range(4)]
+)
+
+
+def interface_faces(mesh: TetMesh) -> Int[np.ndarray, "k 3"]:
+    """(k, 3) sorted vertex triples of the inner faces between two tets of one region
+    whose integer cell arrays differ: where an integer array (a material id, a
+    partition) changes value inside a region. A run that keeps them in place keeps every
+    tet inside one piece of constant values. Arrays of ids (``id_arrays``) are left out:
+    kept in place, their faces would be every face of the mesh."""
+    ids = id_arrays(mesh)
+    ints = [a for k, a in mesh.cell_data.items() if a.dtype.kind in "iu" and k not in ids]
+    if not ints:
+        return np.zeros((0, 3), np.int64)
+    topo = mesh.topology
+    inner = topo.face_tets[:, 1] >= 0
+    t0 = topo.face_tets[inner, 0].astype(np.int64)
+    t1 = topo.face_tets[inner, 1].astype(np.int64)
+    differ = np.zeros(len(t0), bool)
+    for a in ints:
+        rows = a.reshape(len(a), -1)
+        differ |= (rows[t0] != rows[t1]).any(axis=1)
+    differ &= mesh.region[t0] == mesh.region[t1]
+    return np.asarray(topo.faces[inner][differ], np.int64)
+
+
+def id_arrays(mesh: TetMesh) -> list[str]:
+    """The names of the integer cell arrays that hold a distinct value (or row) in every
+    tet of a mesh of two or more: ids of the input's elements, not labels of pieces. A
+    run carries them as provenance (a new tet gets the id of an input tet it overlaps)."""
+    out = []
+    for name, a in mesh.cell_data.items():
+        if a.dtype.kind in "iu" and len(a) > 1:
+            rows = a.reshape(len(a), -1)
+            if len(np.unique(rows, axis=0)) == len(a):
+                out.append(name)
+    return out
+
+
+def _same_tets(
+    before: TetMesh, after: TetMesh, moved: Bool[np.ndarray, " n_after"]
+) -> Int[np.ndarray, " m_after"]:
+    """(after.n_tets,) id of the tet of ``before`` that each tet of ``after`` is (the
+    same four vertex ids, none of them moved), -1 for the others. Tets are keyed by their
+    sorted vertex ids packed into two int64 and matched through one lexsort."""
+    n = max(before.n_points, after.n_points)
+
+    def keys(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        s = np.sort(np.asarray(tets, np.int64), axis=1)
+        return s[:, 0] * n + s[:, 1], s[:, 2] * n + s[:, 3]
+
+    hb, lb = keys(before.tets)
+    ha, la = keys(after.tets)
+    hi, lo = np.concatenate([hb, ha]), np.concatenate([lb, la])
+    order = np.lexsort((lo, hi))
+    same = (hi[order[1:]] == hi[order[:-1]]) & (lo[order[1:]] == lo[order[:-1]])
+    # a mesh holds no tet twice, so an equal pair is one tet of each mesh
+    first, second = order[:-1][same], order[1:][same]
+    b, a = np.minimum(first, second), np.maximum(first, second) - before.n_tets
+    out = np.full(after.n_tets, -1, np.int64)
+    out[a] = b
+    out[moved[after.tets].any(axis=1)] = -1
+    return out
+
+
+def _strictly_inside(
+    x: Float[np.ndarray, "q 3"], points: Float[np.ndarray, "n 3"], tets: Int[np.ndarray, "q 4"]
+) -> Bool[np.ndarray, " q"]:
+    """(q,) whether x[i] lies strictly inside the positively oriented tet tets[i], by
+    exact orientation tests (a point on a face, or a tet that is flat or inverted: no)."""
+    p = points[tets]
+    inside = orient3d(p[:, 0], p[:, 1], p[:, 2], p[:, 3]) > 0
+    for i in range(4):
+        corners = [p[:, j] if j != i else x for j in range(4)]
+        inside &= orient3d(*corners) > 0
+    return inside
+
+
+def _holding_tets(
+    before: TetMesh, after: TetMesh, which: Int[np.ndarray, " q"]
+) -> tuple[Int[np.ndarray, " q"], Bool[np.ndarray, " q"]]:
+    """(ids (q,) of tets of ``before``, overlaps (q,) bool): for the tets ``which`` of
+    ``after``, a tet of ``before`` holding a point of each. VTK's probe filter finds the
+    tet holding the sample point; exact orientation tests then confirm that the point is
+    strictly inside both tets, so that the two overlap in a volume (``overlaps``). A tet
+    for which no sample point confirms gets the input tet of the nearest centroid."""
+    import pyvista as pv
+    from scipy.spatial import cKDTree
+
+    cells = np.concatenate([np.full((before.n_tets, 1), 4, np.int64), before.tets], axis=1)
+    source = pv.UnstructuredGrid(
+        cells.ravel(), np.full(before.n_tets, pv.CellType.TETRA, np.uint8), before.points
+    )
+    source.cell_data["jtet_tet"] = np.arange(before.n_tets, dtype=np.int64)
+    corners = after.points[after.tets[which]]
+    ids = np.full(len(which), -1, np.int64)
+    overlaps = np.zeros(len(which), bool)
+    todo = np.arange(len(which))
+    for weights in _SAMPLE_WEIGHTS:
+        if not len(todo):
+            break
+        x = np.einsum("j,qjk->qk", weights, corners[todo])
+        probed = pv.PolyData(x).sample(source, pass_cell_data=False, pass_point_data=False)
+        found = np.asarray(probed.point_data["vtkValidPointMask"]).astype(bool)
+        hit = np.asarray(probed.point_data["jtet_tet"], np.int64)
+        ok = found.copy()
+        ok[found] = _strictly_inside(x[found], before.points, before.tets[hit[found]])
+        ok[found] &= _strictly_inside(x[found], after.points, after.tets[which[todo[found]]])
+        ids[todo[ok]], overlaps[todo[ok]] = hit[ok], True
+        todo = todo[~ok]
+    if len(todo):
+        centroids = before.points[before.tets].mean(axis=1)
+        mine = after.points[after.tets[which[todo]]].mean(axis=1)
+        ids[todo] = cKDTree(centroids).query(mine)[1]
+    return ids, overlaps
+
+
+def carried_cell_data(before: TetMesh, after: TetMesh) -> tuple[dict, int, int]:
+    """``before.cell_data`` carried onto the tets of ``after``, the result of a run on
+    ``before`` (same vertex ids; appended vertices are new).
+
+    A tet of ``after`` that is a tet of ``before`` (the same vertices, none moved) keeps
+    its values exactly. Any other tet takes the values of a tet of ``before`` that it
+    overlaps in a volume (found at its centroid, confirmed by exact orientation tests);
+    when none is confirmed (a tet slid off a curved boundary), the values of the input
+    tet with the nearest centroid. Integer arrays are exact when the run kept the
+    ``interface_faces`` in place: every tet then lies in one piece of constant values.
+
+    Returns:
+        ``({name: (after.n_tets, ...) array of the input's dtype}, number of tets that
+        got values from an input tet, number of those without a confirmed overlap)``.
+    """
+    data = before.cell_data
+    if not data:
+        return {}, 0, 0
+    same = _same_tets(before, after, moved_vertices(before, after))
+    new = np.flatnonzero(same < 0)
+    source = same.copy()
+    n_unconfirmed = 0
+    if len(new):
+        source[new], overlaps = _holding_tets(before, after, new)
+        n_unconfirmed = int((~overlaps).sum())
+    return {name: a[source] for name, a in data.items()}, len(new), n_unconfirmed
