@@ -191,23 +191,19 @@ _KNOWN_ARRAYS = {*REGION_ARRAYS, "min_dihedral", "max_dihedral", "volume"}
 
 def _warn_dropped_arrays(point_arrays: list, cell_arrays: list, source: str) -> None:
     """Warn that a file's point and cell arrays (a temperature, a material id) do not
-    reach the output: a ``TetMesh`` holds no cell data but its region labels (flips
-    replace tets, so per-tet values have no tets to go with; jtet computes its own), and
-    point data only as arrays of numbers (``grid_point_data``), not from Gmsh views."""
+    reach the output: jtet carries region labels and arrays of numbers per vertex and per
+    tet (``grid_point_data``, ``grid_cell_data``), not Gmsh views, strings or tensors,
+    and its quality arrays it computes itself."""
     groups = []
     for what, names in (("point", point_arrays), ("cell", cell_arrays)):
-        names = [
-            n for n in names
-            if isinstance(n, str) and n not in _KNOWN_ARRAYS
-            and not n.startswith(_KNOWN_ARRAY_PREFIXES) and ":" not in n
-        ]  # fmt: skip
+        names = [n for n in names if _carried_array_name(n)]
         if names:
             shown = ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
             groups.append(f"{len(names)} {what} array(s) ({shown})")
     if groups:
         warnings.warn(
-            f"{source}: jtet carries the region labels and point arrays of numbers (not "
-            f"Gmsh views), no other data; not read: {' and '.join(groups)}",
+            f"{source}: jtet reads region labels and the arrays of numbers its formats "
+            f"hold per point and per tet (not Gmsh views); not read: {' and '.join(groups)}",
             stacklevel=3,
         )
 
@@ -286,8 +282,8 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     tets = conn[offsets[:-1][is_tet][:, None] + np.arange(4)]
     points = np.asarray(grid.points, dtype=np.float64)
     # by name: a damaged file may hold an array without one (pyvista then refuses dict())
+    # the other arrays: grid_point_data and grid_cell_data
     cell_arrays = {k: grid.cell_data[k] for k in grid.cell_data.keys() if isinstance(k, str)}
-    _warn_dropped_arrays([], list(cell_arrays), source)  # point arrays: grid_point_data
     region = _pick_region(cell_arrays, n_cells, is_tet, source)
     pf = _field_entities(grid, PROTECTED_FACES_ARRAY, 3, source)
     pe = _field_entities(grid, PROTECTED_EDGES_ARRAY, 2, source)
@@ -372,7 +368,7 @@ def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
     celltypes = np.full(m, _VTK_TETRA, np.uint8)
     grid = pv.UnstructuredGrid(cells, celltypes, np.array(mesh.points, dtype=np.float64))
     grid.cell_data["region"] = np.array(mesh.region, dtype=np.int64)
-    for name, a in extra.items():
+    for name, a in {**mesh.cell_data, **extra}.items():  # jtet's quality arrays win
         grid.cell_data[name] = np.array(a)
     for name, a in mesh.point_data.items():
         grid.point_data[name] = np.array(a)
@@ -504,7 +500,42 @@ def grid_extras(grid, source: str = "pyvista grid") -> dict:
         "protected_tets": _field_entities(grid, PROTECTED_TETS_ARRAY, 4, source),
         "node_sets": grid_node_sets(grid, source),
         "point_data": grid_point_data(grid, source),
+        "cell_data": grid_cell_data(grid, source),
     }
+
+
+def _carried_array_name(name) -> bool:
+    """Whether an array of this name is data a mesh carries: not jtet's own (region
+    labels, the quality arrays recomputed for every output), nor VTK's and meshio's
+    bookkeeping (``vtkOriginalCellIds``, names with a format's tag: ``gmsh:physical``)."""
+    return (
+        isinstance(name, str)
+        and name not in _KNOWN_ARRAYS
+        and not name.startswith(_KNOWN_ARRAY_PREFIXES)
+        and ":" not in name
+    )
+
+
+def grid_cell_data(grid, source: str = "pyvista grid") -> dict:
+    """The cell arrays of ``grid`` as ``TetMesh.cell_data`` takes them: those of real
+    numbers, one value or one row of values per cell, at its tetra cells (in their
+    order). Region labels, jtet's quality arrays and VTK's and meshio's bookkeeping are
+    left out; other arrays (strings, tensors) are left out with a warning."""
+    out, dropped = {}, []
+    is_tet = np.asarray(grid.celltypes) == _VTK_TETRA
+    for name in grid.cell_data.keys():
+        if not _carried_array_name(name):
+            continue
+        try:
+            a = np.asarray(grid.cell_data[name])
+        except Exception:
+            a = np.zeros(0, object)
+        if a.dtype.kind in "biuf" and a.ndim in (1, 2) and len(a) == grid.n_cells:
+            out[name] = a[is_tet]
+        else:
+            dropped.append(name)
+    _warn_dropped_arrays([], dropped, source)
+    return out
 
 
 def grid_point_data(grid, source: str = "pyvista grid") -> dict:
@@ -1323,6 +1354,7 @@ def load(path: str | os.PathLike) -> TetMesh:
             if found["protected"] is None
             else found["blocks"][0][1][found["protected"]],
             "point_data": found["point_data"],
+            "cell_data": found["cell_data"],
         }
     elif ext == ".meshb":
         arrays, extras = _meshb_arrays(p, source)
@@ -1783,6 +1815,14 @@ def save(
             f"{p}: jtet writes point data to .vtu, .vtk, .xdmf, TetGen, Medit and Exodus "
             "files only; not saved: "
             f"{len(names)} point array(s) ({', '.join(names[:3])}"
+            f"{', ...' if len(names) > 3 else ''})",
+            stacklevel=2,
+        )
+    if mesh.cell_data and fmt not in ("vtu", "vtk", "xdmf"):
+        names = list(mesh.cell_data)
+        warnings.warn(
+            f"{p}: jtet writes cell data to .vtu, .vtk and .xdmf files only; not saved: "
+            f"{len(names)} cell array(s) ({', '.join(names[:3])}"
             f"{', ...' if len(names) > 3 else ''})",
             stacklevel=2,
         )

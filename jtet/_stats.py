@@ -185,11 +185,12 @@ def format_table(
 
 def mesh_groups(mesh) -> list[dict]:
     """What a mesh file's groups became, for ``jtet stats --groups``: one dict per region,
-    label of protected faces, edges and vertices, node set and point data array, with its
-    kind ("region", "surface", "curve", "point", "node set", "point data"), label (None
-    for a node set without an id and for point data), name ("" without) and count (tets,
-    faces, edges, vertices; values per component); point data also with its
-    "components" and the "min" and "max" of its finite values (None without)."""
+    label of protected faces, edges and vertices, node set, point data and cell data
+    array, with its kind ("region", "surface", "curve", "point", "node set", "point
+    data", "cell data"), label (None for a node set without an id and for data arrays),
+    name ("" without) and count (tets, faces, edges, vertices; values per component);
+    data arrays also with their "components" and the "min" and "max" of their finite
+    values (None without)."""
     names = mesh.label_names
     out = []
     for kind, dim, labels in (
@@ -207,10 +208,11 @@ def mesh_groups(mesh) -> list[dict]:
         {"kind": "node set", "label": ns.label, "name": ns.name, "count": len(ns.ids)}
         for ns in mesh.node_sets
     ]
-    for name, a in mesh.point_data.items():
+    arrays = [("point data", mesh.point_data), ("cell data", mesh.cell_data)]
+    for kind, name, a in ((k, n, a) for k, data in arrays for n, a in data.items()):
         finite = a[np.isfinite(a)] if a.dtype.kind == "f" else a
         out.append({
-            "kind": "point data", "label": None, "name": name, "count": len(a),
+            "kind": kind, "label": None, "name": name, "count": len(a),
             "components": 1 if a.ndim == 1 else int(a.shape[1]),
             "min": float(finite.min()) if finite.size else None,
             "max": float(finite.max()) if finite.size else None,
@@ -223,7 +225,7 @@ def format_groups(groups: list[dict]) -> str:
     units = {"region": "tets", "surface": "faces", "curve": "edges"}
 
     def size(g: dict) -> str:
-        if g["kind"] != "point data":
+        if g["kind"] not in ("point data", "cell data"):
             return f"{g['count']} {units.get(g['kind'], 'vertices')}"
         k = g["components"]
         values = f"{g['count']} x {k} values" if k > 1 else f"{g['count']} values"

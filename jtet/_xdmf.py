@@ -169,8 +169,8 @@ def write_xdmf(mesh, xdmf: Path, heavy: Path, heavy_name: str, cell_data: dict) 
     if mask.any():
         datasets["Mesh/mesh/protected"] = mask.astype(np.uint8)
         attribute(main, PROTECTED_ATTRIBUTE, "Mesh/mesh/protected")
-    # dataset names by position: an array's name may hold "/"
-    for i, (name, values) in enumerate(cell_data.items()):
+    # dataset names by position: an array's name may hold "/"; jtet's quality arrays win
+    for i, (name, values) in enumerate({**mesh.cell_data, **cell_data}.items()):
         a = np.asarray(values)
         a = a.astype(np.uint8) if a.dtype == bool else a  # HDF5 has no bool type
         datasets[f"Mesh/mesh/cell_data/{i}"] = a.reshape(len(a), -1) if a.ndim > 2 else a
@@ -516,18 +516,19 @@ def _attributes(g: ET.Element, data: _Data, what: str, n_cells: int) -> dict:
     return out
 
 
-def _node_attributes(g: ET.Element, data: _Data, what: str, n_points: int) -> dict:
-    """Node attributes of a grid of numbers, one value or one row of values per point:
-    name -> (n_points,) or (n_points, k) array (``TetMesh.point_data``)."""
+def _node_attributes(g: ET.Element, data: _Data, what: str, n: int, center: str = "node") -> dict:
+    """Node (or, ``center`` "cell", cell) attributes of a grid of numbers, one value or
+    one row of values per point (cell): name -> (n,) or (n, k) array
+    (``TetMesh.point_data``, ``TetMesh.cell_data``)."""
     out = {}
     for a in g.findall("Attribute"):
         name = a.get("Name") or ""
-        if (a.get("Center") or "Node").lower() != "node" or not name or name in out:
+        if (a.get("Center") or "Node").lower() != center or not name or name in out:
             continue
         values = np.asarray(data.read(a.find("DataItem"), f"{what} attribute {name!r}"))
-        if values.dtype.kind not in "biuf" or values.size % max(n_points, 1):
+        if values.dtype.kind not in "biuf" or values.size % max(n, 1):
             continue
-        values = values.reshape(n_points, -1)
+        values = values.reshape(n, -1)
         out[name] = values[:, 0] if values.shape[1] == 1 else values
     return out
 
@@ -536,7 +537,7 @@ def _read_xdmf_arrays(path: Path, source: str) -> dict:
     """Everything ``load`` needs of an XDMF file, as plain arrays (picklable: the work of
     the forked child): points, cell blocks [(type, ids, labels or None)], protected-tet
     mask or None, label names [[dim, label, name]]."""
-    from ._io import REGION_ARRAYS, _labels
+    from ._io import REGION_ARRAYS, _carried_array_name, _labels
 
     root = _parse(path, source)
     domain = root.find("Domain")
@@ -561,6 +562,7 @@ def _read_xdmf_arrays(path: Path, source: str) -> dict:
             raise data.fail(f"{what} has no Geometry")
         attrs = _attributes(g, data, what, n_main)
         point_data = _node_attributes(g, data, what, len(points))
+        cell_attrs = _node_attributes(g, data, what, n_main, "cell")
         region_name = next((a for a in (*REGION_ARRAYS, TAG_GRIDS[3]) if a in attrs), None)
         labels = None if region_name is None else _labels(attrs[region_name], region_name, source)
         # the tets of the main grid as one block (a Mixed topology may hold several runs)
@@ -576,6 +578,11 @@ def _read_xdmf_arrays(path: Path, source: str) -> dict:
             for t, c, pos in main_cells
             if t != "tetra"
         ]
+        cell_data = {
+            name: a[tet_pos]
+            for name, a in cell_attrs.items()
+            if name not in (region_name, PROTECTED_ATTRIBUTE) and _carried_array_name(name)
+        }
         protected = None
         if PROTECTED_ATTRIBUTE in attrs:
             protected = np.asarray(attrs[PROTECTED_ATTRIBUTE])[tet_pos] != 0
@@ -614,6 +621,7 @@ def _read_xdmf_arrays(path: Path, source: str) -> dict:
         "protected": protected,
         "names": names,
         "point_data": point_data,
+        "cell_data": cell_data,
     }
 
 

@@ -1,0 +1,194 @@
+"""Cell data (``TetMesh.cell_data``): checked on construction, carried through
+``improve`` (integer arrays with their interfaces kept, every new tet with the values of
+an input tet it overlaps), read and written by the VTK and XDMF formats."""
+
+import contextlib
+import io
+import warnings
+
+import numpy as np
+import pytest
+from helpers import delaunay_mesh
+
+import jtet
+from jtet import MeshInputError
+from jtet._cell_data import (
+    _SAMPLE_WEIGHTS,
+    _same_tets,
+    carried_cell_data,
+    id_arrays,
+    interface_faces,
+)
+from jtet._point_data import moved_vertices
+
+
+def _volumes(mesh: jtet.TetMesh) -> np.ndarray:
+    p = mesh.points[mesh.tets]
+    return np.linalg.det(p[:, 1:] - p[:, :1]) / 6
+
+
+def _labelled(mesh: jtet.TetMesh) -> jtet.TetMesh:
+    """``mesh`` with an integer material (the octant of its tets' centroids: interfaces
+    that zigzag through the mesh), a density that is a function of the material, and a
+    float field with one distinct value per tet."""
+    c = mesh.points[mesh.tets].mean(axis=1)
+    mat = (c[:, 0] > 0.5).astype(np.int32) + 2 * (c[:, 1] > 0.4).astype(np.int32)
+    density = np.column_stack([1.0 + 0.25 * mat, -mat.astype(np.float64)])
+    return mesh.replace(cell_data={"mat": mat, "density": density, "x": c[:, 0]})
+
+
+@pytest.fixture(scope="module")
+def carried_run():
+    mesh = _labelled(delaunay_mesh(150, seed=1))
+    # two rounds: this mesh's rounds take ~10 s to give up at the default limit
+    return mesh, jtet.improve(mesh, seed=0, perturb=2)
+
+
+def test_integer_arrays_keep_their_pieces(carried_run):
+    """Every material keeps its volume to rounding (its interfaces stayed in place, so
+    no tet of the result straddles two), and the density, a function of the material,
+    follows it exactly: each new tet took its values from one input tet it overlaps."""
+    mesh, r = carried_run
+    out = r.mesh
+    assert out.tets.shape != mesh.tets.shape or not np.array_equal(out.tets, mesh.tets)
+    mat = out.cell_data["mat"]
+    assert mat.dtype == np.int32 and out.cell_data["density"].shape == (out.n_tets, 2)
+    vin, vout = _volumes(mesh), _volumes(out)
+    for k in range(4):
+        # sums of ~200 volumes of O(1e-3): rounding far below 1e-12
+        assert abs(vin[mesh.cell_data["mat"] == k].sum() - vout[mat == k].sum()) < 1e-12
+    expected = np.column_stack([1.0 + 0.25 * mat, -mat.astype(np.float64)])
+    np.testing.assert_array_equal(out.cell_data["density"], expected)
+    # the run's interface faces are not in the result's protected faces
+    assert len(out.protected_faces) == len(mesh.protected_faces) == 0
+    notes = " | ".join(r.notes)
+    assert "cell data (mat, density, x): the " in notes
+    assert f"({len(interface_faces(mesh))} in the input) were kept in place" in notes
+
+
+def test_unchanged_tets_keep_their_rows(carried_run):
+    """A tet of the result with the vertices of an input tet, none of them moved, keeps
+    that tet's row bit for bit; every other tet's value is that of an input tet holding
+    a point inside it (checked by barycentric coordinates, brute force)."""
+    mesh, r = carried_run
+    out = r.mesh
+    same = _same_tets(mesh, out, moved_vertices(mesh, out))
+    kept = np.flatnonzero(same >= 0)
+    assert 0 < len(kept) < out.n_tets
+    # brute-force match of the kept tets by their sorted vertex rows
+    rows_in = {tuple(t): i for i, t in enumerate(np.sort(mesh.tets, axis=1).tolist())}
+    for i in kept:
+        assert rows_in[tuple(sorted(out.tets[i].tolist()))] == same[i]
+    np.testing.assert_array_equal(out.cell_data["x"][kept], mesh.cell_data["x"][same[kept]])
+    new = np.flatnonzero(same < 0)
+    p = mesh.points[mesh.tets]
+    inv = np.linalg.inv(np.transpose(p[:, 1:] - p[:, :1], (0, 2, 1)))
+    corners = out.points[out.tets[new]]
+    for q, c in zip(new, corners, strict=True):
+        # the tets of ``mesh`` that hold the new tet's centroid or one of the points
+        # nearer one corner that the carrying also tries (barycentric coordinates; the
+        # tolerance admits both tets of a point on a face)
+        holders = []
+        for w in _SAMPLE_WEIGHTS:
+            lam = np.einsum("tij,tj->ti", inv, w @ c - p[:, 0])
+            bary = np.column_stack([1 - lam.sum(axis=1), lam])
+            holders += np.flatnonzero((bary > -1e-12).all(axis=1)).tolist()
+        assert out.cell_data["x"][q] in mesh.cell_data["x"][holders]
+
+
+def test_floats_and_ids_change_nothing_of_the_run():
+    """Float arrays and arrays of distinct ids add no interface: the run is the run
+    without them, and the ids become provenance (a note says so)."""
+    mesh = delaunay_mesh(120, seed=4)
+    c = mesh.points[mesh.tets].mean(axis=1)
+    ids = np.arange(100, 100 + mesh.n_tets, dtype=np.int64)
+    with_data = mesh.replace(cell_data={"x": c[:, 0].astype(np.float32), "id": ids})
+    assert id_arrays(with_data) == ["id"] and not len(interface_faces(with_data))
+    r = jtet.improve(with_data, seed=0, perturb=1)
+    plain = jtet.improve(mesh, seed=0, perturb=1)
+    np.testing.assert_array_equal(r.mesh.points, plain.mesh.points)
+    np.testing.assert_array_equal(r.mesh.tets, plain.mesh.tets)
+    assert r.mesh.cell_data["x"].dtype == np.float32
+    assert set(r.mesh.cell_data["id"]) <= set(ids)
+    assert any(n.startswith("id: a distinct integer in every input tet") for n in r.notes)
+
+
+def test_carried_cell_data_of_an_unchanged_mesh_is_exact():
+    mesh = _labelled(delaunay_mesh(60, seed=2))
+    data, n_new, n_unconfirmed = carried_cell_data(mesh, mesh)
+    assert (n_new, n_unconfirmed) == (0, 0)
+    for name, a in mesh.cell_data.items():
+        np.testing.assert_array_equal(data[name], a)
+
+
+def test_cell_data_is_checked():
+    mesh = delaunay_mesh(40, seed=3)
+    m = mesh.n_tets
+    with_data = mesh.replace(cell_data={"flag": np.ones(m, bool)})
+    assert with_data.cell_data["flag"].dtype == np.int8
+    assert not with_data.cell_data["flag"].flags.writeable
+    assert "cell data flag" in repr(with_data)
+    bad = [
+        ({"a": np.ones(m + 1)}, r"cell_data\['a'\] has shape \(\d+,\); it needs one value"),
+        ({"a": np.ones((m, 2, 2))}, "one row of values per tet"),
+        ({"a": np.array(["x"] * m)}, "not numbers"),
+        ({"region": np.ones(m)}, "may not hold 'region'"),
+        ({"": np.ones(m)}, "non-empty strings"),
+        ([1, 2], "must be a mapping"),
+    ]
+    for value, message in bad:
+        with pytest.raises(MeshInputError, match=message):
+            mesh.replace(cell_data=value)
+    fewer = {"tets": with_data.tets[:-1], "region": with_data.region[:-1]}
+    with pytest.raises(MeshInputError, match="pass cell_data for the new tets too"):
+        with_data.replace(**fewer)
+    assert with_data.replace(**fewer, cell_data=None).n_tets == m - 1
+    # new cell data alone keeps the mesh's topology
+    topo = with_data.topology
+    assert with_data.replace(cell_data={"b": np.zeros(m)}).topology is topo
+
+
+@pytest.mark.parametrize("ext", ["vtu", "vtk", "xdmf"])
+def test_formats_keep_cell_data(tmp_path, ext):
+    mesh = _labelled(delaunay_mesh(40, seed=3))
+    path = tmp_path / f"m.{ext}"
+    jtet.save(mesh, path)
+    back = jtet.load(path)
+    assert list(back.cell_data) == list(mesh.cell_data)
+    for name, a in mesh.cell_data.items():
+        assert back.cell_data[name].dtype == a.dtype
+        np.testing.assert_array_equal(back.cell_data[name], a)
+
+
+@pytest.mark.parametrize("ext", ["msh", "mesh", "node"])
+def test_other_formats_say_they_leave_cell_data_out(tmp_path, ext):
+    mesh = _labelled(delaunay_mesh(40, seed=3))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        jtet.save(mesh, tmp_path / f"m.{ext}")
+    said = [str(w.message) for w in caught if "cell array(s)" in str(w.message)]
+    assert said and "not saved: 3 cell array(s) (mat, density, x)" in said[0]
+
+
+def test_cli_carries_cell_data_and_lists_it(tmp_path):
+    from jtet.cli import main
+
+    mesh = _labelled(delaunay_mesh(60, seed=5))
+    jtet.save(mesh, tmp_path / "in.vtu")
+    assert (
+        main(["improve", str(tmp_path / "in.vtu"), str(tmp_path / "out.vtu"), "--perturb", "0"])
+        == 0
+    )
+    out = jtet.load(tmp_path / "out.vtu")
+    assert list(out.cell_data) == ["mat", "density", "x"]
+    vin, vout = _volumes(mesh), _volumes(out)
+    for k in range(4):
+        assert (
+            abs(vin[mesh.cell_data["mat"] == k].sum() - vout[out.cell_data["mat"] == k].sum())
+            < 1e-12
+        )
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(["stats", "--groups", str(tmp_path / "out.vtu")]) == 0
+    text = buf.getvalue()
+    assert "cell data" in text and "density" in text and f"{out.n_tets} x 2 values" in text
