@@ -389,10 +389,12 @@ class TetMesh:
             (``.sol``) and Exodus (nodal variables) formats.
         cell_data: read-only mapping name -> (m,) or (m, k) array of values per tet (a
             material id, a partition, a density; VTK cell arrays). ``improve`` gives the
-            tets it leaves in place their values and every new tet the values of the
-            input tet that holds its centroid; it keeps the surfaces where an integer
-            array changes value in place, as it keeps region interfaces, so integer
-            arrays come through exactly. Read and written by the VTK and XDMF formats.
+            tets it leaves in place their values and every new tet the values of an
+            input tet it overlaps (the one holding its centroid, as a rule); it keeps
+            the surfaces where an integer array changes value in place, as it keeps
+            region interfaces, so integer arrays come through exactly (but arrays of
+            distinct ids, which become provenance). Read and written by the VTK and
+            XDMF formats.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it

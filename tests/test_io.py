@@ -1320,22 +1320,24 @@ def test_msh_region_0_is_in_no_physical_group(tmp_path, label):
     assert len(said) == (label == 0) and all(f"{mesh.n_tets} tet(s) of region 0" in m for m in said)
 
 
-def test_cell_arrays_not_carried_are_named_point_arrays_carried(tmp_path):
-    """A cell field on the input (a material) does not reach a TetMesh: a warning names
-    it, while the region array and jtet's own per-tet arrays (recomputed for each output)
-    pass in silence. A point field (a temperature) is read, carried through ``jtet
-    improve`` and written to the output."""
+def test_arrays_of_numbers_carried_others_named(tmp_path):
+    """A point field (a temperature) and a cell field (a material) are read, carried
+    through ``jtet improve`` and written to the output; arrays that are no numbers are
+    left out with a warning naming them, while the region array and jtet's own per-tet
+    arrays (recomputed for each output) pass in silence."""
     grid = jtet.demo_mesh().to_pyvista()
     grid.point_data["temperature"] = np.arange(grid.n_points, dtype=float)
     grid.point_data["label"] = np.array(["x"] * grid.n_points)  # no numbers: dropped
     grid.cell_data["material"] = np.ones(grid.n_cells)
+    grid.cell_data["name"] = np.array(["steel"] * grid.n_cells)  # no numbers: dropped
     grid.save(tmp_path / "fields.vtu")
     with pytest.warns(UserWarning) as said:
         mesh = jtet.load(tmp_path / "fields.vtu")
     messages = [str(w.message) for w in said]
     assert any(m.endswith("not read: 1 point array(s) (label)") for m in messages), messages
-    assert any(m.endswith("not read: 1 cell array(s) (material)") for m in messages), messages
+    assert any(m.endswith("not read: 1 cell array(s) (name)") for m in messages), messages
     np.testing.assert_array_equal(mesh.point_data["temperature"], np.arange(mesh.n_points))
+    np.testing.assert_array_equal(mesh.cell_data["material"], np.ones(mesh.n_tets))
     out = tmp_path / "out.vtu"
     args = ["improve", str(tmp_path / "fields.vtu"), str(out), "-q", "--max-passes", "1"]
     assert main([*args, "--perturb", "0"]) == 0
@@ -1344,6 +1346,7 @@ def test_cell_arrays_not_carried_are_named_point_arrays_carried(tmp_path):
         back = jtet.load(out)  # region + quality_*, min/max_dihedral, volume: nothing to say
     assert list(back.point_data) == ["temperature"]
     assert back.point_data["temperature"].shape == (back.n_points,)
+    np.testing.assert_array_equal(back.cell_data["material"], np.ones(back.n_tets))
 
 
 @pytest.mark.parametrize("fmt, binary", [("gmsh22", False), ("gmsh", True)])
