@@ -502,24 +502,19 @@ class TetMesh:
         if "node_sets" in changes or len(points) < self.n_points:
             node_sets = _checked_node_sets(changes.get("node_sets", node_sets), len(points))
         object.__setattr__(out, "node_sets", node_sets)
-        point_data = self.point_data
-        if "point_data" in changes:
-            point_data = _checked_arrays(changes["point_data"], len(points), PointData)
-        elif len(points) != self.n_points and point_data:
-            raise MeshInputError(
-                f"the mesh's point_data has {self.n_points} rows, the new points "
-                f"{len(points)}: pass point_data for the new points too (or point_data=None)"
-            )
-        object.__setattr__(out, "point_data", point_data)
-        cell_data = self.cell_data
-        if "cell_data" in changes:
-            cell_data = _checked_arrays(changes["cell_data"], len(tets), CellData)
-        elif len(tets) != self.n_tets and cell_data:
-            raise MeshInputError(
-                f"the mesh's cell_data has {self.n_tets} rows, the new tets {len(tets)}: "
-                "pass cell_data for the new tets too (or cell_data=None)"
-            )
-        object.__setattr__(out, "cell_data", cell_data)
+        for name, kind, rows, what in (
+            ("point_data", PointData, len(points), "points"),
+            ("cell_data", CellData, len(tets), "tets"),
+        ):
+            data = getattr(self, name)
+            if name in changes:
+                data = _checked_arrays(changes[name], rows, kind)
+            elif data and rows != len(next(iter(data.values()))):
+                raise MeshInputError(
+                    f"the mesh's {name} has {len(next(iter(data.values())))} rows, the new "
+                    f"{what} {rows}: pass {name} for the new {what} too (or {name}=None)"
+                )
+            object.__setattr__(out, name, data)
         pt = self.protected_tets
         if "protected_tets" in changes or len(points) < self.n_points:
             pt = self._entity_array(
