@@ -156,7 +156,7 @@ def read_exo(path: Path, source: str):
 
 
 def _read(r: _Reader, source: str):
-    from ._io import _non_tet_message, _warn_dropped_arrays
+    from ._io import _non_tet_message
 
     coords = [r.array(f"coord{c}") for c in "xyz"]
     stacked = r.array("coord") if coords[0] is None else None  # the older layout
@@ -180,6 +180,7 @@ def _read(r: _Reader, source: str):
     cells = {2: ([], []), 1: ([], []), 0: ([], [])}  # dim -> rows, labels (tets apart)
     others: dict[str, int] = {}
     tet_of_element = []  # per element of the file: its tet index, or -1
+    tet_blocks = []  # (block index, its first tet, its tets)
     n_tets = 0
     for b in range(n_blocks):
         conn = r.ints(f"connect{b + 1}")
@@ -206,15 +207,15 @@ def _read(r: _Reader, source: str):
             tets.append(conn)
             region.append(np.full(len(conn), label, np.int64))
             tet_of_element.append(np.arange(n_tets, n_tets + len(conn)))
+            tet_blocks.append((b, n_tets, len(conn)))
             n_tets += len(conn)
         else:
             cells[dim][0].append(conn)
             cells[dim][1].append(np.full(len(conn), label, np.int64))
             tet_of_element.append(np.full(len(conn), -1))
-    # a solver's results on the mesh (MOOSE's element variables): not carried; its nodal
-    # variables are point data
-    _warn_dropped_arrays([], r.all_names("name_elem_var"), source)
+    # a solver's results on the mesh (MOOSE's nodal and element variables)
     point_data = _nodal_variables(r, n, source)
+    cell_data = _element_variables(r, tet_blocks, n_tets, source)
     if others:
         raise MeshInputError(
             _non_tet_message(
@@ -238,6 +239,7 @@ def _read(r: _Reader, source: str):
         if np.array_equal(np.sort(numbers), np.arange(1, len(tets) + 1)):
             order = np.argsort(numbers)
             tets, region = tets[order], region[order]
+            cell_data = {name: a[order] for name, a in cell_data.items()}
 
     def joined(dim, k):
         rows, labels = cells[dim]
@@ -252,7 +254,8 @@ def _read(r: _Reader, source: str):
     pins = np.concatenate([pins, spheres.reshape(-1)])
     pin_labels = np.concatenate([pin_labels, sphere_labels])
     return (points, tets, region, faces, face_labels, lines, line_labels, pins, pin_labels,
-            {"label_names": names, "node_sets": node_sets, "point_data": point_data})  # fmt: skip
+            {"label_names": names, "node_sets": node_sets, "point_data": point_data,
+             "cell_data": cell_data})  # fmt: skip
 
 
 def _nodal_variables(r: _Reader, n: int, source: str) -> dict:
@@ -279,13 +282,50 @@ def _nodal_variables(r: _Reader, n: int, source: str) -> dict:
         a = np.asarray(a, np.float64).reshape(-1, n)
         steps = max(steps, len(a))
         columns[name or f"nod_var{k + 1}"] = a[-1]
+    _last_step_warning("nodal variables", steps, r, source)
+    return joined_columns(columns)
+
+
+def _last_step_warning(what: str, steps: int, r: _Reader, source: str) -> None:
     if steps > 1:
         times = r.array("time_whole")
         when = f" (time {float(times[-1]):g})" if times is not None and len(times) else ""
         warnings.warn(
-            f"{source}: the nodal variables are read at the last of {steps} time steps{when}",
-            stacklevel=4,
+            f"{source}: the {what} are read at the last of {steps} time steps{when}",
+            stacklevel=5,
         )
+
+
+def _element_variables(r: _Reader, tet_blocks: list, n_tets: int, source: str) -> dict:
+    """The element variables of the file's tet blocks at its last time step, as
+    ``TetMesh.cell_data``: {name: (n_tets,) float64} in the blocks' order (NaN in a
+    block the truth table leaves out), runs ``name[0]``, ``name[1]``, ... joined into
+    (n_tets, k) arrays. jtet's own quality arrays are left out: every output gets fresh
+    ones."""
+    from ._io import _carried_array_name
+    from ._point_data import joined_columns
+
+    names = r.all_names("name_elem_var")
+    columns, steps = {}, 0
+    for v, name in enumerate(names):
+        name = name or f"elem_var{v + 1}"
+        if not _carried_array_name(name):
+            continue
+        out = np.full(n_tets, np.nan)
+        for b, first, count in tet_blocks:
+            a = r.array(f"vals_elem_var{v + 1}eb{b + 1}")
+            if a is None:
+                continue
+            if a.dtype.kind not in "biuf" or a.size == 0 or a.shape[-1] != count:
+                raise MeshInputError(
+                    f"{source}: element variable {name!r} does not hold one value per "
+                    f"element of block {b + 1}"
+                )
+            a = np.asarray(a, np.float64).reshape(-1, count)
+            steps = max(steps, len(a))
+            out[first : first + count] = a[-1]
+        columns[name] = out
+    _last_step_warning("element variables", steps, r, source)
     return joined_columns(columns)
 
 
@@ -378,9 +418,11 @@ def write_exo(mesh, path: Path, cell_data: dict | None = None) -> None:
     all_names += [names.get((2, int(k)), "") for k in face_labels]
     all_names += [names.get((0, int(k)), "") for k in vertex_labels]
     all_names += [ns.name for ns in mesh.node_sets]
-    cell_data = dict(cell_data or {})
-    all_names += list(cell_data)
     from ._point_data import scalar_columns
+
+    # the mesh's cell data and jtet's quality arrays (which win), as scalar columns
+    cell_data = scalar_columns({**mesh.cell_data, **dict(cell_data or {})})
+    all_names += list(cell_data)
 
     nodal = scalar_columns(mesh.point_data)  # an (n, k) array: k variables name[i]
     all_names += list(nodal)

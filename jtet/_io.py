@@ -1818,10 +1818,10 @@ def save(
             f"{', ...' if len(names) > 3 else ''})",
             stacklevel=2,
         )
-    if mesh.cell_data and fmt not in ("vtu", "vtk", "xdmf"):
+    if mesh.cell_data and fmt not in ("vtu", "vtk", "xdmf", "exodus"):
         names = list(mesh.cell_data)
         warnings.warn(
-            f"{p}: jtet writes cell data to .vtu, .vtk and .xdmf files only; not saved: "
+            f"{p}: jtet writes cell data to .vtu, .vtk, .xdmf and Exodus files only; not saved: "
             f"{len(names)} cell array(s) ({', '.join(names[:3])}"
             f"{', ...' if len(names) > 3 else ''})",
             stacklevel=2,

@@ -393,8 +393,8 @@ class TetMesh:
             input tet it overlaps (the one holding its centroid, as a rule); it keeps
             the surfaces where an integer array changes value in place, as it keeps
             region interfaces, so integer arrays come through exactly (but arrays of
-            distinct ids, which become provenance). Read and written by the VTK and
-            XDMF formats.
+            distinct ids, which become provenance). Read and written by the VTK, XDMF
+            and Exodus (element variables) formats.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it

@@ -228,14 +228,52 @@ def test_side_set_past_the_elements(tmp_path):
         jtet.load(_write_netcdf(tmp_path / "bad.exo", build))
 
 
-def test_variables_not_carried_are_named(tmp_path):
-    """A solver's element variables in the file (a stress) are named in a warning when
-    read; jtet's own per-tet arrays are not (they are recomputed for every output)."""
+def test_element_variables_are_cell_data(tmp_path):
+    """A solver's element variables in the file (a stress) are cell data; jtet's own
+    per-tet arrays are not read back (they are recomputed for every output)."""
     mesh = jtet.load(CLASSIC)
     path = tmp_path / "results.exo"
-    jtet.save(mesh, path, cell_data={"quality_min_sine": mesh.quality(), "stress": mesh.volumes})
-    with pytest.warns(UserWarning, match=r"not read: 1 cell array\(s\) \(stress\)$"):
-        jtet.load(path)
+    stress = np.column_stack([mesh.volumes, -mesh.volumes])
+    with_data = mesh.replace(cell_data={"stress": stress})
+    jtet.save(with_data, path, cell_data={"quality_min_sine": mesh.quality()})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back = jtet.load(path)
+    assert list(back.cell_data) == ["stress"]
+    np.testing.assert_array_equal(back.cell_data["stress"], stress)
+
+
+def test_element_variables_of_two_blocks_at_the_last_time_step(tmp_path):
+    """Element variables per block, at the last of two time steps; a block without
+    the variable (the truth table's 0) gets NaN; one of another length is refused."""
+
+    def build(f, count=1):
+        f.createDimension("time_step", None)
+        f.createDimension("len_name", 33)
+        f.createVariable("time_whole", "f8", ("time_step",))[:2] = [0.0, 2.5]
+        _base(f)
+        f.variables["coordy"][:] = [0, 0, 1, 0, 0]
+        f.variables["coordz"][:] = [0, 0, 0, 1, -1]
+        _block(f, 1, [[1, 2, 3, 4]], "TETRA4")
+        _block(f, 2, [[1, 3, 2, 5]], "TETRA4")
+        f.createDimension("num_elem_var", 2)
+        f.createVariable("name_elem_var", "c", ("num_elem_var", "len_name"))[:] = np.array(
+            [list("s".ljust(33, "\0")), list("e".ljust(33, "\0"))], "S1"
+        )
+        f.createDimension("two", count)
+        for name, values in (("vals_elem_var1eb1", [1.0, 2.0]), ("vals_elem_var1eb2", [3.0, 4.0])):
+            f.createVariable(name, "f8", ("time_step", "two"))[:2] = np.reshape(values, (2, 1))
+        f.createVariable("vals_elem_var2eb1", "f8", ("time_step", "num_el_in_blk1"))[:2] = [
+            [5.0],
+            [6.0],
+        ]
+
+    with pytest.raises(MeshInputError, match="element variable 's' does not hold one value"):
+        jtet.load(_write_netcdf(tmp_path / "bad.exo", lambda f: build(f, count=3)))
+    with pytest.warns(UserWarning, match=r"element variables are read at the last of 2"):
+        mesh = jtet.load(_write_netcdf(tmp_path / "two.exo", build))
+    np.testing.assert_array_equal(mesh.cell_data["s"], [2.0, 4.0])
+    np.testing.assert_array_equal(mesh.cell_data["e"], [6.0, np.nan])
 
 
 def _solution_file(path, values, stacked=False):
