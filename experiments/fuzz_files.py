@@ -60,6 +60,7 @@ def _mesh():
         protected_tets=mesh.tets[:3],
         node_sets=[("probe", [2, 3]), ("tip", [3, 4], 9)],
         point_data={"T": points[:, 0], "u": points, "marker": np.arange(len(points)) % 3},
+        cell_data={"material": np.arange(mesh.n_tets) % 3, "s": np.ones((mesh.n_tets, 2))},
     )
 
 
