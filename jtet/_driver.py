@@ -591,7 +591,8 @@ def _improve_carrying_cell_data(mesh: TetMesh, opts: Options, callback) -> Impro
             f"({len(faces)} in the input) were kept in place, as region interfaces are"
             + (
                 "; the worst tet touches them: if an array is no label of pieces "
-                "(materials, parts), leave it out of the input (TetMesh.replace(cell_data=...)) for a freer run"
+                "(materials, parts), leave it out of the input (jtet improve --drop NAME, "
+                "TetMesh.replace(cell_data=...)) for a freer run"
                 if at_interface
                 else ""
             )

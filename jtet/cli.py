@@ -737,8 +737,19 @@ def _add_relabel(p) -> None:
     )
 
 
+def _add_drop(p) -> None:
+    p.add_argument(
+        "--drop",
+        type=lambda text: [n for n in text.split(",") if n],
+        metavar="NAME,...",
+        help="leave these point or cell data arrays of the input out (an integer cell "
+        "array that labels no pieces, whose interfaces improve would keep in place)",
+    )
+
+
 def _read_input(src: Path, args):
-    """The mesh of ``src``, its regions renamed by ``--relabel``."""
+    """The mesh of ``src``, its regions renamed by ``--relabel``, without the data
+    arrays ``--drop`` names."""
     from ._io import load
 
     mesh = load(src)
@@ -747,6 +758,19 @@ def _read_input(src: Path, args):
             mesh = mesh.relabel(args.relabel)
         except JtetError as e:
             raise JtetError(f"{src}: --relabel: {e}") from None
+    drop = set(getattr(args, "drop", None) or ())
+    if drop:
+        have = [*mesh.point_data, *mesh.cell_data]
+        unknown = sorted(drop - set(have))
+        if unknown:
+            raise JtetError(
+                f"{src}: --drop: no point or cell data array {unknown[0]!r} "
+                f"(the file has: {', '.join(have) or 'none'})"
+            )
+        mesh = mesh.replace(
+            point_data={k: a for k, a in mesh.point_data.items() if k not in drop},
+            cell_data={k: a for k, a in mesh.cell_data.items() if k not in drop},
+        )
     return mesh
 
 
@@ -790,6 +814,7 @@ def build_parser() -> argparse.ArgumentParser:
         "operation against time (with --out-dir: one figure per file, H_<output name>.png)",
     )
     _add_relabel(pi)
+    _add_drop(pi)
     pi.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
     pi.add_argument("-q", "--quiet", action="store_true")
     pi.set_defaults(func=cmd_improve)
@@ -845,6 +870,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="add the per-tet quality and dihedral arrays (as jtet improve does)",
     )
     _add_relabel(pc)
+    _add_drop(pc)
     pc.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
     pc.add_argument("-q", "--quiet", action="store_true")
     pc.set_defaults(func=cmd_convert)

@@ -192,3 +192,26 @@ def test_cli_carries_cell_data_and_lists_it(tmp_path):
         assert main(["stats", "--groups", str(tmp_path / "out.vtu")]) == 0
     text = buf.getvalue()
     assert "cell data" in text and "density" in text and f"{out.n_tets} x 2 values" in text
+
+
+def test_cli_drop_leaves_arrays_out(tmp_path, capsys):
+    """``--drop`` leaves named point or cell arrays of the input out (the run is then
+    the run without them); a name the file does not have is a one-line error."""
+    from jtet.cli import main
+
+    mesh = _labelled(delaunay_mesh(60, seed=5))
+    mesh = mesh.replace(point_data={"T": np.zeros(mesh.n_points)})
+    jtet.save(mesh, tmp_path / "in.vtu")
+    args = ["improve", str(tmp_path / "in.vtu"), str(tmp_path / "out.vtu"), "--perturb", "0"]
+    assert main([*args, "--drop", "mat,T", "-q"]) == 0
+    out = jtet.load(tmp_path / "out.vtu")
+    assert list(out.cell_data) == ["density", "x"] and not out.point_data
+    plain = jtet.improve(mesh.replace(cell_data=None, point_data=None), perturb=0)
+    np.testing.assert_array_equal(out.tets, plain.mesh.tets)
+    capsys.readouterr()
+    assert main([*args, "--drop", "nope", "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert "--drop: no point or cell data array 'nope' (the file has: T, mat, density, x)" in err
+    convert = ["convert", str(tmp_path / "in.vtu"), str(tmp_path / "c.vtu"), "--drop", "x"]
+    assert main(convert) == 0
+    assert list(jtet.load(tmp_path / "c.vtu").cell_data) == ["mat", "density"]
