@@ -208,23 +208,10 @@ def _warn_dropped_arrays(point_arrays: list, cell_arrays: list, source: str) -> 
         )
 
 
-def grid_to_arrays(grid, source: str = "pyvista grid"):
-    """Arrays of a tet mesh from a ``pyvista.UnstructuredGrid``.
-
-    Accepts anything ``pyvista.wrap`` turns into a dataset (a VTK object, a ``meshio.Mesh``,
-    ...). Cells of dimension 0-2 are ignored, but triangles that are faces of the tets
-    become protected faces, labelled by the region array; every 3-D cell must be a linear
-    tetrahedron (``VTK_TETRA``), otherwise ``MeshInputError`` names the offending types
-    and counts.
-
-    Returns:
-        ``(points (n, 3) float64, tets (m, 4) int64, region (m,) int64 or None,
-        protected_faces (k, 3) or None, protected_edges (k, 2) or None, protected face
-        labels (k,) or None, protected_vertices (j,) or None)``: the arguments of
-        ``TetMesh.from_arrays``. Region labels come from the first of ``REGION_ARRAYS``;
-        protected entities from the field data written by ``mesh_to_grid`` and the
-        triangle, line and vertex cells that are faces, edges and vertices of the tets.
-    """
+def unstructured_grid(grid, source: str = "pyvista grid"):
+    """``grid`` as a ``pyvista.UnstructuredGrid``: anything ``pyvista.wrap`` turns into
+    a dataset (a VTK object, a ``meshio.Mesh``, ...), cast; ``MeshInputError`` for a
+    MultiBlock or an object pyvista cannot wrap."""
     import pyvista as pv
 
     if not isinstance(grid, pv.UnstructuredGrid):
@@ -243,6 +230,27 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
             if isinstance(wrapped, pv.UnstructuredGrid)
             else wrapped.cast_to_unstructured_grid()
         )
+    return grid
+
+
+def grid_to_arrays(grid, source: str = "pyvista grid"):
+    """Arrays of a tet mesh from a ``pyvista.UnstructuredGrid``.
+
+    Accepts anything ``pyvista.wrap`` turns into a dataset (a VTK object, a ``meshio.Mesh``,
+    ...). Cells of dimension 0-2 are ignored, but triangles that are faces of the tets
+    become protected faces, labelled by the region array; every 3-D cell must be a linear
+    tetrahedron (``VTK_TETRA``), otherwise ``MeshInputError`` names the offending types
+    and counts.
+
+    Returns:
+        ``(points (n, 3) float64, tets (m, 4) int64, region (m,) int64 or None,
+        protected_faces (k, 3) or None, protected_edges (k, 2) or None, protected face
+        labels (k,) or None, protected_vertices (j,) or None)``: the arguments of
+        ``TetMesh.from_arrays``. Region labels come from the first of ``REGION_ARRAYS``;
+        protected entities from the field data written by ``mesh_to_grid`` and the
+        triangle, line and vertex cells that are faces, edges and vertices of the tets.
+    """
+    grid = unstructured_grid(grid, source)
 
     n_cells = grid.n_cells
     if n_cells == 0:

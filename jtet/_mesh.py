@@ -724,8 +724,9 @@ class TetMesh:
         Reads a ``region`` cell array when present (also ``gmsh:physical``,
         ``medit:ref``, ``CellEntityIds`` as written by meshio / VTK readers).
         """
-        from ._io import grid_extras, grid_to_arrays
+        from ._io import grid_extras, grid_to_arrays, unstructured_grid
 
+        grid = unstructured_grid(grid, source)
         arrays = grid_to_arrays(grid, source)
         return cls.from_arrays(*arrays, **grid_extras(grid, source), source=source)
 
