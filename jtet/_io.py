@@ -1306,8 +1306,10 @@ def load(path: str | os.PathLike) -> TetMesh:
     vertices of the tets become protected edges and vertices. Point arrays of numbers
     (``.vtu``, ``.vtk``; ``.xdmf`` node attributes; TetGen point attributes; the Medit
     ``.sol`` file beside a ``.mesh`` / ``.meshb``; Exodus nodal variables at the last
-    time step) become ``TetMesh.point_data``. A globally reversed orientation is fixed
-    with a warning (see ``TetMesh.from_arrays``).
+    time step) become ``TetMesh.point_data``; cell arrays of numbers (``.vtu``, ``.vtk``;
+    ``.xdmf`` cell attributes; Exodus element variables at the last time step) become
+    ``TetMesh.cell_data``, but for region labels and jtet's own quality arrays. A
+    globally reversed orientation is fixed with a warning (see ``TetMesh.from_arrays``).
 
     Raises:
         MeshFileError: the file is missing, a directory, of unknown extension, or unreadable.
@@ -1708,8 +1710,10 @@ def save(
     """Write ``mesh`` to ``path``, atomically; the format follows the extension.
 
     ``.vtu`` (zlib-compressed binary XML) and ``.vtk`` (binary legacy) store the region as a
-    ``region`` cell array plus every array of ``cell_data`` (name -> one value per tet) and
-    the protected entities as field data, and ``mesh.point_data`` as point arrays (also
+    ``region`` cell array plus the arrays of ``mesh.cell_data`` and of ``cell_data`` (name
+    -> one value per tet, which wins; ``.xdmf`` and Exodus too, as cell attributes and
+    element variables), the protected entities as field data, and ``mesh.point_data`` as
+    point arrays (also
     ``.xdmf``: node attributes; TetGen: point attributes, float64 columns named in a
     comment line; Medit: the ``.sol`` file beside the mesh, ``_medit_sol``; Exodus:
     nodal variables; the other formats leave it out with a warning). ``.msh`` (Gmsh 2.2 binary, which every
