@@ -1283,11 +1283,52 @@ def _check_tetgen_elements(ele: Path) -> None:
     header = _tetgen_header(ele)
     fields = header.split("#")[0].split()  # elements, nodes per element, attributes
     if len(fields) < 2 or not fields[1].isdigit() or int(fields[1]) == 4:
-        return  # meshio reads it, or fails with its own reason
+        # meshio reads it, or fails with its own reason; but for an attribute on the
+        # last line that is no integer, which it would read wrong (the others make it
+        # fail: ``load`` then looks at every line)
+        last = _last_line(ele)
+        if last.strip() != header.strip():
+            _check_tetgen_attributes(ele, [last.split("#")[0].split()])
+        return
     if int(fields[1]) == 10:
         count = int(fields[0]) if fields[0].isdigit() else 0
         raise MeshInputError(_non_tet_message(str(ele), ["10-node tetrahedron"], [count], True))
     raise MeshInputError(f"{ele}: {fields[1]} nodes per element; jtet reads 4-node tetrahedra")
+
+
+def _check_tetgen_attributes(ele: Path, rows: list | None = None) -> None:
+    """Raise ``MeshInputError`` when an element line of the TetGen ``.ele`` file (or of
+    ``rows``, its lines split into fields) holds an attribute that is no integer (a
+    region attribute of 1.5 in the ``.poly`` file): meshio reads element attributes as
+    integers, and fails without saying so or, on the last line, reads 1.5 as 1; jtet's
+    region labels are integers."""
+    if rows is None:
+        try:
+            with open(ele, errors="replace") as f:
+                rows = [fields for fields in (ln.split("#")[0].split() for ln in f) if fields]
+        except OSError:
+            return
+        rows = rows[1:]  # the header
+    for fields in rows:
+        for value in fields[5:]:
+            try:
+                int(value)
+            except ValueError:
+                raise MeshInputError(
+                    f"{ele}: element {fields[0]} has the attribute {value!r}, not written "
+                    "as an integer; jtet reads TetGen's element attributes as integer region "
+                    "labels (give the regions integer attributes in the .poly file)"
+                ) from None
+
+
+def _last_line(path: Path) -> str:
+    """The last line of ``path`` that holds more than a comment ("" without one in its
+    last 64 kB)."""
+    with open(path, "rb") as f:
+        f.seek(0, os.SEEK_END)
+        f.seek(max(0, f.tell() - 65536))
+        tail = f.read().decode(errors="replace")
+    return next((ln for ln in reversed(tail.splitlines()) if ln.split("#")[0].split()), "")
 
 
 def load(path: str | os.PathLike) -> TetMesh:
@@ -1376,6 +1417,8 @@ def load(path: str | os.PathLike) -> TetMesh:
                 m = _meshio_module(fmt).read(str(readable or p))
         except Exception as e:
             captured = buf.getvalue()
+            if fmt == "tetgen":
+                _check_tetgen_attributes(p.with_suffix(".ele"))
             raise MeshFileError(
                 f"{p}: not a readable {_FORMAT_NAMES[fmt]} file ({_reason(e, captured)})"
             ) from None

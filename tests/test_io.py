@@ -888,6 +888,23 @@ def test_tetgen_other_elements_say_so(tmp_path, nodes, reason):
         _one_line(e)
 
 
+@pytest.mark.parametrize("attribute", ["1.5", "2.0"])
+@pytest.mark.parametrize("last", [True, False])
+def test_tetgen_attributes_that_are_no_integers_say_so(tmp_path, attribute, last):
+    # a region attribute of 1.5 in the .poly file: meshio reads element attributes as
+    # integers; it failed with "could not be read to its end", or, on the last line,
+    # read 1.5 as 1
+    (tmp_path / "m.node").write_text(TETGEN_NODE)
+    lines = ["1 1 2 3 4 1", f"2 2 3 4 5 {attribute}"]
+    lines = lines if last else lines[::-1]
+    (tmp_path / "m.ele").write_text("2 4 1\n" + "\n".join(lines) + "\n# end\n")
+    with pytest.raises(MeshInputError, match=f"element 2 has the attribute '{attribute}'") as e:
+        _io.load(tmp_path / "m.node")
+    assert "integer region labels" in _one_line(e)
+    (tmp_path / "m.ele").write_text("1 4 1\n1 1 2 3 4 2\n")
+    assert _io.load(tmp_path / "m.node").region.tolist() == [2]
+
+
 # ---------------------------------------------------------------------------------------
 # bad inputs: the specific jtet exception, with the path and a useful reason
 
