@@ -1310,15 +1310,27 @@ def _check_tetgen_attributes(ele: Path, rows: list | None = None) -> None:
             return
         rows = rows[1:]  # the header
     for fields in rows:
+        if len(fields) < 6 or not all(v.lstrip("-").isdigit() for v in fields[:5]):
+            continue  # no element line: meshio's reason stands (a damaged file)
         for value in fields[5:]:
             try:
                 int(value)
             except ValueError:
+                if not _is_number(value):
+                    break
                 raise MeshInputError(
                     f"{ele}: element {fields[0]} has the attribute {value!r}, not written "
                     "as an integer; jtet reads TetGen's element attributes as integer region "
                     "labels (give the regions integer attributes in the .poly file)"
                 ) from None
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _last_line(path: Path) -> str:
