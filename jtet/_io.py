@@ -1288,7 +1288,7 @@ def _check_tetgen_elements(ele: Path) -> None:
         # fail: ``load`` then looks at every line)
         last = _last_line(ele)
         if last.strip() != header.strip():
-            _check_tetgen_attributes(ele, [last.split("#")[0].split()])
+            _check_tetgen_attributes(ele, last)
         return
     if int(fields[1]) == 10:
         count = int(fields[0]) if fields[0].isdigit() else 0
@@ -1296,41 +1296,35 @@ def _check_tetgen_elements(ele: Path) -> None:
     raise MeshInputError(f"{ele}: {fields[1]} nodes per element; jtet reads 4-node tetrahedra")
 
 
-def _check_tetgen_attributes(ele: Path, rows: list | None = None) -> None:
+# An element line of a TetGen ``.ele`` file (a number and four node ids, then integer
+# attributes) with an attribute written as a decimal number that is no integer literal
+# ("1.5", "2.0", "3e2"): group 1 is the element's number, group 2 that attribute.
+_TETGEN_DECIMAL_ATTRIBUTE = re.compile(
+    r"^[ \t]*(-?\d+)(?:[ \t]+-?\d+){4}(?:[ \t]+-?\d+)*[ \t]+"
+    r"([-+]?(?:(?:\d+\.\d*|\.\d+)(?:[eE][-+]?\d+)?|\d+[eE][-+]?\d+))(?=[ \t#]|$)",
+    re.MULTILINE,
+)
+
+
+def _check_tetgen_attributes(ele: Path, text: str | None = None) -> None:
     """Raise ``MeshInputError`` when an element line of the TetGen ``.ele`` file (or of
-    ``rows``, its lines split into fields) holds an attribute that is no integer (a
-    region attribute of 1.5 in the ``.poly`` file): meshio reads element attributes as
+    ``text``, some of its lines) holds an attribute that is no integer (a region
+    attribute of 1.5 in the ``.poly`` file): meshio reads element attributes as
     integers, and fails without saying so or, on the last line, reads 1.5 as 1; jtet's
-    region labels are integers."""
-    if rows is None:
+    region labels are integers. Lines that are no element lines (a damaged file) are
+    left to meshio's reason."""
+    if text is None:
         try:
-            with open(ele, errors="replace") as f:
-                rows = [fields for fields in (ln.split("#")[0].split() for ln in f) if fields]
+            text = ele.read_text(errors="replace")
         except OSError:
             return
-        rows = rows[1:]  # the header
-    for fields in rows:
-        if len(fields) < 6 or not all(v.lstrip("-").isdigit() for v in fields[:5]):
-            continue  # no element line: meshio's reason stands (a damaged file)
-        for value in fields[5:]:
-            try:
-                int(value)
-            except ValueError:
-                if not _is_number(value):
-                    break
-                raise MeshInputError(
-                    f"{ele}: element {fields[0]} has the attribute {value!r}, not written "
-                    "as an integer; jtet reads TetGen's element attributes as integer region "
-                    "labels (give the regions integer attributes in the .poly file)"
-                ) from None
-
-
-def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
+    bad = _TETGEN_DECIMAL_ATTRIBUTE.search(text)
+    if bad:
+        raise MeshInputError(
+            f"{ele}: element {bad.group(1)} has the attribute {bad.group(2)!r}, not written "
+            "as an integer; jtet reads TetGen's element attributes as integer region "
+            "labels (give the regions integer attributes in the .poly file)"
+        )
 
 
 def _last_line(path: Path) -> str:
