@@ -19,13 +19,12 @@ _SAMPLE_WEIGHTS = np.array(
 )
 
 
-def interface_faces(mesh: TetMesh) -> Int[np.ndarray, "k 3"]:
+def interface_faces(mesh: TetMesh, ids: list[str]) -> Int[np.ndarray, "k 3"]:
     """(k, 3) sorted vertex triples of the inner faces between two tets of one region
     whose integer cell arrays differ: where an integer array (a material id, a
     partition) changes value inside a region. A run that keeps them in place keeps every
-    tet inside one piece of constant values. Arrays of ids (``id_arrays``) are left out:
-    kept in place, their faces would be every face of the mesh."""
-    ids = id_arrays(mesh)
+    tet inside one piece of constant values. The arrays of ids ``ids`` (``id_arrays``)
+    are left out: kept in place, their faces would be every face of the mesh."""
     ints = [a for k, a in mesh.cell_data.items() if a.dtype.kind in "iu" and k not in ids]
     if not ints:
         return np.zeros((0, 3), np.int64)
@@ -48,8 +47,8 @@ def id_arrays(mesh: TetMesh) -> list[str]:
     out = []
     for name, a in mesh.cell_data.items():
         if a.dtype.kind in "iu" and len(a) > 1:
-            rows = a.reshape(len(a), -1)
-            if len(np.unique(rows, axis=0)) == len(a):
+            # rows of a 2-D array; a 1-D one by value (np.unique's faster path)
+            if len(np.unique(a, axis=0 if a.ndim == 2 else None)) == len(a):
                 out.append(name)
     return out
 

@@ -549,7 +549,8 @@ def _improve_carrying_cell_data(mesh: TetMesh, opts: Options, callback) -> Impro
 
     from ._cell_data import carried_cell_data, id_arrays, interface_faces
 
-    faces = interface_faces(mesh)
+    ids = id_arrays(mesh)
+    faces = interface_faces(mesh, ids)
     run_mesh = mesh.replace(cell_data=None)
     label = min(0, int(mesh.protected_face_labels.min(initial=0))) - 2
     if len(faces):
@@ -576,7 +577,6 @@ def _improve_carrying_cell_data(mesh: TetMesh, opts: Options, callback) -> Impro
         f"cell data ({names}): the {n_new} new or changed tets take the values of the "
         "input tet they overlap",
     ]
-    ids = id_arrays(mesh)
     if ids:
         notes.append(
             f"{', '.join(ids)}: a distinct integer in every input tet, taken for element "

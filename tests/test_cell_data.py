@@ -63,7 +63,9 @@ def test_integer_arrays_keep_their_pieces(carried_run):
     assert len(out.protected_faces) == len(mesh.protected_faces) == 0
     notes = " | ".join(r.notes)
     assert "cell data (mat, density, x): the " in notes
-    assert f"({len(interface_faces(mesh))} in the input) were kept in place" in notes
+    assert (
+        f"({len(interface_faces(mesh, id_arrays(mesh)))} in the input) were kept in place" in notes
+    )
 
 
 def test_unchanged_tets_keep_their_rows(carried_run):
@@ -103,7 +105,7 @@ def test_floats_and_ids_change_nothing_of_the_run():
     c = mesh.points[mesh.tets].mean(axis=1)
     ids = np.arange(100, 100 + mesh.n_tets, dtype=np.int64)
     with_data = mesh.replace(cell_data={"x": c[:, 0].astype(np.float32), "id": ids})
-    assert id_arrays(with_data) == ["id"] and not len(interface_faces(with_data))
+    assert id_arrays(with_data) == ["id"] and not len(interface_faces(with_data, ["id"]))
     r = jtet.improve(with_data, seed=0, perturb=1)
     plain = jtet.improve(mesh, seed=0, perturb=1)
     np.testing.assert_array_equal(r.mesh.points, plain.mesh.points)
