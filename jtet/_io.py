@@ -1870,23 +1870,19 @@ def save(
                 "protected triangles, lines or points) (use .vtu)",
                 stacklevel=2,
             )
-    if mesh.point_data and fmt not in ("vtu", "vtk", "xdmf", "tetgen", "medit", "exodus"):
-        names = list(mesh.point_data)
-        warnings.warn(
-            f"{p}: jtet writes point data to .vtu, .vtk, .xdmf, TetGen, Medit and Exodus "
-            "files only; not saved: "
-            f"{len(names)} point array(s) ({', '.join(names[:3])}"
-            f"{', ...' if len(names) > 3 else ''})",
-            stacklevel=2,
-        )
-    if mesh.cell_data and fmt not in ("vtu", "vtk", "xdmf", "exodus"):
-        names = list(mesh.cell_data)
-        warnings.warn(
-            f"{p}: jtet writes cell data to .vtu, .vtk, .xdmf and Exodus files only; not saved: "
-            f"{len(names)} cell array(s) ({', '.join(names[:3])}"
-            f"{', ...' if len(names) > 3 else ''})",
-            stacklevel=2,
-        )
+    for what, data, formats, where in (
+        ("point", mesh.point_data, ("vtu", "vtk", "xdmf", "tetgen", "medit", "exodus"),
+         ".vtu, .vtk, .xdmf, TetGen, Medit and Exodus"),
+        ("cell", mesh.cell_data, ("vtu", "vtk", "xdmf", "exodus"), ".vtu, .vtk, .xdmf and Exodus"),
+    ):  # fmt: skip
+        if data and fmt not in formats:
+            names = list(data)
+            warnings.warn(
+                f"{p}: jtet writes {what} data to {where} files only; not saved: "
+                f"{len(names)} {what} array(s) ({', '.join(names[:3])}"
+                f"{', ...' if len(names) > 3 else ''})",
+                stacklevel=2,
+            )
     if mesh.node_sets and fmt not in ("vtu", "vtk", "abaqus", "exodus"):
         warnings.warn(
             f"{p}: the {_FORMAT_NAMES[fmt]} format has no node sets; not saved: "
