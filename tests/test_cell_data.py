@@ -217,3 +217,22 @@ def test_cli_drop_leaves_arrays_out(tmp_path, capsys):
     convert = ["convert", str(tmp_path / "in.vtu"), str(tmp_path / "c.vtu"), "--drop", "x"]
     assert main(convert) == 0
     assert list(jtet.load(tmp_path / "c.vtu").cell_data) == ["mat", "density"]
+
+
+def test_a_tet_outside_the_input_takes_the_nearest_centroid():
+    """A new tet that overlaps no input tet (here wholly outside the input mesh, as a
+    tet slid off a curved boundary may be in part) takes the values of the input tet
+    whose centroid is nearest to its own (brute force), and is counted."""
+    mesh = _labelled(delaunay_mesh(60, seed=2))
+    outside = np.array([[1.5, 0.2, 0.2], [1.9, 0.2, 0.2], [1.5, 0.6, 0.2], [1.5, 0.2, 0.6]])
+    n = mesh.n_points
+    after = jtet.TetMesh(
+        np.concatenate([mesh.points, outside]),
+        np.concatenate([mesh.tets, [[n, n + 1, n + 2, n + 3]]]),
+    )
+    data, n_new, n_unconfirmed = carried_cell_data(mesh, after)
+    assert (n_new, n_unconfirmed) == (1, 1)
+    centroids = mesh.points[mesh.tets].mean(axis=1)
+    nearest = np.argmin(((centroids - outside.mean(axis=0)) ** 2).sum(axis=1))
+    np.testing.assert_array_equal(data["x"][-1], mesh.cell_data["x"][nearest])
+    np.testing.assert_array_equal(data["x"][:-1], mesh.cell_data["x"])
