@@ -1,11 +1,13 @@
 """Mends to meshio 5.3's Gmsh readers, applied for the length of one read.
 
 meshio refuses several kinds of files that Gmsh writes every day, for reasons that do not
-concern jtet (which reads points, tets, triangles and their tags, nothing else):
+concern jtet (which reads points, tets, triangles, their tags and the data views):
 
 * 4.1 files whose element blocks are not all in physical groups (``Mesh.SaveAll = 1``):
   ``_physical_for_every_block``;
-* files with node or element data (a view saved with its mesh): ``_skip_data``;
+* files with node or element data (a view saved with its mesh), which jtet reads as
+  point and cell data (``_gmsh_views``) keyed by the node numbers and the tets' element
+  numbers meshio drops: ``_read_data``;
 * partitioned 4.1 files (``gmsh -part N``, ``Mesh.NbPartitions``), whose elements sit on
   partition entities that meshio does not read: ``_Partitions``.
 
@@ -120,51 +122,72 @@ def _physical_for_every_block(cell_data, cells, physical_tags) -> None:
         ]
 
 
-def _skip_data(f, tag, skipped: dict) -> None:
-    """meshio's ``$NodeData`` / ``$ElementData`` reader, replaced by a skip to the block's
-    end: jtet reads no data arrays from Gmsh files, and meshio 5.3 refuses many of those
-    it would read. Gmsh saves a view with its mesh (``PostProcessing.SaveMesh``) as data
-    over the tets only, which meshio's binary reader rejects (element numbers not 1..n)
-    and its ASCII reader puts on the wrong blocks; its 2.2 reader also splits any element
-    data over two or more element blocks at element 2 (the length of a (type, cells)
-    tuple). The view's name (its first string tag, ASCII in binary files too) goes to
-    ``skipped`` ("point" or "cell" -> names), for the warning that names what a mesh
-    does not carry."""
+def _read_data(f, tag, is_ascii: bool, found: dict) -> None:
+    """meshio's ``$NodeData`` / ``$ElementData`` reader, replaced: meshio 5.3 refuses
+    many of the views Gmsh saves with its mesh (``PostProcessing.SaveMesh``): data over
+    the tets only, which its binary reader rejects (element numbers not 1..n) and its
+    ASCII reader puts on the wrong blocks; its 2.2 reader also splits any element data
+    over two or more element blocks at element 2 (the length of a (type, cells) tuple).
+    Here each section goes to ``found["views"]`` as it is (``_gmsh_views``), keyed by its
+    node or element numbers; a section that does not parse is skipped, its name (the
+    first string tag, ASCII in binary files too) in ``found["point" / "cell"]``, for the
+    warning that names what a mesh does not carry."""
     from meshio.gmsh.common import _fast_forward_to_end_block
 
+    from ._gmsh_views import read_view
+
+    start = f.tell()
     try:
-        if int(f.readline()) > 0:
-            name = f.readline().decode("utf-8", "replace").strip().strip('"')
-            kind = "point" if tag == "NodeData" else "cell"
-            if name not in skipped.setdefault(kind, []):
-                skipped[kind].append(name)
-    except ValueError:  # a damaged header: the skip to the end decides
-        pass
+        found["views"].append(read_view(f, tag, is_ascii))
+    except (ValueError, IndexError):
+        f.seek(start)
+        try:
+            if int(f.readline()) > 0:
+                name = f.readline().decode("utf-8", "replace").strip().strip('"')
+                kind = "point" if tag == "NodeData" else "cell"
+                if name not in found.setdefault(kind, []):
+                    found[kind].append(name)
+        except ValueError:  # a damaged header: the skip to the end decides
+            pass
     _fast_forward_to_end_block(f, tag)
 
 
 @contextlib.contextmanager
 def gmsh_read_mends():
     """Within it, meshio reads the Gmsh files described in the module docstring; it gives
-    {"point" / "cell": names of the data views skipped} of the file read."""
+    the data of the file read: {"views": the ``_gmsh_views.View`` sections, "nodes": the
+    node numbers (n,) in meshio's point order, "tets": the tets' element numbers (m,) in
+    jtet's order (read only when there are element views; None when they could not be
+    read), "point" / "cell": names of the views skipped}."""
     try:
         from meshio.gmsh import _gmsh22, _gmsh41
 
         read_buffer, read_elements = _gmsh41.read_buffer, _gmsh41._read_elements
+        read_buffer22, read_cells22 = _gmsh22.read_buffer, _gmsh22._read_cells
+        read_nodes22, read_nodes41 = _gmsh22._read_nodes, _gmsh41._read_nodes
         skip_block = _gmsh41._fast_forward_to_end_block
     except (ImportError, AttributeError):  # another meshio: its own readers as they are
         yield {}
         return
     state: dict = {}  # of the file being read: its format and its partitions
-    skipped: dict = {}  # "point" / "cell" -> names of the data views skipped
+    found: dict = {"views": [], "nodes": None, "tets": None}
 
-    def skip_data(f, tag, *args):
-        _skip_data(f, tag, skipped)
+    def read_data(f, tag, data_dict, data_size, is_ascii):
+        _read_data(f, tag, is_ascii, found)
+
+    def reading(version: str, read, f, is_ascii, data_size):
+        state.clear()
+        state.update(version=version, is_ascii=is_ascii, data_size=int(data_size))
+        mesh = read(f, is_ascii, data_size)
+        if "elements_at" in state and any(v.kind == "cell" for v in found["views"]):
+            found["tets"] = _tet_numbers(f, state)
+        return mesh
 
     def mended_read_buffer(f, is_ascii, data_size):
-        state.clear()
-        state.update(is_ascii=is_ascii, data_size=int(data_size))
-        return read_buffer(f, is_ascii, data_size)
+        return reading("4.1", read_buffer, f, is_ascii, data_size)
+
+    def mended_read_buffer22(f, is_ascii, data_size):
+        return reading("2.2", read_buffer22, f, is_ascii, data_size)
 
     def mended_skip_block(f, block):
         # meshio skips the sections it does not know: this one it needs
@@ -173,7 +196,22 @@ def gmsh_read_mends():
         else:
             skip_block(f, block)
 
+    def mended_read_nodes22(f, is_ascii):
+        points, numbers = read_nodes22(f, is_ascii)
+        found["nodes"] = np.asarray(numbers, np.int64)
+        return points, numbers
+
+    def mended_read_nodes41(f, is_ascii, data_size):
+        points, tags, dim_tags = read_nodes41(f, is_ascii, data_size)
+        found["nodes"] = np.asarray(tags, np.int64) + 1  # meshio's tags are numbers - 1
+        return points, tags, dim_tags
+
+    def mended_read_cells22(f, *args):
+        state["elements_at"] = f.tell()
+        return read_cells22(f, *args)
+
     def mended_read_elements(f, point_tags, physical_tags, bounding_entities, *args):
+        state["elements_at"] = f.tell()
         partitions = state.get("partitions")
         if partitions is not None:
             physical_tags, bounding_entities = partitions.tables(physical_tags, bounding_entities)
@@ -188,16 +226,39 @@ def gmsh_read_mends():
     swaps = [
         (_gmsh41, "read_buffer", mended_read_buffer),
         (_gmsh41, "_fast_forward_to_end_block", mended_skip_block),
+        (_gmsh41, "_read_nodes", mended_read_nodes41),
         (_gmsh41, "_read_elements", mended_read_elements),
-        (_gmsh41, "_read_data", skip_data),
-        (_gmsh22, "_read_data", skip_data),
+        (_gmsh41, "_read_data", read_data),
+        (_gmsh22, "read_buffer", mended_read_buffer22),
+        (_gmsh22, "_read_nodes", mended_read_nodes22),
+        (_gmsh22, "_read_cells", mended_read_cells22),
+        (_gmsh22, "_read_data", read_data),
     ]
     with _GMSH_READ:
         originals = [getattr(module, name) for module, name, _ in swaps]
         for module, name, mended in swaps:
             setattr(module, name, mended)
         try:
-            yield skipped
+            yield found
         finally:
             for (module, name, _), original in zip(swaps, originals, strict=True):
                 setattr(module, name, original)
+
+
+def _tet_numbers(f, state: dict) -> np.ndarray | None:
+    """The tets' element numbers of the file ``f`` (``_gmsh_views.tet_numbers``, from
+    the ``$Elements`` section meshio read), or None if they do not parse."""
+    from ._gmsh_views import tet_numbers
+
+    partitions = state.get("partitions")
+    try:
+        f.seek(state["elements_at"])
+        return tet_numbers(
+            f,
+            state["version"],
+            state["is_ascii"],
+            state["data_size"],
+            partitions.ghosts if partitions is not None else frozenset(),
+        )
+    except (ValueError, KeyError, IndexError, OSError):
+        return None

@@ -192,8 +192,9 @@ _KNOWN_ARRAYS = {*REGION_ARRAYS, "min_dihedral", "max_dihedral", "volume"}
 def _warn_dropped_arrays(point_arrays: list, cell_arrays: list, source: str) -> None:
     """Warn that a file's point and cell arrays (a temperature, a material id) do not
     reach the output: jtet carries region labels and arrays of numbers per vertex and per
-    tet (``grid_point_data``, ``grid_cell_data``), not Gmsh views, strings or tensors,
-    and its quality arrays it computes itself."""
+    tet (``grid_point_data``, ``grid_cell_data``, Gmsh views: ``_gmsh_views``), not
+    strings, tensors or views that do not parse, and its quality arrays it computes
+    itself."""
     groups = []
     for what, names in (("point", point_arrays), ("cell", cell_arrays)):
         names = [n for n in names if _carried_array_name(n)]
@@ -203,7 +204,7 @@ def _warn_dropped_arrays(point_arrays: list, cell_arrays: list, source: str) -> 
     if groups:
         warnings.warn(
             f"{source}: jtet reads region labels and the arrays of numbers its formats "
-            f"hold per point and per tet (not Gmsh views); not read: {' and '.join(groups)}",
+            f"hold per point and per tet; not read: {' and '.join(groups)}",
             stacklevel=3,
         )
 
@@ -1183,7 +1184,7 @@ def _tetgen_point_data(m, node: Path) -> dict:
     return joined_columns(dict(zip(names, attrs, strict=True)))
 
 
-def _meshio_mesh(mesh: TetMesh, fmt: str, cell_data: dict):
+def _meshio_mesh(mesh: TetMesh, fmt: str):
     import meshio
 
     region = np.array(mesh.region, dtype=np.int64)
@@ -1197,8 +1198,6 @@ def _meshio_mesh(mesh: TetMesh, fmt: str, cell_data: dict):
         )
     data = {name: [region] for name in _TAG_ARRAYS[fmt]}
     extra = _lower_blocks(mesh, fmt)
-    if fmt == "gmsh" and not extra:  # see ``save``: no element data over several blocks
-        data.update({k: [np.asarray(v)] for k, v in cell_data.items()})
     for kind, cells, tags in extra:
         blocks.append(meshio.CellBlock(kind, np.array(cells, np.int64)))
         for arrays in data.values():
@@ -1220,6 +1219,20 @@ def _meshio_mesh(mesh: TetMesh, fmt: str, cell_data: dict):
         field_data=field_data,
         gmsh_periodic=periodic,
     )
+
+
+def _append_gmsh_views(mesh: TetMesh, path: Path, cell_data: dict) -> None:
+    """Append the point data and cell data of ``mesh`` and, for a file of tets only,
+    the arrays of ``cell_data`` (which win) to the Gmsh file ``path`` as views
+    (``_gmsh_views.write_views``). Element data beside other element blocks make the
+    file unreadable to meshio 5.3, which splits them at the wrong places (``save``
+    warns)."""
+    from ._gmsh_views import write_views
+
+    cells = dict(mesh.cell_data) | ({} if _lower_blocks(mesh, "gmsh") else cell_data)
+    if mesh.point_data or cells:
+        with open(path, "ab") as fh:
+            write_views(fh, dict(mesh.point_data), cells)
 
 
 #: the cell arrays meshio writes as a Gmsh / Medit file's element tags
@@ -1352,9 +1365,10 @@ def load(path: str | os.PathLike) -> TetMesh:
     faces, labelled by their physical tags / references / markers; lines and points (Medit: ``Edges``, ``RequiredVertices``) that are edges and
     vertices of the tets become protected edges and vertices. Point arrays of numbers
     (``.vtu``, ``.vtk``; ``.xdmf`` node attributes; TetGen point attributes; the Medit
-    ``.sol`` file beside a ``.mesh`` / ``.meshb``; Exodus nodal variables at the last
-    time step) become ``TetMesh.point_data``; cell arrays of numbers (``.vtu``, ``.vtk``;
-    ``.xdmf`` cell attributes; Exodus element variables at the last time step) become
+    ``.sol`` file beside a ``.mesh`` / ``.meshb``; Exodus nodal variables and Gmsh
+    ``$NodeData`` views at the last time step) become ``TetMesh.point_data``; cell
+    arrays of numbers (``.vtu``, ``.vtk``; ``.xdmf`` cell attributes; Exodus element
+    variables and Gmsh ``$ElementData`` views over every tet at the last time step) become
     ``TetMesh.cell_data``, but for region labels and jtet's own quality arrays. A
     globally reversed orientation is fixed with a warning (see ``TetMesh.from_arrays``).
 
@@ -1431,7 +1445,7 @@ def load(path: str | os.PathLike) -> TetMesh:
         finally:
             if readable is not None:
                 readable.unlink(missing_ok=True)
-        # the Gmsh views skipped while reading (a solution saved with the mesh)
+        # the Gmsh views whose sections do not parse (read ones: ``_gmsh_view_data``)
         _warn_dropped_arrays(views.get("point", []), views.get("cell", []), source)
         faces = _tetgen_faces(p.with_suffix(".node")) if fmt == "tetgen" else None
         required = None
@@ -1443,6 +1457,7 @@ def load(path: str | os.PathLike) -> TetMesh:
             extras = {
                 "label_names": _gmsh_label_names(m, source),
                 "periodic": _gmsh_periodic(m, source),
+                **_gmsh_view_data(views, len(arrays[0]), len(arrays[1]), source),
             }
         if fmt == "tetgen":
             extras = {"point_data": _tetgen_point_data(m, p.with_suffix(".node"))}
@@ -1457,6 +1472,27 @@ def load(path: str | os.PathLike) -> TetMesh:
     except MeshInputError as e:
         msg = str(e)
         raise MeshInputError(msg if msg.startswith(source) else f"{source}: {msg}") from None
+
+
+def _gmsh_view_data(found: dict, n_points: int, n_tets: int, source: str) -> dict:
+    """``point_data`` and ``cell_data`` of a Gmsh file from the views ``gmsh_read_mends``
+    ``found`` while reading it (``_gmsh_views.view_data``), with a warning for each view
+    not read and each read at the last of several time steps."""
+    from ._gmsh_views import view_data
+
+    nodes, tets = found.get("nodes"), found.get("tets")
+    if nodes is None or len(nodes) != n_points:
+        nodes = None
+    if tets is not None and len(tets) != n_tets:
+        tets = None
+    if nodes is None:
+        names = [(v.kind, v.name) for v in found.get("views", [])]
+        _warn_dropped_arrays(*([n for k, n in names if k == w] for w in ("point", "cell")), source)
+        return {}
+    point_data, cell_data, not_read, last_steps = view_data(found["views"], nodes, tets)
+    for note in [f"{n}; not read" for n in not_read] + last_steps:
+        warnings.warn(f"{source}: {note}", stacklevel=3)
+    return {"point_data": point_data, "cell_data": cell_data}
 
 
 def _medit_point_data(path: Path, n_points: int, source: str) -> dict:
@@ -1602,11 +1638,12 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str 
         write_meshb(tmp, mesh.points, blocks, _medit_sections(mesh))
         return
     with _quiet_meshio():
-        m = _meshio_mesh(mesh, fmt, cell_data)
+        m = _meshio_mesh(mesh, fmt)
         if fmt == "gmsh":
             # Gmsh 2.2 binary: meshio 5.3's 4.1 writer drops physical tags (no $Entities)
             # and its ASCII writers print NumPy 2 scalars as "np.float64(...)".
             _meshio_module(fmt).write(str(tmp), m, fmt_version="2.2", binary=True)
+            _append_gmsh_views(mesh, tmp, cell_data)
         else:
             _meshio_module(fmt).write(str(tmp), m)
     if fmt == "medit":
@@ -1768,8 +1805,10 @@ def save(
     nodal variables; the other formats leave it out with a warning). ``.msh`` (Gmsh 2.2 binary, which every
     Gmsh-aware tool reads) stores the region as physical and elementary tags, the
     protected faces as triangles tagged with their labels, edges and vertices as line and
-    point elements, and ``cell_data`` as element data when there are no protected
-    entities. ``.mesh`` / ``.meshb`` (Medit) store the region as references, the protected
+    point elements, ``mesh.point_data`` and ``mesh.cell_data`` as views (``$NodeData``,
+    ``$ElementData`` over the tets; ``_gmsh_views``), and ``cell_data`` as element data
+    when there are no protected entities (meshio 5.3 reads no element data beside
+    other element blocks: a warning says so for ``mesh.cell_data``). ``.mesh`` / ``.meshb`` (Medit) store the region as references, the protected
     faces and edges as ``Triangles`` and ``Edges``, the vertices and tets as
     ``RequiredVertices`` and ``RequiredTetrahedra``, and what ``improve`` keeps exactly
     as MMG's required edges and triangles (``.meshb``: version 2, which MMG reads,
@@ -1861,19 +1900,32 @@ def save(
                 "own (TetMesh.relabel({0: 1}); jtet improve / convert --relabel 0:1)",
                 stacklevel=2,
             )
-        if _lower_blocks(mesh, fmt) and cell_data:
-            # meshio 5.3's Gmsh 2.2 reader splits element data over two or more element
-            # blocks at element 2 and refuses its own file ("Incompatible cell data"),
-            # and meshio is how many solvers read .msh: the protected entities win
+        # meshio 5.3's Gmsh 2.2 reader splits element data over two or more element
+        # blocks at element 2 and refuses its own file ("Incompatible cell data"), and
+        # meshio is how many solvers read .msh: beside protected triangles, lines or
+        # points, the arrays of ``cell_data`` (jtet's quality arrays) are left out, and
+        # the mesh's own cell data are written (they are the user's) with a warning
+        lower = bool(_lower_blocks(mesh, fmt))
+        if lower and cell_data:
             warnings.warn(
                 f"{p}: not saved in the Gmsh file: {len(cell_data)} cell array(s) (with "
                 "protected triangles, lines or points) (use .vtu)",
                 stacklevel=2,
             )
+        if lower and mesh.cell_data:
+            names = list(mesh.cell_data)
+            warnings.warn(
+                f"{p}: the cell data ({', '.join(names[:3])}{', ...' if len(names) > 3 else ''}) "
+                "are written as element data beside protected triangles, lines or "
+                "points: Gmsh and jtet read such a file, meshio 5.3 does not (use .vtu "
+                "or .xdmf for meshio)",
+                stacklevel=2,
+            )
     for what, data, formats, where in (
-        ("point", mesh.point_data, ("vtu", "vtk", "xdmf", "tetgen", "medit", "exodus"),
-         ".vtu, .vtk, .xdmf, TetGen, Medit and Exodus"),
-        ("cell", mesh.cell_data, ("vtu", "vtk", "xdmf", "exodus"), ".vtu, .vtk, .xdmf and Exodus"),
+        ("point", mesh.point_data, ("vtu", "vtk", "xdmf", "gmsh", "tetgen", "medit", "exodus"),
+         ".vtu, .vtk, .xdmf, Gmsh, TetGen, Medit and Exodus"),
+        ("cell", mesh.cell_data, ("vtu", "vtk", "xdmf", "gmsh", "exodus"),
+         ".vtu, .vtk, .xdmf, Gmsh and Exodus"),
     ):  # fmt: skip
         if data and fmt not in formats:
             names = list(data)

@@ -162,7 +162,7 @@ def test_formats_keep_cell_data(tmp_path, ext):
         np.testing.assert_array_equal(back.cell_data[name], a)
 
 
-@pytest.mark.parametrize("ext", ["msh", "mesh", "node"])
+@pytest.mark.parametrize("ext", ["mesh", "node"])
 def test_other_formats_say_they_leave_cell_data_out(tmp_path, ext):
     mesh = _labelled(delaunay_mesh(40, seed=3))
     with warnings.catch_warnings(record=True) as caught:

@@ -401,7 +401,9 @@ def _with_data(text: str, element_ids: tuple, node_ids: tuple) -> str:
 )
 def test_gmsh_files_with_data_are_read(tmp_path, text, tet_ids, on):
     # a view over the tets or over two nodes saved with the mesh: meshio 5.3 alone
-    # refuses it (data on the wrong blocks, too few node values); jtet skips the data
+    # refuses it (data on the wrong blocks, too few node values); jtet reads the view
+    # over every tet as cell data (by element number: the tets are elements 4-5 of the
+    # 2.2 file, 2-3 of the 4.1 one) and names the one over 2 of the 5 nodes as not read
     import meshio
 
     path = tmp_path / "view.msh"
@@ -413,13 +415,20 @@ def test_gmsh_files_with_data_are_read(tmp_path, text, tet_ids, on):
         refusal = "len\\(points\\) = 5"
     with pytest.raises(ValueError, match=refusal):
         meshio.read(path)
-    m = _io.load(path)
+    if on == "tets":
+        m = _io.load(path)
+        np.testing.assert_array_equal(m.cell_data["err"], 0.25 * np.array(tet_ids))
+    else:
+        with pytest.warns(UserWarning, match="point view 'err' .values at 2 of 5 nodes.; not"):
+            m = _io.load(path)
+        assert not m.point_data
     np.testing.assert_array_equal(m.tets, TETS2)
     assert m.region.tolist() == [7, 9]
     # the mended readers are meshio's own again after the read
     from meshio.gmsh import _gmsh22, _gmsh41
 
     assert _gmsh22._read_data.__module__ == _gmsh41._read_data.__module__ == "meshio.gmsh.common"
+    assert _gmsh22.read_buffer.__module__ == _gmsh22.__name__
 
 
 def test_gmsh22_binary_element_data_over_two_blocks(tmp_path):
@@ -442,6 +451,8 @@ def test_gmsh22_binary_element_data_over_two_blocks(tmp_path):
     assert m.region.tolist() == [7, 9]
     assert m.protected_faces.tolist() == [[1, 2, 3]]
     assert m.protected_face_labels.tolist() == [3]
+    # the data over all elements, read at the tets' element numbers (2 and 3)
+    np.testing.assert_array_equal(m.cell_data["q"], [0.2, 0.3])
 
 
 def _partitioned_msh41() -> str:
@@ -491,6 +502,16 @@ def test_gmsh41_partitioned(tmp_path):
     assert m.region.tolist() == [7, 9]
     assert m.protected_faces.tolist() == [[0, 1, 2]]
     assert m.protected_face_labels.tolist() == [3]
+
+
+def test_gmsh41_partitioned_element_data_leaves_the_ghost_out(tmp_path):
+    # a view over the tets (elements 2, 3) and the ghost copy of the second (element 5):
+    # the tets' values, in their order
+    path = tmp_path / "parts.msh"
+    path.write_text(_with_data(_partitioned_msh41(), (3, 5, 2), ()))
+    m = _io.load(path)
+    np.testing.assert_array_equal(m.tets, TETS2)
+    np.testing.assert_array_equal(m.cell_data["err"], [0.5, 0.75])
 
 
 @pytest.mark.parametrize("binary", [0, 1])
@@ -1366,31 +1387,41 @@ def test_arrays_of_numbers_carried_others_named(tmp_path):
     np.testing.assert_array_equal(back.cell_data["material"], np.ones(back.n_tets))
 
 
-@pytest.mark.parametrize("fmt, binary", [("gmsh22", False), ("gmsh", True)])
-def test_gmsh_views_not_carried_are_named(tmp_path, fmt, binary):
-    """A Gmsh file's $NodeData / $ElementData (a solution saved with the mesh, written
-    here by meshio in MSH 2.2 ASCII and 4.1 binary) are skipped with a warning naming
-    them; jtet's own per-tet arrays in its .msh outputs are not named."""
+@pytest.mark.parametrize("fmt, binary", [("gmsh22", False), ("gmsh22", True), ("gmsh", True)])
+def test_gmsh_views_written_by_meshio(tmp_path, fmt, binary):
+    """A Gmsh file's $NodeData / $ElementData written by meshio (a solution saved with
+    the mesh) are read as point and cell data. meshio's ASCII writer prints NumPy 2
+    scalars as "np.float64(0.0)": those sections do not parse and are named as not
+    read. jtet's own per-tet arrays in its .msh outputs are not read back."""
     mesh = jtet.demo_mesh()
+    temperature = np.arange(mesh.n_points, dtype=float)
+    stress = np.linspace(0, 1, mesh.n_tets)
     m = meshio.Mesh(
         mesh.points,
         [("tetra", mesh.tets)],
-        point_data={"T": np.arange(mesh.n_points, dtype=float)},
+        point_data={"T": temperature},
         cell_data={
-            "stress": [np.ones(mesh.n_tets)],
+            "stress": [stress],
             "gmsh:physical": [np.ones(mesh.n_tets, int)],
             "gmsh:geometrical": [np.ones(mesh.n_tets, int)],
         },
     )
     path = tmp_path / "views.msh"
     meshio.write(path, m, file_format=fmt, binary=binary)
-    with pytest.warns(
-        UserWarning, match=r"not read: 1 point array\(s\) \(T\) and 1 cell array\(s\) \(stress\)"
-    ):
-        back = _io.load(path)
+    if binary:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            back = _io.load(path)
+        np.testing.assert_array_equal(back.point_data["T"], temperature)
+        np.testing.assert_array_equal(back.cell_data["stress"], stress)
+    else:
+        with pytest.warns(
+            UserWarning,
+            match=r"not read: 1 point array\(s\) \(T\) and 1 cell array\(s\) \(stress\)",
+        ):
+            back = _io.load(path)
     np.testing.assert_array_equal(back.tets, mesh.tets)
     own = tmp_path / "own.msh"
     _io.save(back, own, cell_data={"quality_min_sine": back.quality()})
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        _io.load(own)
+    again = _io.load(own)
+    assert set(again.cell_data) == set(back.cell_data)

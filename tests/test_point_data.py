@@ -170,7 +170,7 @@ def test_tetgen_point_attributes(tmp_path):
     np.testing.assert_array_equal(plain.point_data["attr2"], 2.5 * np.arange(mesh.n_points))
 
 
-@pytest.mark.parametrize("ext", ["msh", "inp", "vol"])
+@pytest.mark.parametrize("ext", ["inp", "vol"])
 def test_formats_without_point_data_say_so(tmp_path, ext):
     mesh = delaunay_mesh(40, seed=6).relabel({0: 1})
     mesh = mesh.replace(point_data={"T": np.zeros(mesh.n_points)})

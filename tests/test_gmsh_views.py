@@ -1,0 +1,226 @@
+"""Gmsh views (``$NodeData`` / ``$ElementData``) as point and cell data: read from files
+Gmsh and meshio write, written by ``save``, carried by ``jtet improve``."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import warnings
+
+import meshio
+import numpy as np
+import pytest
+
+import jtet
+from jtet import _gmsh_views
+
+
+def _box_with_views(path, version: float, binary: int, steps: int):
+    """A Gmsh mesh of the unit box (a physical volume and two physical surfaces) with a
+    node view ``temp`` (x + step) and an element view ``eid`` over the tets (element
+    number + 100 step), ``steps`` time steps each, saved with the mesh as Gmsh saves
+    them. Returns {element number: centroid} of the tets."""
+    gmsh = pytest.importorskip("gmsh")
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("box")
+        gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
+        gmsh.model.occ.synchronize()
+        gmsh.model.addPhysicalGroup(3, [1], 5)
+        gmsh.model.addPhysicalGroup(2, [1, 2], 7)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.3)
+        gmsh.model.mesh.generate(3)
+        nodes, coords, _ = gmsh.model.mesh.getNodes()
+        xyz = coords.reshape(-1, 3)
+        _, (tets,), (corners,) = gmsh.model.mesh.getElements(3)
+        temp, eid = gmsh.view.add("temp"), gmsh.view.add("eid")
+        for s in range(steps):
+            values = (xyz[:, 0] + s)[:, None]
+            gmsh.view.addModelData(temp, s, "box", "NodeData", nodes, values, time=0.5 * s)
+            values = (tets + 100.0 * s)[:, None]
+            gmsh.view.addModelData(eid, s, "box", "ElementData", tets, values, time=0.5 * s)
+        gmsh.option.setNumber("Mesh.MshFileVersion", version)
+        gmsh.option.setNumber("Mesh.Binary", binary)
+        gmsh.write(str(path))
+        gmsh.option.setNumber("PostProcessing.SaveMesh", 0)
+        for view in (temp, eid):
+            gmsh.view.write(view, str(path), append=True)
+    finally:
+        gmsh.finalize()
+    position = dict(zip(nodes.tolist(), xyz, strict=True))
+    return {
+        int(t): np.mean([position[n] for n in corners[4 * i : 4 * i + 4]], axis=0)
+        for i, t in enumerate(tets)
+    }
+
+
+@pytest.mark.parametrize("steps", [1, 2])
+@pytest.mark.parametrize("binary", [0, 1])
+@pytest.mark.parametrize("version", [2.2, 4.1])
+def test_views_gmsh_saves_with_its_mesh(tmp_path, version, binary, steps):
+    path = tmp_path / "box.msh"
+    centroids = _box_with_views(path, version, binary, steps)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        m = jtet.load(path)
+    messages = [str(w.message) for w in caught]
+    if steps == 1:
+        assert messages == []
+    else:
+        assert len(messages) == 2
+        assert all("at the last of its 2 time steps (time 0.5)" in t for t in messages)
+    last = steps - 1
+    # a value at every node, linear in x: read at the right nodes (ASCII files print
+    # coordinates and values to 16 digits, so x + 1 may differ in its last bit)
+    np.testing.assert_allclose(m.point_data["temp"], m.points[:, 0] + last, rtol=0, atol=1e-15)
+    # each tet's value is its element number: that element's centroid is the tet's
+    numbers = m.cell_data["eid"] - 100 * last
+    assert m.cell_data["eid"].dtype == np.float64
+    expected = np.array([centroids[int(n)] for n in numbers])
+    np.testing.assert_allclose(m.points[m.tets].mean(axis=1), expected, rtol=0, atol=1e-14)
+    assert sorted(numbers.astype(int)) == sorted(centroids)
+
+
+def _data_mesh(protected: bool):
+    """The two-region demo mesh (with or without its protected faces) carrying point
+    data of widths 1, 2, 3, 9 and cell data of widths 1 and 3, integer and float."""
+    mesh = jtet.demo_mesh("two_regions")
+    if protected:  # a labelled patch of boundary faces: triangles in the .msh
+        topo = mesh.topology
+        faces = topo.faces[topo.boundary_face][:20]
+        mesh = mesh.replace(protected_faces=faces, protected_face_labels=np.full(20, 3))
+    rng = np.random.default_rng(0)
+    n, m = mesh.n_points, mesh.n_tets
+    return mesh.replace(
+        point_data={
+            "T": rng.random(n),
+            "pair": rng.random((n, 2)),
+            "u": rng.random((n, 3)),
+            "sigma": rng.random((n, 9)),
+        },
+        cell_data={"material": rng.integers(1, 4, m).astype(np.int32), "e": rng.random((m, 3))},
+    )
+
+
+@pytest.mark.parametrize("protected", [False, True])
+def test_save_writes_views_load_reads_them(tmp_path, protected):
+    mesh = _data_mesh(protected)
+    path = tmp_path / "out.msh"
+    quality = {"quality_min_sine": mesh.quality()}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        jtet.save(mesh, path, cell_data=quality)
+    messages = " ".join(str(w.message) for w in caught)
+    if protected:
+        # beside the labelled triangles: the mesh's own data written, a warning for
+        # meshio; jtet's quality array left out
+        assert "the cell data (material, e) are written as element data" in messages
+        assert "not saved in the Gmsh file: 1 cell array(s)" in messages
+    else:
+        assert messages == ""
+        # a file of tets only: meshio reads the views too
+        plain = meshio.read(path)
+        np.testing.assert_array_equal(plain.point_data["T"], mesh.point_data["T"])
+        np.testing.assert_array_equal(plain.cell_data["material"][0], mesh.cell_data["material"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        back = jtet.load(path)
+    assert list(back.point_data) == ["T", "pair", "u", "sigma"]
+    for name, values in mesh.point_data.items():
+        np.testing.assert_array_equal(back.point_data[name], values)
+        assert back.point_data[name].shape == values.shape
+    # Gmsh views hold reals: the integer material comes back as float64
+    assert set(back.cell_data) == {"material", "e"}
+    assert back.cell_data["material"].dtype == np.float64
+    for name, values in mesh.cell_data.items():
+        np.testing.assert_array_equal(back.cell_data[name], values)
+    np.testing.assert_array_equal(back.tets, mesh.tets)
+
+
+def test_gmsh_reads_the_views_jtet_writes(tmp_path):
+    gmsh = pytest.importorskip("gmsh")
+    mesh = _data_mesh(protected=True)
+    path = tmp_path / "out.msh"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        jtet.save(mesh, path)
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.open(str(path))
+        names = [gmsh.option.getString(f"View[{i}].Name") for i in range(len(gmsh.view.getTags()))]
+        kind, numbers, values, _, _ = gmsh.view.getModelData(gmsh.view.getTags()[0], 0)
+    finally:
+        gmsh.finalize()
+    assert names == ["T", "pair[0]", "pair[1]", "u", "sigma", "material", "e"]
+    assert kind == "NodeData"
+    np.testing.assert_array_equal(np.ravel(values), mesh.point_data["T"][np.asarray(numbers) - 1])
+
+
+def test_a_view_that_does_not_parse_is_named_and_the_mesh_read(tmp_path):
+    mesh = _data_mesh(protected=False).replace(cell_data={})
+    path = tmp_path / "out.msh"
+    jtet.save(mesh.replace(point_data={}), path)
+    # an ASCII section with fewer values than its header counts
+    with open(path, "ab") as f:
+        f.write(b'$NodeData\n1\n"short"\n1\n0\n3\n0\n1\n5\n1 0.5\n2 0.5\n$EndNodeData\n')
+    with pytest.warns(UserWarning, match=r"not read: 1 point array\(s\) \(short\)"):
+        back = jtet.load(path)
+    assert not back.point_data
+    np.testing.assert_array_equal(back.tets, mesh.tets)
+
+
+def test_rows_of_is_the_last_row_of_each_number():
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        numbers = rng.integers(1, 30, rng.integers(0, 40))
+        wanted = rng.permutation(30)[: rng.integers(0, 12)] + 1
+        rows = _gmsh_views._rows_of(numbers, wanted)
+        last = {int(n): i for i, n in enumerate(numbers)}  # later rows overwrite
+        if all(int(w) in last for w in wanted):
+            assert rows.tolist() == [last[int(w)] for w in wanted]
+        else:
+            assert rows is None
+
+
+def test_ascii_tet_numbers_against_a_line_by_line_parse():
+    rng = np.random.default_rng(4)
+    nodes = {15: 1, 1: 2, 2: 3, 4: 4, 5: 8, 11: 10}  # point, line, triangle, tet, hex, tet10
+    lines = []
+    for number in rng.permutation(500)[:300] + 1:
+        kind = int(rng.choice(list(nodes)))
+        tags = rng.integers(0, 9, rng.integers(0, 4))
+        fields = [number, kind, len(tags), *tags, *rng.integers(1, 99, nodes[kind])]
+        spaces = [" " * int(k) for k in rng.integers(1, 3, len(fields))]
+        lines.append("".join(s + str(v) for s, v in zip(spaces, fields, strict=True)) + "\n")
+    text = "".join(lines).encode()
+    expected = [int(line.split()[0]) for line in lines if int(line.split()[1]) == 4]
+    assert _gmsh_views._ascii_tet_numbers(text).tolist() == expected
+
+
+def test_improve_carries_gmsh_views(tmp_path):
+    """``jtet improve in.msh out.msh``: a field linear in the coordinates stays exact at
+    the moved vertices, and each new tet takes a material of the input (read back as
+    float64, so carried by overlap, not kept as a label)."""
+    mesh = jtet.demo_mesh().relabel({0: 1})
+    centroid_x = mesh.points[mesh.tets].mean(axis=1)[:, 0]
+    data = mesh.replace(
+        point_data={"T": 2.0 * mesh.points[:, 0] - mesh.points[:, 2]},
+        cell_data={"material": (centroid_x > 1.0).astype(np.int32)},
+    )
+    src, out = tmp_path / "in.msh", tmp_path / "out.msh"
+    jtet.save(data, src)
+    run = subprocess.run(
+        [sys.executable, "-m", "jtet.cli", "improve", str(src), str(out), "--perturb", "0", "-q"],
+        capture_output=True,
+        text=True,
+    )
+    assert run.returncode == 0, run.stderr
+    back = jtet.load(out)
+    # linear interpolation of a linear field: exact to rounding (coordinates ~1)
+    np.testing.assert_allclose(
+        back.point_data["T"], 2.0 * back.points[:, 0] - back.points[:, 2], rtol=0, atol=1e-12
+    )
+    assert set(np.unique(back.cell_data["material"])) == {0.0, 1.0}
+    assert jtet.stats(back).min_dihedral > jtet.stats(mesh).min_dihedral
