@@ -1800,9 +1800,10 @@ def save(
     -> one value per tet, which wins; ``.xdmf`` and Exodus too, as cell attributes and
     element variables), the protected entities as field data, and ``mesh.point_data`` as
     point arrays (also
-    ``.xdmf``: node attributes; TetGen: point attributes, float64 columns named in a
-    comment line; Medit: the ``.sol`` file beside the mesh, ``_medit_sol``; Exodus:
-    nodal variables; the other formats leave it out with a warning). ``.msh`` (Gmsh 2.2 binary, which every
+    ``.xdmf``: node attributes; ``.msh``: views; TetGen: point attributes, float64
+    columns named in a comment line; Medit: the ``.sol`` file beside the mesh,
+    ``_medit_sol``; Exodus: nodal variables; the other formats leave it out with a
+    warning). ``.msh`` (Gmsh 2.2 binary, which every
     Gmsh-aware tool reads) stores the region as physical and elementary tags, the
     protected faces as triangles tagged with their labels, edges and vertices as line and
     point elements, ``mesh.point_data`` and ``mesh.cell_data`` as views (``$NodeData``,
