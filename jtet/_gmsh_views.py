@@ -104,13 +104,10 @@ def tet_numbers(f, version: str, is_ascii: bool, data_size: int, ghosts=frozense
         total = int(f.readline())
         found.append(_ascii_tet_numbers(b"".join(itertools.islice(f, total))))
     else:
-        total, done = int(f.readline()), 0
-        while done < total:
-            kind, count, n_tags = np.fromfile(f, c_int, 3).tolist()
-            rows = np.fromfile(f, c_int, count * (1 + n_tags + n_nodes(kind)))
-            if kind == _TETRA:
-                found.append(rows.reshape(count, -1)[:, 0])
-            done += count
+        from ._gmsh_read import binary22_blocks
+
+        blocks = binary22_blocks(f, int(f.readline()))
+        found += [rows[:, 0] for kind, _, rows in blocks if kind == _TETRA]
     return np.concatenate(found).astype(np.int64) if found else np.zeros(0, np.int64)
 
 

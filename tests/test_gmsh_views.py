@@ -224,3 +224,56 @@ def test_improve_carries_gmsh_views(tmp_path):
     )
     assert set(np.unique(back.cell_data["material"])) == {0.0, 1.0}
     assert jtet.stats(back).min_dihedral > jtet.stats(mesh).min_dihedral
+
+
+def _binary22_section(rng, n_blocks: int) -> tuple[bytes, int]:
+    """A binary MSH 2.2 element section (after its count line) of random blocks: runs of
+    one-element blocks with one header, as Gmsh writes, and larger blocks, as meshio
+    writes, of points, lines, triangles and tets with 2-3 tags (one count per type:
+    meshio stacks a type's tags). Returns (bytes, total)."""
+    nodes = {15: 1, 1: 2, 2: 3, 4: 4}
+    tag_counts = {kind: int(rng.integers(2, 4)) for kind in nodes}
+    parts, total = [], 0
+    for _ in range(n_blocks):
+        kind = int(rng.choice(list(nodes)))
+        n_tags = tag_counts[kind]
+        counts = (
+            [1] * int(rng.integers(1, 200)) if rng.random() < 0.6 else [int(rng.integers(2, 9))]
+        )
+        for count in counts:
+            rows = rng.integers(1, 1000, (count, 1 + n_tags + nodes[kind]), dtype=np.intc)
+            parts.append(np.array([kind, count, n_tags], np.intc).tobytes() + rows.tobytes())
+            total += count
+    return b"".join(parts), total
+
+
+def test_binary22_blocks_read_as_meshio_reads_them(tmp_path):
+    """``_read_cells_binary22`` (runs of one-element blocks as strided views) gives
+    meshio 5.3's own ``_read_cells_binary`` output, and leaves the file at the same
+    place; a section that ends early is a ValueError."""
+    from meshio.gmsh import _gmsh22
+
+    from jtet._gmsh_read import _read_cells_binary22
+
+    rng = np.random.default_rng(5)
+    for trial in range(20):
+        section, total = _binary22_section(rng, int(rng.integers(1, 12)))
+        path = tmp_path / f"s{trial}.bin"
+        path.write_bytes(section + b"\n$EndElements\n")
+        outputs = []
+        for read in (_gmsh22._read_cells_binary, _read_cells_binary22):
+            cells, tags = [], {}
+            with open(path, "rb") as f:
+                read(f, cells, tags, total)
+                outputs.append((cells, tags, f.tell()))
+        (cells, tags, at), (mine, my_tags, my_at) = outputs
+        assert at == my_at == len(section)
+        assert [c[0] for c in mine] == [c[0] for c in cells]
+        for (_, a), (_, b) in zip(cells, mine, strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert tags.keys() == my_tags.keys()
+        for name in tags:
+            np.testing.assert_array_equal(tags[name], my_tags[name])
+    path.write_bytes(section[:-4])
+    with open(path, "rb") as f, pytest.raises(ValueError, match="the elements end after"):
+        _read_cells_binary22(f, [], {}, total)

@@ -428,6 +428,7 @@ def test_gmsh_files_with_data_are_read(tmp_path, text, tet_ids, on):
     from meshio.gmsh import _gmsh22, _gmsh41
 
     assert _gmsh22._read_data.__module__ == _gmsh41._read_data.__module__ == "meshio.gmsh.common"
+    assert _gmsh22.read_buffer.__module__ == _gmsh22._read_cells_binary.__module__
     assert _gmsh22.read_buffer.__module__ == _gmsh22.__name__
 
 
