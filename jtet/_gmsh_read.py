@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import functools
+import itertools
 import threading
 
 import numpy as np
@@ -140,6 +141,8 @@ def binary22_blocks(f, total: int) -> list[tuple[int, int, np.ndarray]]:
         # run costs time in its length (a file of alternating headers stays linear)
         stride, window, run = 3 + width, 64, 0
         limit = min(total - done, (len(ints) - pos) // stride)
+        if limit == 0:
+            raise ValueError(f"the elements end after {done} of {total}")
         while True:
             seen = min(window, limit)
             heads = ints[pos : pos + seen * stride].reshape(seen, stride)[:, :3]
@@ -151,8 +154,6 @@ def binary22_blocks(f, total: int) -> list[tuple[int, int, np.ndarray]]:
             if seen == limit:
                 break
             window *= 4
-        if run == 0:
-            raise ValueError(f"the elements end after {done} of {total}")
         rows = ints[pos : pos + run * stride].reshape(run, stride)[:, 3:]
         blocks.append((kind, n_tags, rows))
         pos, done = pos + run * stride, done + run
@@ -160,20 +161,82 @@ def binary22_blocks(f, total: int) -> list[tuple[int, int, np.ndarray]]:
     return blocks
 
 
-def _read_cells_binary22(f, cells, cell_tags, total_num_cells) -> None:
-    """meshio 5.3's ``_gmsh22._read_cells_binary`` (same output) on ``binary22_blocks``."""
+def ascii22_blocks(f, total: int) -> list[tuple[int, int, np.ndarray]]:
+    """``binary22_blocks`` for an ASCII MSH 2.2 ``$Elements`` section: its ``total``
+    element lines (``number type n_tags tags... nodes...``) as blocks of consecutive
+    lines of one type and tag count, rows (k, 1 + tags + nodes) int64. Raises
+    ``ValueError`` for a line that is not such a line of integers.
+
+    meshio 5.3 parses line by line in Python (5.5 s for 1M tets); here the lines' tokens
+    are parsed at once and each line's first token found from the whitespace."""
+    from meshio._common import num_nodes_per_cell
     from meshio.gmsh.common import _gmsh_to_meshio_type
 
-    for kind, n_tags, rows in binary22_blocks(f, total_num_cells):
+    if total == 0:
+        return []
+    text = b"".join(itertools.islice(f, total))
+    values = np.fromstring(text, dtype=np.int64, sep=" ")
+    chars = np.frombuffer(text, np.uint8)
+    space = np.isin(chars, np.frombuffer(b" \t\r\n", np.uint8))
+    token_starts = np.flatnonzero(~space & np.concatenate([[True], space[:-1]]))
+    line_starts = np.concatenate([[0], np.flatnonzero(chars == ord("\n"))[:-1] + 1])
+    if len(token_starts) != len(values) or len(line_starts) != total:
+        raise ValueError(f"the {total} element lines hold something other than integers")
+    first = np.searchsorted(token_starts, line_starts)  # each line's first token
+    width = np.diff(np.append(first, len(values)))  # tokens per line
+    if width.min() < 3:
+        raise ValueError("an element line holds fewer than 3 numbers")
+    kind, n_tags = values[first + 1], values[first + 2]
+    known = np.array(sorted(_gmsh_to_meshio_type))
+    nodes_of = np.array([num_nodes_per_cell[_gmsh_to_meshio_type[k]] for k in known])
+    at = np.minimum(np.searchsorted(known, kind), len(known) - 1)
+    if not np.array_equal(known[at], kind) or not np.array_equal(width, 3 + n_tags + nodes_of[at]):
+        raise ValueError("an element line's type or tag count does not match its length")
+    # runs of consecutive lines of one type and tag count: one (k, width) block each
+    cut = np.flatnonzero((np.diff(kind) != 0) | (np.diff(n_tags) != 0)) + 1
+    blocks = []
+    for a, b in zip(np.r_[0, cut], np.r_[cut, total], strict=True):
+        rows = values[first[a] : first[a] + (b - a) * width[a]].reshape(b - a, width[a])
+        blocks.append((int(kind[a]), int(n_tags[a]), np.delete(rows, (1, 2), axis=1)))
+    return blocks
+
+
+def _read_cells22(f, cells, point_tags, is_ascii):
+    """meshio 5.3's ``_gmsh22._read_cells`` (same output: ``cells`` filled in place,
+    returns (has_additional_tag_data, {"gmsh:physical" / "gmsh:geometrical": {type:
+    tags}})), on ``ascii22_blocks`` / ``binary22_blocks``: no loop over elements."""
+    from meshio.gmsh.common import (
+        _fast_forward_to_end_block,
+        _gmsh_to_meshio_order,
+        _gmsh_to_meshio_type,
+    )
+
+    total = int(f.readline().decode())
+    blocks = (ascii22_blocks if is_ascii else binary22_blocks)(f, total)
+    point_tags = np.asarray(point_tags, dtype=np.int64) - 1
+    remap = -np.ones(int(point_tags.max()) + 1, dtype=np.int64)
+    remap[point_tags] = np.arange(len(point_tags))
+    parts: list = []  # [type, [node arrays]] per run of one type, as meshio merges them
+    tags: dict = {"gmsh:physical": {}, "gmsh:geometrical": {}}
+    extra = False
+    for kind, n_tags, rows in blocks:
         name = _gmsh_to_meshio_type[kind]
-        if not cells or cells[-1][0] != name:
-            cells.append((name, []))
-        cells[-1][1].append(rows[:, 1 + n_tags :])
-        cell_tags.setdefault(name, []).append(rows[:, 1 : 1 + n_tags])
-    for k, (name, parts) in enumerate(cells):
-        cells[k] = (name, np.vstack(parts) - 1)
-    for name in cell_tags:
-        cell_tags[name] = np.vstack(cell_tags[name])
+        if not parts or parts[-1][0] != name:
+            parts.append((name, []))
+        parts[-1][1].append(rows[:, 1 + n_tags :])
+        for column, key in ((1, "gmsh:physical"), (2, "gmsh:geometrical")):
+            if n_tags >= column:
+                tags[key].setdefault(name, []).append(rows[:, column])
+        extra |= n_tags > 2
+    for name, nodes in parts:
+        cells.append((name, remap[_gmsh_to_meshio_order(name, np.vstack(nodes) - 1)]))
+    _fast_forward_to_end_block(f, "Elements")
+    out = {
+        key: {name: np.concatenate(t).astype(np.intc) for name, t in by_type.items()}
+        for key, by_type in tags.items()
+        if by_type
+    }
+    return extra, out
 
 
 def _physical_for_every_block(cell_data, cells, physical_tags) -> None:
@@ -234,10 +297,8 @@ def gmsh_read_mends():
         from meshio.gmsh import _gmsh22, _gmsh41
 
         read_buffer, read_elements = _gmsh41.read_buffer, _gmsh41._read_elements
-        read_buffer22, read_cells22 = _gmsh22.read_buffer, _gmsh22._read_cells
+        read_buffer22, _ = _gmsh22.read_buffer, _gmsh22._read_cells  # both mended
         read_nodes22, read_nodes41 = _gmsh22._read_nodes, _gmsh41._read_nodes
-        if not callable(getattr(_gmsh22, "_read_cells_binary", None)):  # mended below
-            raise AttributeError("_read_cells_binary")
         skip_block = _gmsh41._fast_forward_to_end_block
     except (ImportError, AttributeError):  # another meshio: its own readers as they are
         yield {}
@@ -281,7 +342,7 @@ def gmsh_read_mends():
 
     def mended_read_cells22(f, *args):
         state["elements_at"] = f.tell()
-        return read_cells22(f, *args)
+        return _read_cells22(f, *args)
 
     def mended_read_elements(f, point_tags, physical_tags, bounding_entities, *args):
         state["elements_at"] = f.tell()
@@ -305,7 +366,6 @@ def gmsh_read_mends():
         (_gmsh22, "read_buffer", mended_read_buffer22),
         (_gmsh22, "_read_nodes", mended_read_nodes22),
         (_gmsh22, "_read_cells", mended_read_cells22),
-        (_gmsh22, "_read_cells_binary", _read_cells_binary22),
         (_gmsh22, "_read_data", read_data),
     ]
     with _GMSH_READ:

@@ -17,7 +17,6 @@ has element data: tets in file order (MSH 2.2) or in the order of their entity b
 from __future__ import annotations
 
 import dataclasses
-import itertools
 
 import numpy as np
 
@@ -90,7 +89,7 @@ def tet_numbers(f, version: str, is_ascii: bool, data_size: int, ghosts=frozense
         return num_nodes_per_cell[_gmsh_to_meshio_type[int(kind)]]
 
     sep = " " if is_ascii else ""
-    c_int, size_t = np.dtype("i"), np.dtype(f"u{data_size}" if version == "4.1" else "i")
+    c_int, size_t = np.dtype("i"), np.dtype(f"u{data_size}")
     found = []
     if version == "4.1":
         n_blocks = int(np.fromfile(f, size_t, 4, sep=sep)[0])
@@ -100,31 +99,12 @@ def tet_numbers(f, version: str, is_ascii: bool, data_size: int, ghosts=frozense
             rows = np.fromfile(f, size_t, count * (1 + n_nodes(kind)), sep=sep)
             if kind == _TETRA and entity not in ghosts:
                 found.append(rows.reshape(count, -1)[:, 0])
-    elif is_ascii:
-        total = int(f.readline())
-        found.append(_ascii_tet_numbers(b"".join(itertools.islice(f, total))))
     else:
-        from ._gmsh_read import binary22_blocks
+        from ._gmsh_read import ascii22_blocks, binary22_blocks
 
-        blocks = binary22_blocks(f, int(f.readline()))
+        blocks = (ascii22_blocks if is_ascii else binary22_blocks)(f, int(f.readline()))
         found += [rows[:, 0] for kind, _, rows in blocks if kind == _TETRA]
     return np.concatenate(found).astype(np.int64) if found else np.zeros(0, np.int64)
-
-
-def _ascii_tet_numbers(text: bytes) -> np.ndarray:
-    """Numbers of the tets among the element lines ``text`` of an ASCII MSH 2.2 file
-    (``number type n_tags tags... nodes...``, a varying count per line)."""
-    values = np.fromstring(text, dtype=np.int64, sep=" ")
-    chars = np.frombuffer(text, np.uint8)
-    space = np.isin(chars, np.frombuffer(b" \t\r\n", np.uint8))
-    starts = np.flatnonzero(~space & np.concatenate([[True], space[:-1]]))
-    if len(starts) != len(values):
-        raise ValueError("an element line holds something other than integers")
-    # the line of each token, and the token that begins each line
-    line = np.cumsum(chars == ord("\n"))[starts]
-    first = np.flatnonzero(np.concatenate([[True], line[1:] != line[:-1]]))
-    kinds = values[np.minimum(first + 1, len(values) - 1)]
-    return values[first[kinds == _TETRA]]
 
 
 def view_data(

@@ -184,21 +184,6 @@ def test_rows_of_is_the_last_row_of_each_number():
             assert rows is None
 
 
-def test_ascii_tet_numbers_against_a_line_by_line_parse():
-    rng = np.random.default_rng(4)
-    nodes = {15: 1, 1: 2, 2: 3, 4: 4, 5: 8, 11: 10}  # point, line, triangle, tet, hex, tet10
-    lines = []
-    for number in rng.permutation(500)[:300] + 1:
-        kind = int(rng.choice(list(nodes)))
-        tags = rng.integers(0, 9, rng.integers(0, 4))
-        fields = [number, kind, len(tags), *tags, *rng.integers(1, 99, nodes[kind])]
-        spaces = [" " * int(k) for k in rng.integers(1, 3, len(fields))]
-        lines.append("".join(s + str(v) for s, v in zip(spaces, fields, strict=True)) + "\n")
-    text = "".join(lines).encode()
-    expected = [int(line.split()[0]) for line in lines if int(line.split()[1]) == 4]
-    assert _gmsh_views._ascii_tet_numbers(text).tolist() == expected
-
-
 def test_improve_carries_gmsh_views(tmp_path):
     """``jtet improve in.msh out.msh``: a field linear in the coordinates stays exact at
     the moved vertices, and each new tet takes a material of the input (read back as
@@ -247,33 +232,59 @@ def _binary22_section(rng, n_blocks: int) -> tuple[bytes, int]:
     return b"".join(parts), total
 
 
-def test_binary22_blocks_read_as_meshio_reads_them(tmp_path):
-    """``_read_cells_binary22`` (runs of one-element blocks as strided views) gives
-    meshio 5.3's own ``_read_cells_binary`` output, and leaves the file at the same
-    place; a section that ends early is a ValueError."""
+def _ascii22_section(rng, blocks: bytes) -> bytes:
+    """The ASCII lines of the elements of a binary section (``_binary22_section``),
+    numbers separated by 1-2 spaces or a tab."""
+    ints = np.frombuffer(blocks, np.intc)
+    nodes = {15: 1, 1: 2, 2: 3, 4: 4}
+    lines, pos = [], 0
+    while pos < len(ints):
+        kind, count, n_tags = ints[pos : pos + 3].tolist()
+        width = 1 + n_tags + nodes[kind]
+        rows = ints[pos + 3 : pos + 3 + count * width].reshape(count, width)
+        for row in rows.tolist():
+            fields = [row[0], kind, n_tags, *row[1:]]
+            gaps = rng.choice([" ", "  ", "\t"], len(fields))
+            lines.append("".join(f"{v}{g}" for v, g in zip(fields, gaps, strict=True)) + "\n")
+        pos += 3 + count * width
+    return "".join(lines).encode()
+
+
+@pytest.mark.parametrize("encoding", ["binary", "ascii"])
+def test_element_sections_read_as_meshio_reads_them(tmp_path, encoding):
+    """``_read_cells22`` (whole blocks at once: runs of one-element blocks as strided
+    views, ASCII lines parsed together) gives meshio 5.3's own ``_read_cells`` output
+    and leaves the file at the same place, on random sections whose nodes are listed
+    out of order; a section that ends early is a ValueError."""
     from meshio.gmsh import _gmsh22
 
-    from jtet._gmsh_read import _read_cells_binary22
+    from jtet._gmsh_read import _read_cells22
 
     rng = np.random.default_rng(5)
+    node_numbers = rng.permutation(np.arange(1, 1000))  # node i of the file is number ...
     for trial in range(20):
         section, total = _binary22_section(rng, int(rng.integers(1, 12)))
-        path = tmp_path / f"s{trial}.bin"
-        path.write_bytes(section + b"\n$EndElements\n")
+        if encoding == "ascii":
+            section = _ascii22_section(rng, section)
+        path = tmp_path / f"s{trial}.msh"
+        path.write_bytes(f"{total}\n".encode() + section + b"\n$EndElements\n$Next\n")
         outputs = []
-        for read in (_gmsh22._read_cells_binary, _read_cells_binary22):
-            cells, tags = [], {}
+        for read in (_gmsh22._read_cells, _read_cells22):
+            cells = []
             with open(path, "rb") as f:
-                read(f, cells, tags, total)
-                outputs.append((cells, tags, f.tell()))
-        (cells, tags, at), (mine, my_tags, my_at) = outputs
-        assert at == my_at == len(section)
+                result = read(f, cells, node_numbers, encoding == "ascii")
+                outputs.append((cells, result, f.readline()))
+        (cells, (extra, tags), after), (mine, (my_extra, my_tags), my_after) = outputs
+        assert after == my_after == b"$Next\n"
         assert [c[0] for c in mine] == [c[0] for c in cells]
         for (_, a), (_, b) in zip(cells, mine, strict=True):
             np.testing.assert_array_equal(a, b)
+        assert extra == my_extra
         assert tags.keys() == my_tags.keys()
-        for name in tags:
-            np.testing.assert_array_equal(tags[name], my_tags[name])
-    path.write_bytes(section[:-4])
-    with open(path, "rb") as f, pytest.raises(ValueError, match="the elements end after"):
-        _read_cells_binary22(f, [], {}, total)
+        for key in tags:
+            assert tags[key].keys() == my_tags[key].keys()
+            for name in tags[key]:
+                np.testing.assert_array_equal(tags[key][name], my_tags[key][name])
+    path.write_bytes(f"{total}\n".encode() + section[: len(section) // 2])
+    with open(path, "rb") as f, pytest.raises(ValueError):
+        _read_cells22(f, [], node_numbers, encoding == "ascii")
