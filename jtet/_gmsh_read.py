@@ -201,10 +201,12 @@ def ascii22_blocks(f, total: int) -> list[tuple[int, int, np.ndarray]]:
     return blocks
 
 
-def _read_cells22(f, cells, point_tags, is_ascii):
+def _read_cells22(f, cells, point_tags, is_ascii, tet_numbers: list | None = None):
     """meshio 5.3's ``_gmsh22._read_cells`` (same output: ``cells`` filled in place,
     returns (has_additional_tag_data, {"gmsh:physical" / "gmsh:geometrical": {type:
-    tags}})), on ``ascii22_blocks`` / ``binary22_blocks``: no loop over elements."""
+    tags}})), on ``ascii22_blocks`` / ``binary22_blocks``: no loop over elements.
+    ``tet_numbers``: a list that gets the element numbers of the tets, block by block
+    (for the views, ``_gmsh_views``)."""
     from meshio.gmsh.common import (
         _fast_forward_to_end_block,
         _gmsh_to_meshio_order,
@@ -224,6 +226,8 @@ def _read_cells22(f, cells, point_tags, is_ascii):
         if not parts or parts[-1][0] != name:
             parts.append((name, []))
         parts[-1][1].append(rows[:, 1 + n_tags :])
+        if tet_numbers is not None and name == "tetra":
+            tet_numbers.append(rows[:, 0].astype(np.int64))
         for column, key in ((1, "gmsh:physical"), (2, "gmsh:geometrical")):
             if n_tags >= column:
                 tags[key].setdefault(name, []).append(rows[:, column])
@@ -313,8 +317,10 @@ def gmsh_read_mends():
         state.clear()
         state.update(version=version, is_ascii=is_ascii, data_size=int(data_size))
         mesh = read(f, is_ascii, data_size)
-        if "elements_at" in state and any(v.kind == "cell" for v in found["views"]):
-            found["tets"] = _tet_numbers(f, state)
+        if "tet_numbers" in state:  # MSH 2.2: kept while reading
+            found["tets"] = state["tet_numbers"]
+        elif "elements_at" in state and any(v.kind == "cell" for v in found["views"]):
+            found["tets"] = _tet_numbers41(f, state)
         return mesh
 
     def mended_read_buffer(f, is_ascii, data_size):
@@ -341,8 +347,10 @@ def gmsh_read_mends():
         return points, tags, dim_tags
 
     def mended_read_cells22(f, *args):
-        state["elements_at"] = f.tell()
-        return _read_cells22(f, *args)
+        numbers: list = []
+        out = _read_cells22(f, *args, tet_numbers=numbers)
+        state["tet_numbers"] = np.concatenate(numbers) if numbers else np.zeros(0, np.int64)
+        return out
 
     def mended_read_elements(f, point_tags, physical_tags, bounding_entities, *args):
         state["elements_at"] = f.tell()
@@ -379,9 +387,9 @@ def gmsh_read_mends():
                 setattr(module, name, original)
 
 
-def _tet_numbers(f, state: dict) -> np.ndarray | None:
-    """The tets' element numbers of the file ``f`` (``_gmsh_views.tet_numbers``, from
-    the ``$Elements`` section meshio read), or None if they do not parse."""
+def _tet_numbers41(f, state: dict) -> np.ndarray | None:
+    """The tets' element numbers of the MSH 4.1 file ``f`` (``_gmsh_views.tet_numbers``,
+    from the ``$Elements`` section meshio read), or None if they do not parse."""
     from ._gmsh_views import tet_numbers
 
     partitions = state.get("partitions")
@@ -389,7 +397,6 @@ def _tet_numbers(f, state: dict) -> np.ndarray | None:
         f.seek(state["elements_at"])
         return tet_numbers(
             f,
-            state["version"],
             state["is_ascii"],
             state["data_size"],
             partitions.ghosts if partitions is not None else frozenset(),

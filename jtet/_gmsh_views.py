@@ -8,10 +8,11 @@ its own. jtet reads the last step of each view that gives a value to every node 
 data) or to every tet (cell data), and writes point and cell data back as views of one
 step, over all the nodes and over the tets (the first elements of its files).
 
-Node numbers come from the ``$Nodes`` section meshio reads. Element numbers meshio drops,
-so ``tet_numbers`` reads them again from the ``$Elements`` section, only for a file that
-has element data: tets in file order (MSH 2.2) or in the order of their entity blocks
-(MSH 4.1, ghost blocks of a partitioned file left out), as jtet takes them from meshio.
+Node numbers come from the ``$Nodes`` section meshio reads. Element numbers meshio drops:
+jtet's own reader of MSH 2.2 elements (``_gmsh_read``) keeps the tets' (in file order),
+and for MSH 4.1 ``tet_numbers`` reads them again from the ``$Elements`` section, only
+for a file that has element data (in the order of the entity blocks, ghost blocks of a
+partitioned file left out), as jtet takes the tets from meshio.
 """
 
 from __future__ import annotations
@@ -78,32 +79,27 @@ def _line(f) -> str:
     return f.readline().decode("utf-8", "replace")
 
 
-def tet_numbers(f, version: str, is_ascii: bool, data_size: int, ghosts=frozenset()):
-    """Element numbers (m,) int64 of the tets of the ``$Elements`` section that starts
-    at ``f``'s position (just after its ``$Elements`` line), in jtet's tet order (see the
-    module docstring). ``ghosts``: entity tags of a partitioned 4.1 file's ghost blocks."""
+def tet_numbers(f, is_ascii: bool, data_size: int, ghosts=frozenset()) -> np.ndarray:
+    """Element numbers (m,) int64 of the tets of the MSH 4.1 ``$Elements`` section that
+    starts at ``f``'s position (just after its ``$Elements`` line), in jtet's tet order
+    (see the module docstring). ``ghosts``: entity tags of a partitioned file's ghost
+    blocks. (MSH 2.2 files give them while jtet reads their elements, ``_gmsh_read``.)"""
     from meshio._common import num_nodes_per_cell
     from meshio.gmsh.common import _gmsh_to_meshio_type
-
-    def n_nodes(kind: int) -> int:
-        return num_nodes_per_cell[_gmsh_to_meshio_type[int(kind)]]
 
     sep = " " if is_ascii else ""
     c_int, size_t = np.dtype("i"), np.dtype(f"u{data_size}")
     found = []
-    if version == "4.1":
-        n_blocks = int(np.fromfile(f, size_t, 4, sep=sep)[0])
-        for _ in range(n_blocks):
-            _, entity, kind = np.fromfile(f, c_int, 3, sep=sep).tolist()
-            count = int(np.fromfile(f, size_t, 1, sep=sep)[0])
-            rows = np.fromfile(f, size_t, count * (1 + n_nodes(kind)), sep=sep)
-            if kind == _TETRA and entity not in ghosts:
-                found.append(rows.reshape(count, -1)[:, 0])
-    else:
-        from ._gmsh_read import ascii22_blocks, binary22_blocks
-
-        blocks = (ascii22_blocks if is_ascii else binary22_blocks)(f, int(f.readline()))
-        found += [rows[:, 0] for kind, _, rows in blocks if kind == _TETRA]
+    n_blocks = int(np.fromfile(f, size_t, 4, sep=sep)[0])
+    for _ in range(n_blocks):
+        _, entity, kind = np.fromfile(f, c_int, 3, sep=sep).tolist()
+        count = int(np.fromfile(f, size_t, 1, sep=sep)[0])
+        width = 1 + num_nodes_per_cell[_gmsh_to_meshio_type[kind]]
+        rows = np.fromfile(f, size_t, count * width, sep=sep)
+        if len(rows) != count * width:
+            raise ValueError("the elements end early")
+        if kind == _TETRA and entity not in ghosts:
+            found.append(rows.reshape(count, width)[:, 0])
     return np.concatenate(found).astype(np.int64) if found else np.zeros(0, np.int64)
 
 
