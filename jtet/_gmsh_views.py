@@ -45,12 +45,19 @@ def read_view(f, tag: str, is_ascii: bool) -> View:
     """Parse the section ``tag`` ("NodeData" / "ElementData") from ``f``, just after its
     ``$NodeData`` line, up to its values (the caller skips to its end line). Raises
     ``ValueError`` for a header or values that do not parse."""
-    strings = [_line(f).strip().strip('"') for _ in range(int(_line(f)))]
-    reals = [float(_line(f)) for _ in range(int(_line(f)))]
-    ints = [int(_line(f)) for _ in range(int(_line(f)))]
+    strings = [_line(f).strip().strip('"') for _ in range(_tag_count(f))]
+    reals = [float(_line(f)) for _ in range(_tag_count(f))]
+    ints = [int(_line(f)) for _ in range(_tag_count(f))]
     if len(ints) < 3 or ints[1] < 1 or ints[2] < 0:
         raise ValueError(f"integer tags {ints}: no component and value counts")
     step, n_comp, n_items = ints[:3]
+    # a damaged count must not ask for more memory than the file could fill (an ASCII
+    # number takes at least 2 bytes with its separator)
+    here = f.tell()
+    left = f.seek(0, 2) - here
+    f.seek(here)
+    if n_items * (1 + n_comp) * (2 if is_ascii else 4) > left:
+        raise ValueError(f"{n_items} values of {n_comp} components do not fit the file")
     if is_ascii:
         flat = np.fromfile(f, dtype=np.float64, count=n_items * (1 + n_comp), sep=" ")
         if len(flat) != n_items * (1 + n_comp):
@@ -77,6 +84,14 @@ def read_view(f, tag: str, is_ascii: bool) -> View:
 
 def _line(f) -> str:
     return f.readline().decode("utf-8", "replace")
+
+
+def _tag_count(f) -> int:
+    """A count of string, real or integer tags (Gmsh writes at most a few)."""
+    count = int(_line(f))
+    if not 0 <= count <= 64:
+        raise ValueError(f"{count} tags")
+    return count
 
 
 def tet_numbers(f, is_ascii: bool, data_size: int, ghosts=frozenset()) -> np.ndarray:

@@ -288,3 +288,25 @@ def test_element_sections_read_as_meshio_reads_them(tmp_path, encoding):
     path.write_bytes(f"{total}\n".encode() + section[: len(section) // 2])
     with open(path, "rb") as f, pytest.raises(ValueError):
         _read_cells22(f, [], node_numbers, encoding == "ascii")
+
+
+@pytest.mark.parametrize(
+    "header",
+    [
+        b"1000000000\n",  # string tags: would read empty lines for ever
+        b'1\n"big"\n1\n0\n3\n0\n1\n999999999999\n',  # more values than the file holds
+        b'1\n"neg"\n1\n0\n3\n0\n-2\n5\n',  # a negative component count
+    ],
+    ids=["tag-count", "value-count", "components"],
+)
+def test_damaged_view_headers_are_skipped_quickly(tmp_path, header):
+    mesh = _data_mesh(protected=False).replace(point_data={}, cell_data={})
+    path = tmp_path / "out.msh"
+    jtet.save(mesh, path)
+    with open(path, "ab") as f:
+        f.write(b"$NodeData\n" + header + b"1 0.5\n$EndNodeData\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the first case names no view
+        back = jtet.load(path)
+    assert not back.point_data
+    np.testing.assert_array_equal(back.tets, mesh.tets)
