@@ -83,9 +83,10 @@ class _Partitions:
             tuple({**a, **b} for a, b in zip(bounding_entities, self.bounding, strict=True)),
         )
 
-    def to_parents(self, cells, cell_data, cell_sets):
+    def to_parents(self, cells, cell_data, cell_sets, numbers):
         """meshio's element blocks without interface and ghost blocks, each with its
-        parent entity as ``gmsh:geometrical``."""
+        parent entity as ``gmsh:geometrical``; ``numbers``: the blocks' element
+        numbers, kept likewise."""
         entities = cell_data["gmsh:geometrical"]
         keep, parents = [], []
         for block, tags in zip(cells, entities, strict=True):
@@ -103,6 +104,7 @@ class _Partitions:
             kept(cells),
             {name: kept(arrays) for name, arrays in cell_data.items()},
             {name: kept(s) if len(s) == len(cells) else s for name, s in cell_sets.items()},
+            kept(numbers),
         )
 
 
@@ -243,6 +245,56 @@ def _read_cells22(f, cells, point_tags, is_ascii, tet_numbers: list | None = Non
     return extra, out
 
 
+def _read_elements41(
+    f, point_tags, physical_tags, bounding_entities, is_ascii, data_size, field_data
+):
+    """meshio 5.3's ``_gmsh41._read_elements`` (the same (cells, cell_data, cell_sets)),
+    and the element numbers of each block, which meshio drops (for the views,
+    ``_gmsh_views``): returns (cells, cell_data, cell_sets, numbers), numbers[k] the
+    (n_k,) int64 element numbers of block k."""
+    from meshio import CellBlock
+    from meshio._common import num_nodes_per_cell
+    from meshio.gmsh.common import (
+        _fast_forward_to_end_block,
+        _gmsh_to_meshio_order,
+        _gmsh_to_meshio_type,
+    )
+
+    sep = " " if is_ascii else ""
+    c_int, size_t = np.dtype("i"), np.dtype(f"u{int(data_size)}")
+    n_blocks = int(np.fromfile(f, size_t, 4, sep=sep)[0])
+    cell_sets = {name: [None] * n_blocks for name in field_data}
+    blocks = []
+    for k in range(n_blocks):
+        dim, tag, kind = np.fromfile(f, c_int, 3, sep=sep).tolist()
+        (count,) = np.fromfile(f, size_t, 1, sep=sep)
+        physical = physical_tags[dim][tag] if physical_tags else None
+        for name, cell_set in cell_sets.items():
+            # the block's elements are in the physical group named ``name``
+            member = physical and field_data[name][1] == dim and field_data[name][0] in physical
+            cell_set[k] = np.arange(count if member else 0, dtype=type(count))
+        name = _gmsh_to_meshio_type[kind]
+        width = 1 + num_nodes_per_cell[name]
+        rows = np.fromfile(f, size_t, int(count * width), sep=sep).reshape(-1, width)
+        bounding = bounding_entities[dim][tag] if dim > 0 and bounding_entities else None
+        blocks.append((physical, bounding, tag, name, rows))
+    _fast_forward_to_end_block(f, "Elements")
+
+    index = np.full(int(np.max(point_tags)) + 1, -1, dtype=int)
+    index[point_tags] = np.arange(len(point_tags))
+    cells, cell_data, numbers = [], {}, []
+    for physical, bounding, tag, name, rows in blocks:
+        nodes = index[rows[:, 1:].astype(np.int64) - 1]
+        cells.append(CellBlock(name, _gmsh_to_meshio_order(name, nodes)))
+        numbers.append(rows[:, 0].astype(np.int64))
+        if physical:
+            cell_data.setdefault("gmsh:physical", []).append(np.full(len(nodes), physical[0], int))
+        cell_data.setdefault("gmsh:geometrical", []).append(np.full(len(nodes), tag, int))
+        if bounding_entities:
+            cell_sets.setdefault("gmsh:bounding_entities", []).append(bounding)
+    return cells, cell_data, cell_sets, numbers
+
+
 def _physical_for_every_block(cell_data, cells, physical_tags) -> None:
     """Give every block a ``gmsh:physical`` array when meshio gave one only to the
     blocks of physical groups.
@@ -300,7 +352,7 @@ def gmsh_read_mends():
     try:
         from meshio.gmsh import _gmsh22, _gmsh41
 
-        read_buffer, read_elements = _gmsh41.read_buffer, _gmsh41._read_elements
+        read_buffer, _ = _gmsh41.read_buffer, _gmsh41._read_elements  # both mended
         read_buffer22, _ = _gmsh22.read_buffer, _gmsh22._read_cells  # both mended
         read_nodes22, read_nodes41 = _gmsh22._read_nodes, _gmsh41._read_nodes
         skip_block = _gmsh41._fast_forward_to_end_block
@@ -317,10 +369,7 @@ def gmsh_read_mends():
         state.clear()
         state.update(version=version, is_ascii=is_ascii, data_size=int(data_size))
         mesh = read(f, is_ascii, data_size)
-        if "tet_numbers" in state:  # MSH 2.2: kept while reading
-            found["tets"] = state["tet_numbers"]
-        elif "elements_at" in state and any(v.kind == "cell" for v in found["views"]):
-            found["tets"] = _tet_numbers41(f, state)
+        found["tets"] = state.get("tet_numbers")  # kept while reading the elements
         return mesh
 
     def mended_read_buffer(f, is_ascii, data_size):
@@ -353,16 +402,19 @@ def gmsh_read_mends():
         return out
 
     def mended_read_elements(f, point_tags, physical_tags, bounding_entities, *args):
-        state["elements_at"] = f.tell()
         partitions = state.get("partitions")
         if partitions is not None:
             physical_tags, bounding_entities = partitions.tables(physical_tags, bounding_entities)
-        cells, cell_data, cell_sets = read_elements(
+        cells, cell_data, cell_sets, numbers = _read_elements41(
             f, point_tags, physical_tags, bounding_entities, *args
         )
         _physical_for_every_block(cell_data, cells, physical_tags)
         if partitions is not None:
-            cells, cell_data, cell_sets = partitions.to_parents(cells, cell_data, cell_sets)
+            cells, cell_data, cell_sets, numbers = partitions.to_parents(
+                cells, cell_data, cell_sets, numbers
+            )
+        tets = [n for block, n in zip(cells, numbers, strict=True) if block.type == "tetra"]
+        state["tet_numbers"] = np.concatenate(tets) if tets else np.zeros(0, np.int64)
         return cells, cell_data, cell_sets
 
     swaps = [
@@ -385,21 +437,3 @@ def gmsh_read_mends():
         finally:
             for (module, name, _), original in zip(swaps, originals, strict=True):
                 setattr(module, name, original)
-
-
-def _tet_numbers41(f, state: dict) -> np.ndarray | None:
-    """The tets' element numbers of the MSH 4.1 file ``f`` (``_gmsh_views.tet_numbers``,
-    from the ``$Elements`` section meshio read), or None if they do not parse."""
-    from ._gmsh_views import tet_numbers
-
-    partitions = state.get("partitions")
-    try:
-        f.seek(state["elements_at"])
-        return tet_numbers(
-            f,
-            state["is_ascii"],
-            state["data_size"],
-            partitions.ghosts if partitions is not None else frozenset(),
-        )
-    except (ValueError, KeyError, IndexError, OSError):
-        return None

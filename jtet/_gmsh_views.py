@@ -9,10 +9,9 @@ data) or to every tet (cell data), and writes point and cell data back as views 
 step, over all the nodes and over the tets (the first elements of its files).
 
 Node numbers come from the ``$Nodes`` section meshio reads. Element numbers meshio drops:
-jtet's own reader of MSH 2.2 elements (``_gmsh_read``) keeps the tets' (in file order),
-and for MSH 4.1 ``tet_numbers`` reads them again from the ``$Elements`` section, only
-for a file that has element data (in the order of the entity blocks, ghost blocks of a
-partitioned file left out), as jtet takes the tets from meshio.
+jtet's own readers of the ``$Elements`` section (``_gmsh_read``) keep the tets', in the
+order jtet takes the tets (file order in MSH 2.2; entity blocks in MSH 4.1, ghost blocks
+of a partitioned file left out).
 """
 
 from __future__ import annotations
@@ -23,8 +22,6 @@ import numpy as np
 
 from ._point_data import joined_columns, scalar_columns
 
-#: Gmsh's element type of the 4-node tetrahedron
-_TETRA = 4
 #: the component counts a Gmsh view may have (scalar, vector, tensor)
 _VIEW_COMPONENTS = (1, 3, 9)
 
@@ -92,30 +89,6 @@ def _tag_count(f) -> int:
     if not 0 <= count <= 64:
         raise ValueError(f"{count} tags")
     return count
-
-
-def tet_numbers(f, is_ascii: bool, data_size: int, ghosts=frozenset()) -> np.ndarray:
-    """Element numbers (m,) int64 of the tets of the MSH 4.1 ``$Elements`` section that
-    starts at ``f``'s position (just after its ``$Elements`` line), in jtet's tet order
-    (see the module docstring). ``ghosts``: entity tags of a partitioned file's ghost
-    blocks. (MSH 2.2 files give them while jtet reads their elements, ``_gmsh_read``.)"""
-    from meshio._common import num_nodes_per_cell
-    from meshio.gmsh.common import _gmsh_to_meshio_type
-
-    sep = " " if is_ascii else ""
-    c_int, size_t = np.dtype("i"), np.dtype(f"u{data_size}")
-    found = []
-    n_blocks = int(np.fromfile(f, size_t, 4, sep=sep)[0])
-    for _ in range(n_blocks):
-        _, entity, kind = np.fromfile(f, c_int, 3, sep=sep).tolist()
-        count = int(np.fromfile(f, size_t, 1, sep=sep)[0])
-        width = 1 + num_nodes_per_cell[_gmsh_to_meshio_type[kind]]
-        rows = np.fromfile(f, size_t, count * width, sep=sep)
-        if len(rows) != count * width:
-            raise ValueError("the elements end early")
-        if kind == _TETRA and entity not in ghosts:
-            found.append(rows.reshape(count, width)[:, 0])
-    return np.concatenate(found).astype(np.int64) if found else np.zeros(0, np.int64)
 
 
 def view_data(

@@ -310,3 +310,79 @@ def test_damaged_view_headers_are_skipped_quickly(tmp_path, header):
         back = jtet.load(path)
     assert not back.point_data
     np.testing.assert_array_equal(back.tets, mesh.tets)
+
+
+def _msh41_elements(rng, encoding: str) -> tuple[bytes, tuple, tuple, dict, list]:
+    """A random MSH 4.1 ``$Elements`` section (after its header line) of point, line,
+    triangle and tet blocks on entities, with the entity tables meshio builds from
+    ``$Entities`` (physical tags, bounding entities) and ``$PhysicalNames``, and the
+    element numbers of each block."""
+    nodes = {15: (0, 1), 1: (1, 2), 2: (2, 3), 4: (3, 4)}  # type: (dim, nodes)
+    physical = ({}, {}, {}, {})
+    bounding = ({}, {}, {}, {})
+    field_data = {"skin": np.array([7, 2]), "body": np.array([5, 3])}
+    blocks, number = [], 1
+    for _ in range(int(rng.integers(1, 9))):
+        kind = int(rng.choice(list(nodes)))
+        dim, n_nodes = nodes[kind]
+        tag = int(rng.integers(1, 4))
+        physical[dim][tag] = [int(rng.choice([5, 7, 9]))] if rng.random() < 0.7 else []
+        if dim:
+            bounding[dim][tag] = rng.integers(1, 5, 2)
+        count = int(rng.integers(1, 30))
+        rows = np.column_stack(
+            [np.arange(number, number + count), rng.integers(1, 300, (count, n_nodes))]
+        )
+        number += count + int(rng.integers(0, 5))  # numbers with gaps
+        blocks.append((dim, tag, kind, rows))
+    total = sum(len(b[3]) for b in blocks)
+    numbers = [rows[:, 0] for *_, rows in blocks]
+    if encoding == "ascii":
+        text = f"{len(blocks)} {total} 1 {number}\n"
+        for dim, tag, kind, rows in blocks:
+            text += f"{dim} {tag} {kind} {len(rows)}\n"
+            text += "".join(" ".join(map(str, r)) + "\n" for r in rows.tolist())
+        return text.encode(), physical, bounding, field_data, numbers
+    size_t = np.uint64
+    data = np.array([len(blocks), total, 1, number], size_t).tobytes()
+    for dim, tag, kind, rows in blocks:
+        data += np.array([dim, tag, kind], np.intc).tobytes()
+        data += np.array([len(rows)], size_t).tobytes() + rows.astype(size_t).tobytes()
+    return data + b"\n", physical, bounding, field_data, numbers
+
+
+@pytest.mark.parametrize("encoding", ["binary", "ascii"])
+def test_msh41_elements_read_as_meshio_reads_them(tmp_path, encoding):
+    """``_read_elements41`` gives meshio 5.3's own ``_read_elements`` output (cells,
+    physical and entity tags, physical-group sets, bounding entities), and the element
+    numbers of each block."""
+    from meshio.gmsh import _gmsh41
+
+    from jtet._gmsh_read import _read_elements41
+
+    rng = np.random.default_rng(6)
+    point_tags = rng.permutation(300)  # meshio's node tags: node numbers - 1
+    for trial in range(20):
+        section, physical, bounding, field_data, written = _msh41_elements(rng, encoding)
+        path = tmp_path / f"e{trial}.msh"
+        path.write_bytes(section + b"$EndElements\n$Next\n")
+        args = (point_tags, physical, bounding, encoding == "ascii", 8, field_data)
+        with open(path, "rb") as f:
+            cells, data, sets = _gmsh41._read_elements(f, *args)
+            after = f.readline()
+        with open(path, "rb") as f:
+            mine, my_data, my_sets, numbers = _read_elements41(f, *args)
+            assert f.readline() == after == b"$Next\n"
+        assert [c.type for c in mine] == [c.type for c in cells]
+        for a, b in zip(cells, mine, strict=True):
+            np.testing.assert_array_equal(a.data, b.data)
+        assert data.keys() == my_data.keys()
+        for key in data:
+            for a, b in zip(data[key], my_data[key], strict=True):
+                np.testing.assert_array_equal(a, b)
+        assert sets.keys() == my_sets.keys()
+        for key in sets:
+            for a, b in zip(sets[key], my_sets[key], strict=True):
+                np.testing.assert_array_equal(a, b)
+        # the element numbers, block by block, as written
+        assert [n.tolist() for n in numbers] == [n.tolist() for n in written]
