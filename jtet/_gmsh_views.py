@@ -93,7 +93,7 @@ def _tag_count(f) -> int:
 
 def view_data(
     views: list[View], node_numbers: np.ndarray, tets: np.ndarray | None
-) -> tuple[dict, dict, list[str]]:
+) -> tuple[dict, dict, list[str], list[str]]:
     """Point and cell data of a file's views: {name: (n,) or (n, c)} for the views whose
     last step gives a value to every node of ``node_numbers`` (n,) (point views) or to
     every tet numbered in ``tets`` (m,) (cell views; None: their numbers are unknown), in
@@ -103,23 +103,29 @@ def view_data(
     """
     from ._io import _carried_array_name
 
-    last: dict = {}
-    steps: dict = {}
+    # (kind, name) -> step -> its sections: a step may come in several sections (one
+    # per partition of a partitioned mesh, the fourth integer tag)
+    by_step: dict = {}
     for v in views:
-        if not _carried_array_name(v.name):
-            continue
-        key = (v.kind, v.name)
-        steps[key] = steps.get(key, 0) + 1
-        if key not in last or v.step >= last[key].step:
-            last[key] = v
+        if _carried_array_name(v.name):
+            by_step.setdefault((v.kind, v.name), {}).setdefault(v.step, []).append(v)
     out: dict = {"point": {}, "cell": {}}
     not_read, last_steps = [], []
-    for (kind, name), v in last.items():
+    for (kind, name), steps in by_step.items():
+        sections = steps[max(steps)]
         wanted = node_numbers if kind == "point" else tets
         what = "nodes" if kind == "point" else "tets"
         if wanted is None:
             not_read.append(f"the {kind} view {name!r} (its element numbers could not be read)")
             continue
+        if len({s.values.shape[1] for s in sections}) > 1:
+            not_read.append(f"the {kind} view {name!r} (sections of one step differ in width)")
+            continue
+        v = dataclasses.replace(
+            sections[-1],
+            numbers=np.concatenate([s.numbers for s in sections]),
+            values=np.concatenate([s.values for s in sections]),
+        )
         rows = _rows_of(v.numbers, wanted)
         if rows is None:
             covered = int(np.isin(wanted, v.numbers).sum())
@@ -129,10 +135,10 @@ def view_data(
             continue
         values = v.values[rows]
         out[kind][name] = values[:, 0] if values.shape[1] == 1 else values
-        if steps[kind, name] > 1:
+        if len(steps) > 1:
             last_steps.append(
-                f"the {kind} view {name!r} is read at the last of its {steps[kind, name]} "
-                f"time steps (time {v.time:g})"
+                f"the {kind} view {name!r} is read at the last of its {len(steps)} time "
+                f"steps (time {v.time:g})"
             )
     return joined_columns(out["point"]), joined_columns(out["cell"]), not_read, last_steps
 

@@ -386,3 +386,25 @@ def test_msh41_elements_read_as_meshio_reads_them(tmp_path, encoding):
                 np.testing.assert_array_equal(a, b)
         # the element numbers, block by block, as written
         assert [n.tolist() for n in numbers] == [n.tolist() for n in written]
+
+
+def test_a_step_in_several_sections_is_joined(tmp_path):
+    """A view step may come in several sections (one per partition: the fourth integer
+    tag); the last step's sections together give every node its value."""
+    mesh = jtet.demo_mesh()
+    path = tmp_path / "parts.msh"
+    blocks = [meshio.CellBlock("tetra", mesh.tets)]
+    tags = {
+        "gmsh:physical": [np.ones(mesh.n_tets, int)],
+        "gmsh:geometrical": [np.ones(mesh.n_tets, int)],
+    }
+    meshio.write(path, meshio.Mesh(mesh.points, blocks, cell_data=tags), "gmsh22", binary=False)
+    half = mesh.n_points // 2
+    with open(path, "a") as f:
+        for step in (0, 1):
+            for part, nodes in ((1, range(1, half + 1)), (2, range(half + 1, mesh.n_points + 1))):
+                f.write(f'$NodeData\n1\n"T"\n1\n{step}.0\n4\n{step}\n1\n{len(nodes)}\n{part}\n')
+                f.write("".join(f"{i} {10.0 * step + i}\n" for i in nodes) + "$EndNodeData\n")
+    with pytest.warns(UserWarning, match="at the last of its 2 time steps"):
+        back = jtet.load(path)
+    np.testing.assert_array_equal(back.point_data["T"], 10.0 + np.arange(1, mesh.n_points + 1))
