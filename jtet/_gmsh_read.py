@@ -301,6 +301,37 @@ def _read_elements41(
     return cells, cell_data, cell_sets, numbers
 
 
+def _read_nodes41(f, is_ascii, data_size):
+    """meshio 5.3's ``_gmsh41._read_nodes`` (the same (points, tags - 1, dim_tags)), also
+    for the blocks of parametric nodes a file saved with ``Mesh.SaveParametric = 1``
+    has, which meshio refuses: their u (curves), u v (surfaces) or u v w are dropped."""
+    from meshio.gmsh.common import _fast_forward_to_end_block
+
+    sep = " " if is_ascii else ""
+    c_int, size_t = np.dtype("i"), np.dtype(f"u{int(data_size)}")
+    n_blocks, total = (int(x) for x in np.fromfile(f, size_t, 4, sep=sep)[:2])
+    points = np.empty((total, 3))
+    tags = np.empty(total, dtype=int)
+    dim_tags = np.empty((total, 2), dtype=int)
+    at = 0
+    for _ in range(n_blocks):
+        dim, entity, parametric = np.fromfile(f, c_int, 3, sep=sep).tolist()
+        count = int(np.fromfile(f, size_t, 1, sep=sep)[0])
+        if at + count > total:
+            raise ValueError(f"the node blocks hold more than the {total} nodes announced")
+        block = slice(at, at + count)
+        tags[block] = np.fromfile(f, size_t, count, sep=sep).astype(np.int64) - 1
+        width = 3 + (dim if parametric else 0)
+        values = np.fromfile(f, np.float64, count * width, sep=sep)
+        if len(values) != count * width:
+            raise ValueError("the nodes end early")
+        points[block] = values.reshape(count, width)[:, :3]
+        dim_tags[block] = dim, entity
+        at += count
+    _fast_forward_to_end_block(f, "Nodes")
+    return points[:at], tags[:at], dim_tags[:at]
+
+
 def _physical_for_every_block(cell_data, cells, physical_tags) -> None:
     """Give every block a ``gmsh:physical`` array when meshio gave one only to the
     blocks of physical groups.
@@ -360,8 +391,9 @@ def gmsh_read_mends():
 
         read_buffer, _ = _gmsh41.read_buffer, _gmsh41._read_elements  # both mended
         read_buffer22, _ = _gmsh22.read_buffer, _gmsh22._read_cells  # both mended
-        read_nodes22, read_nodes41 = _gmsh22._read_nodes, _gmsh41._read_nodes
+        read_nodes22, _ = _gmsh22._read_nodes, _gmsh41._read_nodes  # both mended
         skip_block = _gmsh41._fast_forward_to_end_block
+        skip_block22 = _gmsh22._fast_forward_to_end_block
     except (ImportError, AttributeError):  # another meshio: its own readers as they are
         yield {}
         return
@@ -391,13 +423,21 @@ def gmsh_read_mends():
         else:
             skip_block(f, block)
 
+    def mended_skip_block22(f, block):
+        if block == "ParametricNodes":  # meshio would skip the nodes, then fail obscurely
+            raise ValueError(
+                "MSH 2.2 $ParametricNodes (Mesh.SaveParametric = 1) are not read; save "
+                "with Mesh.SaveParametric = 0, or in MSH 4.1"
+            )
+        skip_block22(f, block)
+
     def mended_read_nodes22(f, is_ascii):
         points, numbers = read_nodes22(f, is_ascii)
         found["nodes"] = np.asarray(numbers, np.int64)
         return points, numbers
 
     def mended_read_nodes41(f, is_ascii, data_size):
-        points, tags, dim_tags = read_nodes41(f, is_ascii, data_size)
+        points, tags, dim_tags = _read_nodes41(f, is_ascii, data_size)
         found["nodes"] = np.asarray(tags, np.int64) + 1  # meshio's tags are numbers - 1
         return points, tags, dim_tags
 
@@ -430,6 +470,7 @@ def gmsh_read_mends():
         (_gmsh41, "_read_elements", mended_read_elements),
         (_gmsh41, "_read_data", read_data),
         (_gmsh22, "read_buffer", mended_read_buffer22),
+        (_gmsh22, "_fast_forward_to_end_block", mended_skip_block22),
         (_gmsh22, "_read_nodes", mended_read_nodes22),
         (_gmsh22, "_read_cells", mended_read_cells22),
         (_gmsh22, "_read_data", read_data),

@@ -1426,3 +1426,39 @@ def test_gmsh_views_written_by_meshio(tmp_path, fmt, binary):
     _io.save(back, own, cell_data={"quality_min_sine": back.quality()})
     again = _io.load(own)
     assert set(again.cell_data) == set(back.cell_data)
+
+
+@pytest.mark.parametrize("binary", [0, 1])
+def test_gmsh_parametric_nodes(tmp_path, binary):
+    """A file saved with ``Mesh.SaveParametric = 1`` (nodes on curves and surfaces carry
+    their u / u v): MSH 4.1 reads as the same file without them (meshio 5.3 alone
+    refuses it, and its reader gives the same nodes on the plain file); MSH 2.2 writes
+    such nodes in a ``$ParametricNodes`` section, which is refused with the way out."""
+    gmsh = pytest.importorskip("gmsh")
+    from meshio.gmsh import _gmsh41
+
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.occ.addSphere(0, 0, 0, 1)
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.4)
+        gmsh.model.mesh.generate(3)
+        gmsh.option.setNumber("Mesh.Binary", binary)
+        gmsh.write(str(tmp_path / "plain.msh"))
+        gmsh.option.setNumber("Mesh.SaveParametric", 1)
+        gmsh.write(str(tmp_path / "param.msh"))
+        gmsh.option.setNumber("Mesh.MshFileVersion", 2.2)
+        gmsh.write(str(tmp_path / "param22.msh"))
+    finally:
+        gmsh.finalize()
+    with pytest.raises(meshio.ReadError, match="parametric"):
+        meshio.gmsh.read(str(tmp_path / "param.msh"))
+    plain, param = _io.load(tmp_path / "plain.msh"), _io.load(tmp_path / "param.msh")
+    np.testing.assert_array_equal(param.points, plain.points)
+    np.testing.assert_array_equal(param.tets, plain.tets)
+    np.testing.assert_array_equal(param.protected_faces, plain.protected_faces)
+    np.testing.assert_array_equal(plain.points, meshio.read(tmp_path / "plain.msh").points)
+    assert _gmsh41._read_nodes.__module__ == _gmsh41.__name__  # meshio's own again
+    with pytest.raises(MeshFileError, match=r"\$ParametricNodes .* MSH 4.1"):
+        _io.load(tmp_path / "param22.msh")
