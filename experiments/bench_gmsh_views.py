@@ -28,7 +28,6 @@ import argparse
 import resource
 import sys
 import tempfile
-import time
 import warnings
 from pathlib import Path
 
@@ -37,17 +36,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_improve import load_mesh  # noqa: E402
+from bench_topology import best_of  # noqa: E402
 
 import jtet  # noqa: E402
-
-
-def _best(fn, repeat: int) -> tuple[float, object]:
-    best, out = np.inf, None
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
 
 
 def _gmsh_files(mesh: jtet.TetMesh, out: Path) -> list[tuple[str, Path, Path]]:
@@ -119,9 +110,9 @@ def main() -> None:
         numbers, centroids = _element_centroids(files[0][1])
         order = np.argsort(numbers)
         for label, views, bare in files:
-            t_meshio, _ = _best(lambda bare=bare: meshio.read(bare), args.repeat)
-            t_bare, _ = _best(lambda bare=bare: jtet.load(bare), args.repeat)
-            t_views, m = _best(lambda views=views: jtet.load(views), args.repeat)
+            t_meshio, _ = best_of(lambda bare=bare: meshio.read(bare), args.repeat)
+            t_bare, _ = best_of(lambda bare=bare: jtet.load(bare), args.repeat)
+            t_views, m = best_of(lambda views=views: jtet.load(views), args.repeat)
             at = order[np.searchsorted(numbers[order], m.cell_data["number"].astype(np.int64))]
             err = np.abs(m.points[m.tets].mean(axis=1) - centroids[at]).max()
             ok = err < 1e-12 and np.array_equal(m.point_data["x"], m.points[:, 0])
@@ -133,8 +124,8 @@ def main() -> None:
         )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            t_plain, _ = _best(lambda: jtet.save(mesh, Path(tmp) / "a.msh"), args.repeat)
-            t_data, _ = _best(lambda: jtet.save(data, Path(tmp) / "b.msh"), args.repeat)
+            t_plain, _ = best_of(lambda: jtet.save(mesh, Path(tmp) / "a.msh"), args.repeat)
+            t_data, _ = best_of(lambda: jtet.save(data, Path(tmp) / "b.msh"), args.repeat)
     head = "| file | MB | meshio (no views) s | jtet, no views s | jtet, views s | ratio | values at the right places |"
     print(head)
     print("|" + "---|" * 7)
