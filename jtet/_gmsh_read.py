@@ -356,9 +356,8 @@ def _read_data(f, tag, is_ascii: bool, found: dict) -> None:
     ASCII reader puts on the wrong blocks; its 2.2 reader also splits any element data
     over two or more element blocks at element 2 (the length of a (type, cells) tuple).
     Here each section goes to ``found["views"]`` as it is (``_gmsh_views``), keyed by its
-    node or element numbers; a section that does not parse is skipped, its name (the
-    first string tag, ASCII in binary files too) in ``found["point" / "cell"]``, for the
-    warning that names what a mesh does not carry."""
+    node or element numbers; a section that does not parse is skipped (``_skip_view``),
+    for the warning that names what a mesh does not carry."""
     from meshio.gmsh.common import _fast_forward_to_end_block
 
     from ._gmsh_views import read_view
@@ -368,14 +367,26 @@ def _read_data(f, tag, is_ascii: bool, found: dict) -> None:
         found["views"].append(read_view(f, tag, is_ascii))
     except (ValueError, IndexError):
         f.seek(start)
-        try:
-            if int(f.readline()) > 0:
-                name = f.readline().decode("utf-8", "replace").strip().strip('"')
-                kind = "point" if tag == "NodeData" else "cell"
-                if name not in found.setdefault(kind, []):
-                    found[kind].append(name)
-        except ValueError:  # a damaged header: the skip to the end decides
-            pass
+        _skip_view(f, tag, found)
+        return
+    _fast_forward_to_end_block(f, tag)
+
+
+def _skip_view(f, tag, found: dict) -> None:
+    """Skip the view section ``tag`` that starts at ``f`` (after its ``$tag`` line),
+    its name (the first string tag, ASCII in binary files too) in ``found["point"]``
+    ($NodeData) or ``found["cell"]`` ($ElementData, $ElementNodeData: values at each
+    node of each element, which jtet does not read)."""
+    from meshio.gmsh.common import _fast_forward_to_end_block
+
+    try:
+        if int(f.readline()) > 0:
+            name = f.readline().decode("utf-8", "replace").strip().strip('"')
+            kind = "point" if tag == "NodeData" else "cell"
+            if name not in found.setdefault(kind, []):
+                found[kind].append(name)
+    except ValueError:  # a damaged header: the skip to the end decides
+        pass
     _fast_forward_to_end_block(f, tag)
 
 
@@ -420,6 +431,8 @@ def gmsh_read_mends():
         # meshio skips the sections it does not know: this one it needs
         if block == "PartitionedEntities" and "is_ascii" in state:
             state["partitions"] = _Partitions.read(f, state["is_ascii"], state["data_size"])
+        elif block == "ElementNodeData":
+            _skip_view(f, block, found)
         else:
             skip_block(f, block)
 
@@ -429,7 +442,10 @@ def gmsh_read_mends():
                 "MSH 2.2 $ParametricNodes (Mesh.SaveParametric = 1) are not read; save "
                 "with Mesh.SaveParametric = 0, or in MSH 4.1"
             )
-        skip_block22(f, block)
+        if block == "ElementNodeData":
+            _skip_view(f, block, found)
+        else:
+            skip_block22(f, block)
 
     def mended_read_nodes22(f, is_ascii):
         points, numbers = read_nodes22(f, is_ascii)

@@ -408,3 +408,36 @@ def test_a_step_in_several_sections_is_joined(tmp_path):
     with pytest.warns(UserWarning, match="at the last of its 2 time steps"):
         back = jtet.load(path)
     np.testing.assert_array_equal(back.point_data["T"], 10.0 + np.arange(1, mesh.n_points + 1))
+
+
+@pytest.mark.parametrize("version", [2.2, 4.1])
+def test_element_node_data_is_named_as_not_read(tmp_path, version):
+    """A view of values at each node of each element ($ElementNodeData, a field
+    discontinuous across elements) has no place in point or cell data: a warning names
+    it (meshio skips it silently), the other views are read."""
+    gmsh = pytest.importorskip("gmsh")
+    path = tmp_path / "enode.msh"
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("box")
+        gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.5)
+        gmsh.model.mesh.generate(3)
+        _, (tets,), _ = gmsh.model.mesh.getElements(3)
+        nodes, coords, _ = gmsh.model.mesh.getNodes()
+        per_node = gmsh.view.add("jumps")
+        gmsh.view.addModelData(per_node, 0, "box", "ElementNodeData", tets, np.ones((len(tets), 4)))
+        temp = gmsh.view.add("temp")
+        gmsh.view.addModelData(temp, 0, "box", "NodeData", nodes, coords.reshape(-1, 3)[:, :1])
+        gmsh.option.setNumber("Mesh.MshFileVersion", version)
+        gmsh.write(str(path))
+        gmsh.option.setNumber("PostProcessing.SaveMesh", 0)
+        for view in (per_node, temp):
+            gmsh.view.write(view, str(path), append=True)
+    finally:
+        gmsh.finalize()
+    with pytest.warns(UserWarning, match=r"not read: 1 cell array\(s\) \(jumps\)"):
+        m = jtet.load(path)
+    assert list(m.point_data) == ["temp"] and not m.cell_data
