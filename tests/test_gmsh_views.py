@@ -3,6 +3,7 @@ Gmsh and meshio write, written by ``save``, carried by ``jtet improve``."""
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
 import warnings
@@ -15,11 +16,11 @@ import jtet
 from jtet import _gmsh_views
 
 
-def _box_with_views(path, version: float, binary: int, steps: int):
-    """A Gmsh mesh of the unit box (a physical volume and two physical surfaces) with a
-    node view ``temp`` (x + step) and an element view ``eid`` over the tets (element
-    number + 100 step), ``steps`` time steps each, saved with the mesh as Gmsh saves
-    them. Returns {element number: centroid} of the tets."""
+@contextlib.contextmanager
+def _gmsh_box(size: float):
+    """The ``gmsh`` module (skips without it), initialized, holding a mesh of the unit
+    box (model "box": physical volume 5, physical surface 7 on two faces) of element
+    size ``size``; finalized on exit."""
     gmsh = pytest.importorskip("gmsh")
     gmsh.initialize()
     try:
@@ -29,8 +30,28 @@ def _box_with_views(path, version: float, binary: int, steps: int):
         gmsh.model.occ.synchronize()
         gmsh.model.addPhysicalGroup(3, [1], 5)
         gmsh.model.addPhysicalGroup(2, [1, 2], 7)
-        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.3)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", size)
         gmsh.model.mesh.generate(3)
+        yield gmsh
+    finally:
+        gmsh.finalize()
+
+
+def _save_with_views(gmsh, path, views, version: float, binary: int = 0) -> None:
+    """Write the mesh, then append ``views``, as Gmsh saves views with their mesh."""
+    gmsh.option.setNumber("Mesh.MshFileVersion", version)
+    gmsh.option.setNumber("Mesh.Binary", binary)
+    gmsh.write(str(path))
+    gmsh.option.setNumber("PostProcessing.SaveMesh", 0)
+    for view in views:
+        gmsh.view.write(view, str(path), append=True)
+
+
+def _box_with_views(path, version: float, binary: int, steps: int):
+    """A Gmsh mesh of the unit box with a node view ``temp`` (x + step) and an element
+    view ``eid`` over the tets (element number + 100 step), ``steps`` time steps each,
+    saved with the mesh. Returns {element number: centroid} of the tets."""
+    with _gmsh_box(0.3) as gmsh:
         nodes, coords, _ = gmsh.model.mesh.getNodes()
         xyz = coords.reshape(-1, 3)
         _, (tets,), (corners,) = gmsh.model.mesh.getElements(3)
@@ -40,14 +61,7 @@ def _box_with_views(path, version: float, binary: int, steps: int):
             gmsh.view.addModelData(temp, s, "box", "NodeData", nodes, values, time=0.5 * s)
             values = (tets + 100.0 * s)[:, None]
             gmsh.view.addModelData(eid, s, "box", "ElementData", tets, values, time=0.5 * s)
-        gmsh.option.setNumber("Mesh.MshFileVersion", version)
-        gmsh.option.setNumber("Mesh.Binary", binary)
-        gmsh.write(str(path))
-        gmsh.option.setNumber("PostProcessing.SaveMesh", 0)
-        for view in (temp, eid):
-            gmsh.view.write(view, str(path), append=True)
-    finally:
-        gmsh.finalize()
+        _save_with_views(gmsh, path, (temp, eid), version, binary)
     position = dict(zip(nodes.tolist(), xyz, strict=True))
     return {
         int(t): np.mean([position[n] for n in corners[4 * i : 4 * i + 4]], axis=0)
@@ -415,29 +429,15 @@ def test_element_node_data_is_named_as_not_read(tmp_path, version):
     """A view of values at each node of each element ($ElementNodeData, a field
     discontinuous across elements) has no place in point or cell data: a warning names
     it (meshio skips it silently), the other views are read."""
-    gmsh = pytest.importorskip("gmsh")
     path = tmp_path / "enode.msh"
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.model.add("box")
-        gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
-        gmsh.model.occ.synchronize()
-        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.5)
-        gmsh.model.mesh.generate(3)
+    with _gmsh_box(0.5) as gmsh:
         _, (tets,), _ = gmsh.model.mesh.getElements(3)
         nodes, coords, _ = gmsh.model.mesh.getNodes()
         per_node = gmsh.view.add("jumps")
         gmsh.view.addModelData(per_node, 0, "box", "ElementNodeData", tets, np.ones((len(tets), 4)))
         temp = gmsh.view.add("temp")
         gmsh.view.addModelData(temp, 0, "box", "NodeData", nodes, coords.reshape(-1, 3)[:, :1])
-        gmsh.option.setNumber("Mesh.MshFileVersion", version)
-        gmsh.write(str(path))
-        gmsh.option.setNumber("PostProcessing.SaveMesh", 0)
-        for view in (per_node, temp):
-            gmsh.view.write(view, str(path), append=True)
-    finally:
-        gmsh.finalize()
+        _save_with_views(gmsh, path, (per_node, temp), version)
     with pytest.warns(UserWarning, match=r"not read: 1 cell array\(s\) \(jumps\)"):
         m = jtet.load(path)
     assert list(m.point_data) == ["temp"] and not m.cell_data
