@@ -34,6 +34,13 @@ import numpy as np
 _GMSH_READ = threading.Lock()
 
 
+def _msh41_reader(is_ascii: bool, data_size) -> tuple:
+    """(fromfile, size_t, c_int) for the sections of an MSH 4.1 file: ``np.fromfile``
+    reading text or binary as the file is, and its two integer types."""
+    fromfile = functools.partial(np.fromfile, sep=" " if is_ascii else "")
+    return fromfile, np.dtype(f"u{int(data_size)}"), np.dtype("i")
+
+
 @dataclasses.dataclass
 class _Partitions:
     """The ``$PartitionedEntities`` section of a partitioned Gmsh 4.1 file.
@@ -58,8 +65,8 @@ class _Partitions:
         to and including ``$EndPartitionedEntities``."""
         from meshio.gmsh.common import _fast_forward_to_end_block
 
-        fromfile = functools.partial(np.fromfile, sep=" " if is_ascii else "")
-        size_t, c_int, c_double = np.dtype(f"u{data_size}"), np.dtype("i"), np.dtype("d")
+        fromfile, size_t, c_int = _msh41_reader(is_ascii, data_size)
+        c_double = np.dtype("d")
 
         def count() -> int:
             return int(fromfile(f, size_t, 1)[0])
@@ -147,7 +154,7 @@ def binary22_blocks(f, total: int) -> list[tuple[int, int, np.ndarray]]:
             continue
         # a run of one-element blocks with this same header: windows growing 4x, so a
         # run costs time in its length (a file of alternating headers stays linear)
-        stride, window, run = 3 + width, 64, 0
+        stride, window = 3 + width, 64
         limit = min(total - done, (len(ints) - pos) // stride)
         if limit == 0:
             raise ValueError(f"the elements end after {done} of {total}")
@@ -266,14 +273,13 @@ def _read_elements41(
         _gmsh_to_meshio_type,
     )
 
-    sep = " " if is_ascii else ""
-    c_int, size_t = np.dtype("i"), np.dtype(f"u{int(data_size)}")
-    n_blocks = int(np.fromfile(f, size_t, 4, sep=sep)[0])
+    fromfile, size_t, c_int = _msh41_reader(is_ascii, data_size)
+    n_blocks = int(fromfile(f, size_t, 4)[0])
     cell_sets = {name: [None] * n_blocks for name in field_data}
     blocks = []
     for k in range(n_blocks):
-        dim, tag, kind = np.fromfile(f, c_int, 3, sep=sep).tolist()
-        (count,) = np.fromfile(f, size_t, 1, sep=sep)
+        dim, tag, kind = fromfile(f, c_int, 3).tolist()
+        (count,) = fromfile(f, size_t, 1)
         physical = physical_tags[dim][tag] if physical_tags else None
         for name, cell_set in cell_sets.items():
             # the block's elements are in the physical group named ``name``
@@ -281,7 +287,7 @@ def _read_elements41(
             cell_set[k] = np.arange(count if member else 0, dtype=type(count))
         name = _gmsh_to_meshio_type[kind]
         width = 1 + num_nodes_per_cell[name]
-        rows = np.fromfile(f, size_t, int(count * width), sep=sep).reshape(-1, width)
+        rows = fromfile(f, size_t, int(count * width)).reshape(-1, width)
         bounding = bounding_entities[dim][tag] if dim > 0 and bounding_entities else None
         blocks.append((physical, bounding, tag, name, rows))
     _fast_forward_to_end_block(f, "Elements")
@@ -307,22 +313,21 @@ def _read_nodes41(f, is_ascii, data_size):
     has, which meshio refuses: their u (curves), u v (surfaces) or u v w are dropped."""
     from meshio.gmsh.common import _fast_forward_to_end_block
 
-    sep = " " if is_ascii else ""
-    c_int, size_t = np.dtype("i"), np.dtype(f"u{int(data_size)}")
-    n_blocks, total = (int(x) for x in np.fromfile(f, size_t, 4, sep=sep)[:2])
+    fromfile, size_t, c_int = _msh41_reader(is_ascii, data_size)
+    n_blocks, total = (int(x) for x in fromfile(f, size_t, 4)[:2])
     points = np.empty((total, 3))
     tags = np.empty(total, dtype=int)
     dim_tags = np.empty((total, 2), dtype=int)
     at = 0
     for _ in range(n_blocks):
-        dim, entity, parametric = np.fromfile(f, c_int, 3, sep=sep).tolist()
-        count = int(np.fromfile(f, size_t, 1, sep=sep)[0])
+        dim, entity, parametric = fromfile(f, c_int, 3).tolist()
+        count = int(fromfile(f, size_t, 1)[0])
         if at + count > total:
             raise ValueError(f"the node blocks hold more than the {total} nodes announced")
         block = slice(at, at + count)
-        tags[block] = np.fromfile(f, size_t, count, sep=sep).astype(np.int64) - 1
+        tags[block] = fromfile(f, size_t, count).astype(np.int64) - 1
         width = 3 + (dim if parametric else 0)
-        values = np.fromfile(f, np.float64, count * width, sep=sep)
+        values = fromfile(f, np.float64, count * width)
         if len(values) != count * width:
             raise ValueError("the nodes end early")
         points[block] = values.reshape(count, width)[:, :3]

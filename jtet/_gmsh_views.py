@@ -92,12 +92,13 @@ def _tag_count(f) -> int:
 
 
 def view_data(
-    views: list[View], node_numbers: np.ndarray, tets: np.ndarray | None
+    views: list[View], node_numbers: np.ndarray | None, tets: np.ndarray | None
 ) -> tuple[dict, dict, list[str], list[str]]:
     """Point and cell data of a file's views: {name: (n,) or (n, c)} for the views whose
     last step gives a value to every node of ``node_numbers`` (n,) (point views) or to
-    every tet numbered in ``tets`` (m,) (cell views; None: their numbers are unknown), in
-    that order; views of one component named ``name[0]``, ``name[1]``, ... are joined
+    every tet numbered in ``tets`` (m,) (cell views), in
+    that order (None: the numbers are unknown, and no view of that kind is read); views
+    of one component named ``name[0]``, ``name[1]``, ... are joined
     (``scalar_columns``). Returns (point_data, cell_data, the views not read and why,
     the views read at the last of several time steps).
     """
@@ -116,29 +117,26 @@ def view_data(
         wanted = node_numbers if kind == "point" else tets
         what = "nodes" if kind == "point" else "tets"
         if wanted is None:
-            not_read.append(f"the {kind} view {name!r} (its element numbers could not be read)")
+            number = "node" if kind == "point" else "element"
+            not_read.append(f"the {kind} view {name!r} (its {number} numbers could not be read)")
             continue
         if len({s.values.shape[1] for s in sections}) > 1:
             not_read.append(f"the {kind} view {name!r} (sections of one step differ in width)")
             continue
-        v = dataclasses.replace(
-            sections[-1],
-            numbers=np.concatenate([s.numbers for s in sections]),
-            values=np.concatenate([s.values for s in sections]),
-        )
-        rows = _rows_of(v.numbers, wanted)
+        numbers = np.concatenate([s.numbers for s in sections])
+        rows = _rows_of(numbers, wanted)
         if rows is None:
-            covered = int(np.isin(wanted, v.numbers).sum())
+            covered = int(np.isin(wanted, numbers).sum())
             not_read.append(
                 f"the {kind} view {name!r} (values at {covered} of {len(wanted)} {what})"
             )
             continue
-        values = v.values[rows]
+        values = np.concatenate([s.values for s in sections])[rows]
         out[kind][name] = values[:, 0] if values.shape[1] == 1 else values
         if len(steps) > 1:
             last_steps.append(
                 f"the {kind} view {name!r} is read at the last of its {len(steps)} time "
-                f"steps (time {v.time:g})"
+                f"steps (time {sections[-1].time:g})"
             )
     return joined_columns(out["point"]), joined_columns(out["cell"]), not_read, last_steps
 

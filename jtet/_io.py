@@ -1221,15 +1221,16 @@ def _meshio_mesh(mesh: TetMesh, fmt: str):
     )
 
 
-def _append_gmsh_views(mesh: TetMesh, path: Path, cell_data: dict) -> None:
-    """Append the point data and cell data of ``mesh`` and, for a file of tets only,
-    the arrays of ``cell_data`` (which win) to the Gmsh file ``path`` as views
+def _append_gmsh_views(mesh: TetMesh, path: Path, cell_data: dict, tets_only: bool) -> None:
+    """Append the point data and cell data of ``mesh`` and, for a file of tets only
+    (``tets_only``: no protected entities written as elements), the arrays of
+    ``cell_data`` (which win) to the Gmsh file ``path`` as views
     (``_gmsh_views.write_views``). Element data beside other element blocks make the
     file unreadable to meshio 5.3, which splits them at the wrong places (``save``
     warns)."""
     from ._gmsh_views import write_views
 
-    cells = dict(mesh.cell_data) | ({} if _lower_blocks(mesh, "gmsh") else cell_data)
+    cells = dict(mesh.cell_data) | (cell_data if tets_only else {})
     if mesh.point_data or cells:
         with open(path, "ab") as fh:
             write_views(fh, dict(mesh.point_data), cells)
@@ -1481,15 +1482,12 @@ def _gmsh_view_data(found: dict, n_points: int, n_tets: int, source: str) -> dic
     from ._gmsh_views import view_data
 
     nodes, tets = found.get("nodes"), found.get("tets")
-    if nodes is None or len(nodes) != n_points:
+    if nodes is not None and len(nodes) != n_points:
         nodes = None
     if tets is not None and len(tets) != n_tets:
         tets = None
-    if nodes is None:
-        names = [(v.kind, v.name) for v in found.get("views", [])]
-        _warn_dropped_arrays(*([n for k, n in names if k == w] for w in ("point", "cell")), source)
-        return {}
-    point_data, cell_data, not_read, last_steps = view_data(found["views"], nodes, tets)
+    views = found.get("views", [])
+    point_data, cell_data, not_read, last_steps = view_data(views, nodes, tets)
     for note in [f"{n}; not read" for n in not_read] + last_steps:
         warnings.warn(f"{source}: {note}", stacklevel=3)
     return {"point_data": point_data, "cell_data": cell_data}
@@ -1643,7 +1641,7 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str 
             # Gmsh 2.2 binary: meshio 5.3's 4.1 writer drops physical tags (no $Entities)
             # and its ASCII writers print NumPy 2 scalars as "np.float64(...)".
             _meshio_module(fmt).write(str(tmp), m, fmt_version="2.2", binary=True)
-            _append_gmsh_views(mesh, tmp, cell_data)
+            _append_gmsh_views(mesh, tmp, cell_data, tets_only=len(m.cells) == 1)
         else:
             _meshio_module(fmt).write(str(tmp), m)
     if fmt == "medit":
