@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._apply import kept_then_new
 from ._topology import TET_FACES, corner_counts, match_rows
 
 _TRIANGLE_EDGES = np.array([[0, 1], [0, 2], [1, 2]])
@@ -89,9 +90,9 @@ class Submesh:
         )
         out = mesh._derive(
             points=points,
-            tets=np.concatenate([mesh.tets[keep], to_global[sub.tets]]),
+            tets=kept_then_new(mesh.tets, keep, to_global[sub.tets]),
             tets_checked=int(keep.sum()),
-            region=np.concatenate([mesh.region[keep], sub.region]),
+            region=kept_then_new(mesh.region, keep, sub.region),
             protected_faces=protected,
             protected_face_labels=labels,
         )
