@@ -114,3 +114,18 @@ def test_recreating_owners_against_vertex_sets(seed):
     assert expected.any() and not expected.all()
     for none in (None, np.zeros((0, 4), np.int64)):
         assert not _apply.recreating_owners(new, owner, none, n_cand).any()
+
+
+@pytest.mark.parametrize("kept_share", [0.0, 0.5, 0.99, 1.0])
+@pytest.mark.parametrize("shape", [(4,), ()])
+def test_kept_then_new_matches_concatenate(kept_share, shape):
+    """``kept_then_new`` is ``np.concatenate([rows[keep], new])`` in the rows' dtype, for
+    (m, 4) tets and (m,) labels, new rows of a narrower type, no kept or no new rows."""
+    rng = np.random.default_rng(11)
+    rows = rng.integers(0, 1000, (500, *shape)).astype(np.int64)
+    keep = rng.random(500) < kept_share
+    for k in (0, 37):
+        new = rng.integers(0, 1000, (k, *shape)).astype(np.int32)
+        got = _apply.kept_then_new(rows, keep, new)
+        assert got.dtype == np.int64
+        assert np.array_equal(got, np.concatenate([rows[keep], new.astype(np.int64)]))
