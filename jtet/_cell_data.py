@@ -54,11 +54,12 @@ def id_arrays(mesh: TetMesh) -> list[str]:
 
 
 def _same_tets(
-    before: TetMesh, after: TetMesh, moved: Bool[np.ndarray, " n_after"]
+    before: TetMesh, after: TetMesh, moved: Bool[np.ndarray, " n_after"] | None = None
 ) -> Int[np.ndarray, " m_after"]:
     """(after.n_tets,) id of the tet of ``before`` that each tet of ``after`` is (the
-    same four vertex ids, none of them moved), -1 for the others. Tets are keyed by their
-    sorted vertex ids packed into two int64 and matched through one lexsort."""
+    same four vertex ids, and none of them ``moved`` when that mask is given), -1 for the
+    others. Tets are keyed by their sorted vertex ids packed into two int64 and matched
+    through one lexsort."""
     n = max(before.n_points, after.n_points)
 
     def keys(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -75,7 +76,8 @@ def _same_tets(
     b, a = np.minimum(first, second), np.maximum(first, second) - before.n_tets
     out = np.full(after.n_tets, -1, np.int64)
     out[a] = b
-    out[moved[after.tets].any(axis=1)] = -1
+    if moved is not None:
+        out[moved[after.tets].any(axis=1)] = -1
     return out
 
 
@@ -161,9 +163,10 @@ def carried_cell_data(before: TetMesh, after: TetMesh) -> tuple[dict, int, int]:
 
     A tet of ``after`` that is a tet of ``before`` (the same vertices, none moved) keeps
     its values exactly. Any other tet takes the values of a tet of ``before`` that it
-    overlaps in a volume (found at its centroid, confirmed by exact orientation tests);
-    when none is confirmed (a tet slid off a curved boundary), the values of the input
-    tet with the nearest centroid. Integer arrays are exact when the run kept the
+    overlaps in a volume: the tet with its vertex ids if that still holds its centroid,
+    else one found at its centroid (or at a point nearer a corner), each confirmed by
+    exact orientation tests; when none is confirmed (a tet slid off a curved boundary),
+    the values of the input tet with the nearest centroid. Integer arrays are exact when the run kept the
     ``interface_faces`` in place: every tet then lies in one piece of constant values.
 
     Returns:
@@ -173,11 +176,26 @@ def carried_cell_data(before: TetMesh, after: TetMesh) -> tuple[dict, int, int]:
     data = before.cell_data
     if not data:
         return {}, 0, 0
-    same = _same_tets(before, after, moved_vertices(before, after))
-    new = np.flatnonzero(same < 0)
-    source = same.copy()
+    same = _same_tets(before, after)  # the same vertex ids, moved or not
+    unmoved = ~moved_vertices(before, after)[after.tets].any(axis=1)
+    source = np.where(unmoved, same, -1)
+    n_new = int((source < 0).sum())
+    # A tet whose vertices moved but kept their ids nearly always still holds its
+    # centroid strictly inside its input self (Gmsh cube, 182k tets: 99.7 % of 102k).
+    # Input tets do not overlap, so that is the input tet holding the centroid, the one
+    # the probe of ``_holding_tets`` looks for, confirmed by the same exact tests; only
+    # the others are probed. (VTK's rounded test near a face sometimes returned the tet
+    # beyond it, and the probe then took an input tet holding a point nearer a corner:
+    # 54 of 788k tets at 983k.) The 983k-tet cube's carrying took 7.5 -> 3.3 s.
+    moved_same = np.flatnonzero((same >= 0) & ~unmoved)
+    if len(moved_same):
+        x = np.einsum("j,qjk->qk", _SAMPLE_WEIGHTS[0], after.points[after.tets[moved_same]])
+        held = _strictly_inside(x, before.points, before.tets[same[moved_same]])
+        held &= _strictly_inside(x, after.points, after.tets[moved_same])
+        source[moved_same[held]] = same[moved_same[held]]
+    new = np.flatnonzero(source < 0)
     n_unconfirmed = 0
     if len(new):
         source[new], overlaps = _holding_tets(before, after, new)
         n_unconfirmed = int((~overlaps).sum())
-    return {name: a[source] for name, a in data.items()}, len(new), n_unconfirmed
+    return {name: a[source] for name, a in data.items()}, n_new, n_unconfirmed

@@ -115,6 +115,62 @@ def test_floats_and_ids_change_nothing_of_the_run():
     assert any(n.startswith("id: a distinct integer in every input tet") for n in r.notes)
 
 
+def _holders(mesh: jtet.TetMesh, x: np.ndarray, tol: float) -> list[np.ndarray]:
+    """For each point of ``x`` (q, 3), the tets of ``mesh`` whose barycentric coordinates
+    of it are all > ``tol`` (brute force over every tet)."""
+    p = mesh.points[mesh.tets]
+    inv = np.linalg.inv(np.transpose(p[:, 1:] - p[:, :1], (0, 2, 1)))
+    out = []
+    for point in x:
+        lam = np.einsum("tij,tj->ti", inv, point - p[:, 0])
+        bary = np.column_stack([1 - lam.sum(axis=1), lam])
+        out.append(np.flatnonzero((bary > tol).all(axis=1)))
+    return out
+
+
+@pytest.mark.parametrize("scale", [0.002, 0.05])
+def test_moved_tets_take_the_input_tet_holding_their_centroid(scale):
+    """Every tet keeps its vertex ids and the interior vertices move at random, by up to
+    ``scale`` of the unit cube (moves that would invert a tet are undone). A moved tet
+    whose centroid is still inside its own input tet (brute-force barycentric
+    coordinates above 1e-9) takes that tet's row; any other takes the row of an input
+    tet holding its centroid or one of the points nearer a corner (coordinates above
+    -1e-9: a point on a face may go to either side); unmoved tets keep their rows."""
+    mesh = delaunay_mesh(200, seed=5)
+    mesh = mesh.replace(cell_data={"tet": np.arange(mesh.n_tets)})
+    rng = np.random.default_rng(7)
+    inner = np.flatnonzero((np.abs(mesh.points - 0.5) < 0.5 - 1e-9).all(axis=1))
+    moved_pts = mesh.points.copy()
+    moved_pts[inner] += rng.uniform(-scale, scale, (len(inner), 3))
+    after = mesh.replace(points=moved_pts, cell_data=None)
+    for _ in range(50):  # the vertices of tets the moves inverted go back
+        flat = after.volumes <= 0
+        if not flat.any():
+            break
+        moved_pts[mesh.tets[flat]] = mesh.points[mesh.tets[flat]]
+        after = mesh.replace(points=moved_pts, cell_data=None)
+    assert (after.volumes > 0).all()  # still a valid mesh
+    data, n_new, n_unconfirmed = carried_cell_data(mesh, after)
+    unmoved = ~moved_vertices(mesh, after)[mesh.tets].any(axis=1)
+    assert (~unmoved).sum() > 300  # most of the mesh, or a good part of it, moved
+    assert n_new == int((~unmoved).sum()) and n_unconfirmed == 0
+    took = data["tet"]  # the input tet each tet took its row from
+    np.testing.assert_array_equal(took[unmoved], np.flatnonzero(unmoved))
+    moved = np.flatnonzero(~unmoved)
+    corners = after.points[after.tets[moved]]
+    p = mesh.points[mesh.tets[moved]]
+    inv = np.linalg.inv(np.transpose(p[:, 1:] - p[:, :1], (0, 2, 1)))
+    lam = np.einsum("qij,qj->qi", inv, corners.mean(axis=1) - p[:, 0])
+    in_own = (np.column_stack([1 - lam.sum(axis=1), lam]) > 1e-9).all(axis=1)
+    np.testing.assert_array_equal(took[moved[in_own]], moved[in_own])
+    samples = [_holders(mesh, w @ corners[~in_own], -1e-9) for w in _SAMPLE_WEIGHTS]
+    for k, q in enumerate(moved[~in_own]):
+        assert any(took[q] in held[k] for held in samples)
+    if scale > 0.01:  # the far moves took some centroids out of their own tets
+        assert (~in_own).sum() > 10
+    assert in_own.sum() > 0.5 * len(moved)
+
+
 def test_carried_cell_data_of_an_unchanged_mesh_is_exact():
     mesh = _labelled(delaunay_mesh(60, seed=2))
     data, n_new, n_unconfirmed = carried_cell_data(mesh, mesh)
