@@ -11,6 +11,24 @@ from ._topology import CORNER, FREE
 # worst: symmetric meshes end with several tets tied at the minimum to the last bits.
 TIE = 1e-9
 
+# An input in which more than this share of the tets have no interior vertex gets a note
+# (``boundary_only_share``): with the boundary fixed, smoothing has next to nothing to
+# move there. TetGen's ``-p`` without ``-q`` puts no point inside a sphere (every tet);
+# the Gmsh reference meshes have 3-4 % such tets.
+BOUNDARY_ONLY_SHARE = 0.5
+
+
+def boundary_only_share(mesh) -> tuple[float, bool]:
+    """(share of the tets of ``mesh`` whose four vertices all lie on the boundary or on
+    interfaces, whether some of those tets have a vertex that ``boundary="slide"`` lets
+    move: on a flat facet or a straight subsegment, not a CORNER)."""
+    if not mesh.n_tets:
+        return 0.0, False
+    kinds = mesh.topology.vertex_kind[mesh.tets]  # (m, 4)
+    pinned = (kinds != FREE).all(axis=1)
+    slidable = bool((pinned[:, None] & (kinds != CORNER)).any())
+    return float(pinned.mean()), slidable
+
 
 def pinned_worst_tets(mesh, quality: np.ndarray) -> np.ndarray:
     """Ids of the worst tets (within ``TIE`` of ``quality``'s (m,) minimum) whose four
@@ -36,12 +54,14 @@ def notes(
     max_dihedral,
     kept_rounds: int = 0,
     rounds: int | None = None,
+    input_boundary_only: tuple[float, bool] = (0.0, False),
 ) -> list[str]:
     """Sentences for the user about the result ``mesh`` of a run with ``options``:
     ``quality`` (m,) is its ``options.quality`` per tet, ``min_dihedral`` and
     ``max_dihedral`` (m,) its dihedral angle range per tet in degrees; ``kept_rounds``
     the perturbation rounds the run kept (-1: it stopped for a goal or a time limit) of
-    its limit ``rounds`` (None: ``options.perturb_rounds`` of ``mesh``)."""
+    its limit ``rounds`` (None: ``options.perturb_rounds`` of ``mesh``);
+    ``input_boundary_only``: ``boundary_only_share`` of the run's input."""
     out = []
     missed = _missed_goals(options, min_dihedral, max_dihedral) if len(quality) else ""
     if missed:
@@ -62,6 +82,18 @@ def notes(
             f"they still raised the worst tet; more rounds (--perturb {2 * rounds}) may "
             "raise it further, at more time"
         )
+    share, slidable = input_boundary_only
+    if share > BOUNDARY_ONLY_SHARE and options.boundary == "fixed":
+        out.append(
+            f"{share:.0%} of the input's tets have all four vertices on the boundary or on "
+            "interfaces, where boundary 'fixed' keeps them: smoothing moves only interior "
+            "vertices, so flips and the few vertices the perturbation rounds add are what "
+            "can change those tets"
+            + ("; boundary 'slide' (--boundary slide) lets those on flat facets and "
+               "straight edges move" if slidable else "")
+            + ". A mesh generated with interior points (TetGen -q, Gmsh) can be improved "
+            "much further"
+        )  # fmt: skip
     if options.boundary == "fixed" and "smooth" in options.ops:  # only smoothing slides
         stuck = pinned_worst_tets(mesh, quality)
         if len(stuck):

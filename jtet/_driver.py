@@ -447,6 +447,9 @@ def improve(
     # alone after the flip passes); the per-tet kernel is needed at once.
     prefetch_in_background(specs)
     prefetch_kernels()
+    from ._advice import boundary_only_share, notes
+
+    input_boundary_only = boundary_only_share(mesh)  # its topology is built: ~10 ms at 1M
     # one evaluation of every tet serves the statistics and the optimizer's measures
     per_tet = tet_all_measures(mesh.points, mesh.tets)
     stats_before = mesh_stats(mesh, per_tet=per_tet)
@@ -481,7 +484,6 @@ def improve(
         status = "invariant violation: " + " ".join(str(e).split())
     finally:
         ctrl_c.__exit__(None, None, None)
-    from ._advice import notes
 
     current, history = run.current, run.history
     # rounds cut short by a goal or the time limit did not stop at their own limit
@@ -502,6 +504,7 @@ def improve(
             run.hi_t,
             kept if status == "converged" else -1,
             rounds,
+            input_boundary_only,
         ),
         perturb_rounds=rounds,
     )

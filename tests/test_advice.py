@@ -7,7 +7,7 @@ import numpy as np
 from helpers import grid_mesh
 
 import jtet
-from jtet._advice import notes, pinned_worst_tets
+from jtet._advice import BOUNDARY_ONLY_SHARE, boundary_only_share, notes, pinned_worst_tets
 from jtet._quality import tet_all_measures
 from jtet.cli import main
 
@@ -144,3 +144,77 @@ def test_improve_notes_rounds_cut_by_their_limit():
     two = jtet.improve(demo, perturb=2)
     q1 = one.stats_after.quality_min["biased_min_sine"]
     assert two.stats_after.quality_min["biased_min_sine"] > q1
+
+
+def test_boundary_only_share_against_coordinates():
+    """The share of tets without an interior vertex, and whether one of them has a
+    vertex that sliding could move (on a face or an edge of the cube, not a corner),
+    against the classification by coordinates."""
+    for n in (1, 2, 3):
+        m = grid_mesh(n)
+        kinds = _kinds_from_coordinates(np.asarray(m.points))[m.tets]
+        pinned = (kinds > 0).all(axis=1)
+        share, slidable = boundary_only_share(m)
+        assert share == pinned.mean()
+        assert slidable == bool((pinned[:, None] & (kinds < 3)).any())
+    assert boundary_only_share(grid_mesh(1)) == (1.0, False)  # 6 tets, 8 corners
+
+
+def test_note_when_most_input_tets_have_no_interior_vertex():
+    m = _mesh_with_a_pinned_worst_tet()
+    q = m.quality("biased_min_sine")
+    _, lo, hi, _ = tet_all_measures(m.points, m.tets)
+
+    def share_notes(opts, share, slidable=False):
+        found = notes(m, opts, q, lo, hi, input_boundary_only=(share, slidable))
+        return [n for n in found if "of the input's tets" in n]
+
+    (note,) = share_notes(jtet.Options(), 0.75)
+    assert note.startswith("75% of the input's tets have all four vertices on the boundary")
+    assert "TetGen -q" in note and "--boundary slide" not in note
+    (note,) = share_notes(jtet.Options(), 1.0, slidable=True)
+    assert "--boundary slide" in note
+    assert share_notes(jtet.Options(), BOUNDARY_ONLY_SHARE) == []  # half is not most
+    assert share_notes(jtet.Options(boundary="slide"), 1.0, True) == []
+    # every tet good enough: no note, as for the others
+    assert share_notes(jtet.Options(good_quality=float(q.min())), 1.0) == []
+
+
+def _slab_without_interior_vertices() -> jtet.TetMesh:
+    """Delaunay tets of two layers of 14 random points (the unit square's corners among
+    them) at z = 0 and z = 0.2: every vertex lies on the slab's top or bottom face."""
+    from scipy.spatial import Delaunay
+
+    rng = np.random.default_rng(3)
+    corners = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], float)
+    pts = np.vstack(
+        [np.column_stack([corners, np.full(4, z)]) for z in (0.0, 0.2)]
+        + [np.column_stack([rng.random((10, 2)), np.full(10, z)]) for z in (0.0, 0.2)]
+    )
+    tets = Delaunay(pts).simplices.astype(np.int64)
+    p = pts[tets]
+    flip = np.linalg.det(p[:, 1:] - p[:, :1]) < 0
+    tets[flip] = tets[flip][:, [1, 0, 2, 3]]
+    return jtet.TetMesh(pts, tets)
+
+
+def test_improve_notes_an_input_without_interior_vertices(tmp_path):
+    """A slab whose vertices all lie on its top and bottom faces: the run and the
+    command say why its tets stay poor, and point to sliding (its faces are flat). The
+    demo mesh (6 % of its tets without an interior vertex, some below good_quality after
+    the run, so the notes are looked for) gets no such note."""
+    m = _slab_without_interior_vertices()
+    assert boundary_only_share(m) == (1.0, True)
+    r = jtet.improve(m, perturb=0)
+    assert r.stats_after.quality_min["biased_min_sine"] < 0.6
+    (note,) = [n for n in r.notes if "of the input's tets" in n]
+    assert note.startswith("100% of the input's tets") and "--boundary slide" in note
+    src, out = tmp_path / "in.vtu", tmp_path / "out.vtu"
+    jtet.save(m, src)
+    stdout = io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(io.StringIO()):
+        assert main(["improve", str(src), str(out), "--perturb", "0"]) == 0
+    assert "note: 100% of the input's tets" in stdout.getvalue()
+    demo = jtet.improve(jtet.demo_mesh(), perturb=0)
+    assert demo.stats_after.quality_min["biased_min_sine"] < 0.6
+    assert not any("of the input's tets" in n for n in demo.notes)
