@@ -18,16 +18,22 @@ TIE = 1e-9
 BOUNDARY_ONLY_SHARE = 0.5
 
 
+def _pinned(kinds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(pinned, slidable), each (t,) bool, for the vertex kinds (t, 4) of t tets: whether
+    all four vertices lie on the boundary or on interfaces (no FREE one), and whether
+    such a tet has one on a flat facet or a straight subsegment (not a CORNER), which
+    ``boundary="slide"`` may move."""
+    pinned = (kinds != FREE).all(axis=1)
+    return pinned, pinned & (kinds != CORNER).any(axis=1)
+
+
 def boundary_only_share(mesh) -> tuple[float, bool]:
     """(share of the tets of ``mesh`` whose four vertices all lie on the boundary or on
-    interfaces, whether some of those tets have a vertex that ``boundary="slide"`` lets
-    move: on a flat facet or a straight subsegment, not a CORNER)."""
+    interfaces, whether ``boundary="slide"`` may move a vertex of one of them)."""
     if not mesh.n_tets:
         return 0.0, False
-    kinds = mesh.topology.vertex_kind[mesh.tets]  # (m, 4)
-    pinned = (kinds != FREE).all(axis=1)
-    slidable = bool((pinned[:, None] & (kinds != CORNER)).any())
-    return float(pinned.mean()), slidable
+    pinned, slidable = _pinned(mesh.topology.vertex_kind[mesh.tets])
+    return float(pinned.mean()), bool(slidable.any())
 
 
 def pinned_worst_tets(mesh, quality: np.ndarray) -> np.ndarray:
@@ -42,8 +48,7 @@ def pinned_worst_tets(mesh, quality: np.ndarray) -> np.ndarray:
     # the kinds of these vertices only: after perturbation rounds the mesh has no
     # topology, and a whole build here was ~3 % of a holeplate run
     kinds = mesh.vertex_kinds(mesh.tets[worst].reshape(-1)).reshape(-1, 4)  # (w, 4)
-    pinned = (kinds != FREE).all(axis=1) & (kinds != CORNER).any(axis=1)
-    return worst[pinned]
+    return worst[_pinned(kinds)[1]]
 
 
 def notes(

@@ -166,8 +166,9 @@ def carried_cell_data(before: TetMesh, after: TetMesh) -> tuple[dict, int, int]:
     overlaps in a volume: the tet with its vertex ids if that still holds its centroid,
     else one found at its centroid (or at a point nearer a corner), each confirmed by
     exact orientation tests; when none is confirmed (a tet slid off a curved boundary),
-    the values of the input tet with the nearest centroid. Integer arrays are exact when the run kept the
-    ``interface_faces`` in place: every tet then lies in one piece of constant values.
+    the values of the input tet with the nearest centroid. Integer arrays are exact when
+    the run kept the ``interface_faces`` in place: every tet then lies in one piece of
+    constant values.
 
     Returns:
         ``({name: (after.n_tets, ...) array of the input's dtype}, number of tets that
