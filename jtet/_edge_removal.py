@@ -218,10 +218,10 @@ def edge_removal_pass(
         ring_all = ch.verts[
             ch.ptr[solve][:, None] + np.minimum(np.arange(width), sizes[:, None] - 1)
         ]
-        qn, tris_all = solve_rings(
-            pts[a_all[solve]],
-            pts[b_all[solve]],
-            pts[ring_all],
+        qn, tris_all = solve_rings(  # (np.take: faster than indexing for row gathers)
+            np.take(pts, a_all[solve], axis=0),
+            np.take(pts, b_all[solve], axis=0),
+            np.take(pts, ring_all, axis=0),
             q_old[ch.cand[solve]],
             measure=measure,
             prune=prune,

@@ -40,6 +40,20 @@ def _dot(u: list, v: list) -> np.ndarray:
     return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
 
 
+def _firsts(grouped: Int[np.ndarray, " k"]) -> Bool[np.ndarray, " k"]:
+    """(k,) bool: the first entry of each run of equal values of ``grouped``."""
+    first = np.ones(len(grouped), bool)
+    np.not_equal(grouped[1:], grouped[:-1], out=first[1:])
+    return first
+
+
+def _distinct(keys: Int[np.ndarray, " k"]) -> Int[np.ndarray, " u"]:
+    """The distinct values of ``keys``, increasing. (np.unique took 60x a sort's time on
+    a million int64 keys in NumPy 2.4: its hash table path.)"""
+    keys = np.sort(keys, axis=None)
+    return keys[_firsts(keys)]
+
+
 def _holding_tets(
     mesh: TetMesh,
     where: Float[np.ndarray, "q 3"],
@@ -50,7 +64,7 @@ def _holding_tets(
     weights: Float[np.ndarray, "q 4"],
 ) -> None:
     """For every point ``where[i]`` not yet ``found``, the first of its candidate tets
-    (the pairs ``(point_of, tet_of)``) of ``mesh`` that holds it, every barycentric
+    (the pairs ``(point_of, tet_of)``, grouped by point) of ``mesh`` that holds it, every barycentric
     weight >= 0 as computed (a point on a face shared by two candidates takes either:
     both give one value to rounding): its vertex ids and weights go to ``corners`` and
     ``weights`` and it is marked ``found`` (all three updated in place)."""
@@ -72,7 +86,7 @@ def _holding_tets(
         w0 = 1.0 - w[:, 0] - w[:, 1] - w[:, 2]
         inside = (det > 0) & (w[:, 0] >= 0) & (w[:, 1] >= 0) & (w[:, 2] >= 0) & (w0 >= 0)
         hit = np.flatnonzero(inside & ~found[o])
-        hit = hit[np.unique(o[hit], return_index=True)[1]]  # one tet per point
+        hit = hit[_firsts(o[hit])]  # one tet per point
         rows = o[hit]
         corners[rows] = corner[hit]
         weights[rows, 0], weights[rows, 1:] = w0[hit], w[hit]
@@ -95,15 +109,21 @@ def _star_pairs(
 def _tets_around(
     before: TetMesh, point_of: Int[np.ndarray, " k"], vertex: Int[np.ndarray, " k"]
 ) -> tuple[Int[np.ndarray, " p"], Int[np.ndarray, " p"]]:
-    """(point (p,), tet (p,)) candidate pairs: for each pair (point, vertex of
-    ``before``), the point with every tet of ``before`` at the vertex."""
-    index_of = np.full(before.n_points, -1, np.int64)
-    vertices, index = np.unique(vertex, return_inverse=True)
+    """(point (p,), tet (p,)) candidate pairs, each once: for each pair (point, vertex
+    of ``before``), the point with every tet of ``before`` at the vertex."""
+    index_of = np.zeros(before.n_points, np.int64)
+    index_of[vertex] = 1
+    vertices = np.flatnonzero(index_of)
+    index_of[:] = -1
     index_of[vertices] = np.arange(len(vertices))
+    index = index_of[vertex]
     star_index, star_tet = _star_pairs(before.tets, index_of)
     ptr = np.searchsorted(star_index, np.arange(len(vertices) + 1))
     pos, _ = csr_rows(ptr, index)
-    return np.repeat(point_of, ptr[index + 1] - ptr[index]), star_tet[pos]
+    # a tet at two of a point's vertices comes twice: tested once (~3x fewer pairs)
+    m = np.int64(before.n_tets)
+    pairs = _distinct(np.repeat(point_of, ptr[index + 1] - ptr[index]) * m + star_tet[pos])
+    return pairs // before.n_tets, pairs % before.n_tets
 
 
 def _float_values(
@@ -133,50 +153,66 @@ def _float_values(
     own[ids[old]] = np.flatnonzero(old)
     _holding_tets(before, where, *_star_pairs(before.tets, own), found, corners, weights)
     rest = np.flatnonzero(~found)
+    local = None  # the input tets around the points still not found
     if len(rest):  # the input tets at the vertices of each one's star in after
         at = np.full(after.n_points, -1, np.int64)
         at[ids[rest]] = rest
         point_of, tet_of = _star_pairs(after.tets, at)
-        near = np.unique(point_of[:, None] * np.int64(after.n_points) + after.tets[tet_of])
+        near = _distinct(point_of[:, None] * np.int64(after.n_points) + after.tets[tet_of])
         point_of, vertex = near // after.n_points, near % after.n_points
         old = vertex < before.n_points
-        pairs = _tets_around(before, point_of[old], vertex[old])
-        _holding_tets(before, where, *pairs, found, corners, weights)
-    probed, probe_hit = {}, np.zeros(0, bool)
+        point_of, tet_of = _tets_around(before, point_of[old], vertex[old])
+        _holding_tets(before, where, point_of, tet_of, found, corners, weights)
+        local = np.zeros(before.n_tets, bool)
+        local[tet_of[~found[point_of]]] = True
+        local = np.flatnonzero(local)
+    # VTK's probe (over those tets, then every tet), then the input tets at the vertices
+    # of the tet it found; its own value where none of them holds the point
+    probed = {name: np.zeros((q, *a.shape[1:])) for name, a in floats.items()}
+    probe_hit = np.zeros(q, bool)
     rest = np.flatnonzero(~found)
-    if len(rest):  # VTK's probe, then the input tets at the vertices of its tet
-        probed, probe_hit, tet = _probed(before, floats, where[rest])
-        point_of = np.repeat(rest[probe_hit], 4)
-        pairs = _tets_around(before, point_of, before.tets[tet[probe_hit]].reshape(-1))
+    sources = [None] if local is None or len(local) == before.n_tets else [local, None]
+    for tet_ids in sources if len(rest) else []:
+        got, hit, tet = _probed(before, floats, where[rest], tet_ids)
+        for name in floats:
+            probed[name][rest[hit]] = got[name][hit]
+        probe_hit[rest[hit]] = True
+        pairs = _tets_around(before, np.repeat(rest[hit], 4), before.tets[tet[hit]].reshape(-1))
         _holding_tets(before, where, *pairs, found, corners, weights)
+        rest = rest[~hit]
+        if not len(rest):
+            break
     values = {}
+    extrapolated = probe_hit & ~found
     for name, a in floats.items():
         corner_values = np.take(a.reshape(len(a), -1), corners, axis=0)  # (q, 4, width)
         values[name] = np.einsum("qj,qjw->qw", weights, corner_values).reshape(q, *a.shape[1:])
-        if len(rest):
-            extrapolated = probe_hit & ~found[rest]
-            values[name][rest[extrapolated]] = probed[name][extrapolated]
-    if len(rest):
-        found[rest[probe_hit]] = True
-    return values, found
+        values[name][extrapolated] = probed[name][extrapolated]
+    return values, found | probe_hit
 
 
 def _probed(
-    before: TetMesh, arrays: dict, where: Float[np.ndarray, "q 3"]
+    before: TetMesh,
+    arrays: dict,
+    where: Float[np.ndarray, "q 3"],
+    tet_ids: Int[np.ndarray, " k"] | None = None,
 ) -> tuple[dict, Bool[np.ndarray, " q"], Int[np.ndarray, " q"]]:
     """(values {name: (q, ...) float64 array}, found (q,) bool, tet (q,)): the float64
     point ``arrays`` of ``before`` interpolated linearly at the points ``where`` by VTK's
-    probe filter, in the tet ``tet`` of ``before`` it found holding each point (within
-    its tolerance). Points in none are not ``found`` (their values are garbage)."""
+    probe filter, in the tet ``tet`` of ``before`` (among ``tet_ids``, default all) it
+    found holding each point (within its tolerance). Points in none are not ``found``
+    (their values are garbage)."""
     import pyvista as pv
 
-    cells = np.concatenate([np.full((before.n_tets, 1), 4, np.int64), before.tets], axis=1)
+    tet_ids = np.arange(before.n_tets) if tet_ids is None else tet_ids
+    tets = before.tets[tet_ids]
+    cells = np.concatenate([np.full((len(tets), 1), 4, np.int64), tets], axis=1)
     source = pv.UnstructuredGrid(
-        cells.ravel(), np.full(before.n_tets, pv.CellType.TETRA, np.uint8), before.points
+        cells.ravel(), np.full(len(tets), pv.CellType.TETRA, np.uint8), before.points
     )
     for name, a in arrays.items():
         source.point_data[name] = a
-    source.cell_data["jtet_tet"] = np.arange(before.n_tets)
+    source.cell_data["jtet_tet"] = tet_ids
     probed = pv.PolyData(where).sample(source, pass_cell_data=False, pass_point_data=False)
     found = np.asarray(probed.point_data["vtkValidPointMask"]).astype(bool)
     values = {name: np.asarray(probed.point_data[name]).reshape(len(where), *a.shape[1:])
