@@ -11,7 +11,7 @@ import numpy as np
 from jaxtyping import Bool, Float, Int
 
 from ._mesh import TetMesh
-from ._topology import _stable_sort, csr_rows
+from ._topology import _stable_sort, csr_rows, distinct_values, first_of_runs
 
 
 def moved_vertices(before: TetMesh, after: TetMesh) -> Bool[np.ndarray, " n_after"]:
@@ -40,20 +40,6 @@ def _dot(u: list, v: list) -> np.ndarray:
     return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
 
 
-def _firsts(grouped: Int[np.ndarray, " k"]) -> Bool[np.ndarray, " k"]:
-    """(k,) bool: the first entry of each run of equal values of ``grouped``."""
-    first = np.ones(len(grouped), bool)
-    np.not_equal(grouped[1:], grouped[:-1], out=first[1:])
-    return first
-
-
-def _distinct(keys: Int[np.ndarray, " k"]) -> Int[np.ndarray, " u"]:
-    """The distinct values of ``keys``, increasing. (np.unique took 60x a sort's time on
-    a million int64 keys in NumPy 2.4: its hash table path.)"""
-    keys = np.sort(keys, axis=None)
-    return keys[_firsts(keys)]
-
-
 def _holding_tets(
     mesh: TetMesh,
     where: Float[np.ndarray, "q 3"],
@@ -64,10 +50,11 @@ def _holding_tets(
     weights: Float[np.ndarray, "q 4"],
 ) -> None:
     """For every point ``where[i]`` not yet ``found``, the first of its candidate tets
-    (the pairs ``(point_of, tet_of)``, grouped by point) of ``mesh`` that holds it, every barycentric
-    weight >= 0 as computed (a point on a face shared by two candidates takes either:
-    both give one value to rounding): its vertex ids and weights go to ``corners`` and
-    ``weights`` and it is marked ``found`` (all three updated in place)."""
+    (the pairs ``(point_of, tet_of)``, grouped by point) of ``mesh`` that holds it,
+    every barycentric weight >= 0 as computed (a point on a face shared by two
+    candidates takes either: both give one value to rounding): its vertex ids and
+    weights go to ``corners`` and ``weights`` and it is marked ``found`` (all three
+    updated in place)."""
     tets = mesh.tets
     cols = [np.ascontiguousarray(mesh.points[:, k]) for k in range(3)]
     at = [np.ascontiguousarray(where[:, k]) for k in range(3)]
@@ -86,7 +73,7 @@ def _holding_tets(
         w0 = 1.0 - w[:, 0] - w[:, 1] - w[:, 2]
         inside = (det > 0) & (w[:, 0] >= 0) & (w[:, 1] >= 0) & (w[:, 2] >= 0) & (w0 >= 0)
         hit = np.flatnonzero(inside & ~found[o])
-        hit = hit[_firsts(o[hit])]  # one tet per point
+        hit = hit[first_of_runs(o[hit])]  # one tet per point
         rows = o[hit]
         corners[rows] = corner[hit]
         weights[rows, 0], weights[rows, 1:] = w0[hit], w[hit]
@@ -122,7 +109,7 @@ def _tets_around(
     pos, _ = csr_rows(ptr, index)
     # a tet at two of a point's vertices comes twice: tested once (~3x fewer pairs)
     m = np.int64(before.n_tets)
-    pairs = _distinct(np.repeat(point_of, ptr[index + 1] - ptr[index]) * m + star_tet[pos])
+    pairs = distinct_values(np.repeat(point_of, ptr[index + 1] - ptr[index]) * m + star_tet[pos])
     return pairs // before.n_tets, pairs % before.n_tets
 
 
@@ -158,7 +145,7 @@ def _float_values(
         at = np.full(after.n_points, -1, np.int64)
         at[ids[rest]] = rest
         point_of, tet_of = _star_pairs(after.tets, at)
-        near = _distinct(point_of[:, None] * np.int64(after.n_points) + after.tets[tet_of])
+        near = distinct_values(point_of[:, None] * np.int64(after.n_points) + after.tets[tet_of])
         point_of, vertex = near // after.n_points, near % after.n_points
         old = vertex < before.n_points
         point_of, tet_of = _tets_around(before, point_of[old], vertex[old])

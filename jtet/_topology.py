@@ -193,6 +193,22 @@ def _stable_sort(keys: np.ndarray, key_bits: int) -> tuple[np.ndarray, np.ndarra
     return perm, keys[perm]
 
 
+def first_of_runs(grouped: np.ndarray) -> np.ndarray:
+    """(k,) bool: the first entry of each run of equal values of ``grouped`` (k,)."""
+    first = np.ones(len(grouped), bool)
+    np.not_equal(grouped[1:], grouped[:-1], out=first[1:])
+    return first
+
+
+def distinct_values(values: np.ndarray) -> np.ndarray:
+    """The distinct values of ``values`` (any shape, flattened), increasing: np.unique
+    without its hash table, which NumPy 2.4 uses when no index is asked for and which
+    took 60x a sort's time on a million distinct int64 values (40 ms against 3 ms on a
+    million copies of one label)."""
+    values = np.sort(values, axis=None)
+    return values[first_of_runs(values)]
+
+
 def _group(keys: np.ndarray, dtype=np.int64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Group equal keys with ONE sort: (perm, ptr, inverse).
 
