@@ -30,6 +30,14 @@ def moved_vertices(before: TetMesh, after: TetMesh) -> Bool[np.ndarray, " n_afte
 _PAIR_CHUNK = 1 << 18
 
 
+# A tet holds a point when every barycentric weight of the point is at least -this: a
+# vertex slid within a boundary face lies in its plane, and its weight towards the apex
+# off that face rounds to +-1e-17 (all its tets may give a negative one). A weight of
+# -1e-12 extrapolates a field by 1e-12 of its change over the tet: below what the data
+# can show, where the tet beyond (VTK's probe) was off by up to 1e-4.
+WEIGHT_SLACK = 1e-12
+
+
 def _cross(u: list, v: list) -> list:
     """u x v of vectors given as their three coordinate arrays."""
     return [u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]]
@@ -51,8 +59,8 @@ def _holding_tets(
 ) -> None:
     """For every point ``where[i]`` not yet ``found``, the first of its candidate tets
     (the pairs ``(point_of, tet_of)``, grouped by point) of ``mesh`` that holds it,
-    every barycentric weight >= 0 as computed (a point on a face shared by two
-    candidates takes either: both give one value to rounding): its vertex ids and
+    every barycentric weight >= -``WEIGHT_SLACK`` as computed (a point on a face shared
+    by two candidates takes either: both give one value to rounding): its vertex ids and
     weights go to ``corners`` and ``weights`` and it is marked ``found`` (all three
     updated in place)."""
     tets = mesh.tets
@@ -71,7 +79,8 @@ def _holding_tets(
         with np.errstate(divide="ignore", invalid="ignore"):
             w = np.stack([_dot(r, bc), _dot(r, ca), _dot(r, ab)], axis=1) / det[:, None]
         w0 = 1.0 - w[:, 0] - w[:, 1] - w[:, 2]
-        inside = (det > 0) & (w[:, 0] >= 0) & (w[:, 1] >= 0) & (w[:, 2] >= 0) & (w0 >= 0)
+        low = -WEIGHT_SLACK
+        inside = (det > 0) & (w[:, 0] >= low) & (w[:, 1] >= low) & (w[:, 2] >= low) & (w0 >= low)
         hit = np.flatnonzero(inside & ~found[o])
         hit = hit[first_of_runs(o[hit])]  # one tet per point
         rows = o[hit]
@@ -123,7 +132,7 @@ def _float_values(
     A run moves a vertex within the neighbourhood of where it was. Each moved vertex
     looks for the tet holding it in its own input star first (the 983k-tet cube: all
     65.6k), then, with the inserted vertices, among the input tets at the vertices of
-    its new star, each by barycentric weights (>= 0 as computed). The rest go to VTK's
+    its new star, each by barycentric weights (``_holding_tets``). The rest go to VTK's
     probe over every tet, and then to the input tets at the vertices of the tet it
     found: its cells' inside test has a tolerance, and near a face it may return the
     tet beyond, whose extrapolation of a curved field was off by up to 1e-3 in the

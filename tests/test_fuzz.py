@@ -18,6 +18,7 @@ import os
 
 import numpy as np
 import pytest
+from helpers import brute_force_interpolation
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from strategies import DAMAGE_OPS, build_mesh, mesh_specs, options
@@ -25,6 +26,7 @@ from strategies import DAMAGE_OPS, build_mesh, mesh_specs, options
 import jtet
 from jtet._edge_removal import edge_removal_pass
 from jtet._invariants import InvariantChecker
+from jtet._point_data import moved_vertices
 
 PROFILE = os.environ.get("JTET_FUZZ_PROFILE", "ci")
 TOTAL = int(os.environ.get("JTET_FUZZ_CASES", 100_000 if PROFILE == "long" else 2000))
@@ -168,7 +170,11 @@ def _improve(spec, opts):
     # and an integer cell array (the side of a plane the tets' centroids are on): the run
     # keeps the faces where it changes value, so each side keeps its volume
     side = (unit[mesh.tets].mean(axis=1) @ [1.0, 0.5, 0.0] > 0.7).astype(np.int16)
-    mesh = mesh.replace(point_data={"f": unit @ [1.0, -2.0, 0.5]}, cell_data={"side": side})
+    # and a curved field, which only the tet holding a point interpolates right
+    curved = np.sin(3 * unit[:, 0]) * np.exp(unit[:, 1]) + unit[:, 2] ** 2
+    mesh = mesh.replace(
+        point_data={"f": unit @ [1.0, -2.0, 0.5], "g": curved}, cell_data={"side": side}
+    )
     tets, points = mesh.tets.copy(), mesh.points.copy()
     result = jtet.improve(mesh, opts)
     assert not result.status.startswith("invariant violation"), (spec, opts, result.status)
@@ -216,6 +222,14 @@ def _improve(spec, opts):
     if not any("lie in no tet" in note for note in result.notes):
         pts = (result.mesh.points - lo) / np.where(hi > lo, hi - lo, 1.0)
         np.testing.assert_allclose(f, pts @ [1.0, -2.0, 0.5], rtol=0, atol=1e-9)
+        # where the input's tets do not overlap (none inverted or flat), the tet
+        # holding a point is unique: the curved field is its interpolation there
+        if before.n_inverted + before.n_degenerate == 0:
+            moved = np.flatnonzero(moved_vertices(mesh, result.mesh))
+            ref, weight = brute_force_interpolation(mesh, curved, result.mesh.points[moved])
+            inside = weight >= 0  # not a vertex slid out of the input (feature angle)
+            g = result.mesh.point_data["g"][moved]
+            np.testing.assert_allclose(g[inside], ref[inside], rtol=0, atol=1e-9)
     # the cell data: one value per tet; with the boundary's and interfaces' shape kept
     # (no feature angle) and no inverted or flat input tet, each side's volume is kept to
     # rounding (sums of signed volumes: ~1e-15 relative per term)

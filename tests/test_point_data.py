@@ -7,7 +7,7 @@ import warnings
 
 import numpy as np
 import pytest
-from helpers import delaunay_mesh
+from helpers import brute_force_interpolation, delaunay_mesh
 
 import jtet
 from jtet import MeshInputError
@@ -97,20 +97,6 @@ def _scratch(q: int) -> tuple:
     return np.zeros((q, 4), np.int64), np.zeros((q, 4))
 
 
-def _brute_force_interpolation(mesh, f, where):
-    """f (n,) interpolated linearly at each point of ``where`` (q, 3) in the tet of
-    ``mesh`` holding it best (largest smallest barycentric weight), from the weights in
-    every tet by a dense linear solve; and that smallest weight (q,)."""
-    p = mesh.points[mesh.tets]  # (m, 4, 3)
-    edges = np.transpose(p[:, 1:] - p[:, :1], (0, 2, 1))  # (m, 3, 3) columns p_i - p_0
-    rel = where[:, None, :] - p[None, :, 0]  # (q, m, 3)
-    lam = np.linalg.solve(edges[None], rel[..., None])[..., 0]  # (q, m, 3)
-    weights = np.concatenate([1 - lam.sum(axis=2, keepdims=True), lam], axis=2)
-    best = np.argmax(weights.min(axis=2), axis=1)
-    w = weights[np.arange(len(where)), best]
-    return (w * f[mesh.tets[best]]).sum(axis=1), w.min(axis=1)
-
-
 @pytest.mark.parametrize("step", [0.002, 0.05, 0.3])
 def test_carried_values_match_brute_force_on_a_curved_field(step):
     """A curved field (no interpolation reproduces it) carried onto interior vertices
@@ -131,7 +117,7 @@ def test_carried_values_match_brute_force_on_a_curved_field(step):
     after = jtet.TetMesh(points, before.tets)  # tets may invert: only positions matter
     data, n_outside = carried_point_data(before, after)
     moved = moved_vertices(before, after)
-    ref, inside = _brute_force_interpolation(before, g, after.points[moved])
+    ref, inside = brute_force_interpolation(before, g, after.points[moved])
     assert n_outside == 0 and (inside > -1e-12).all()  # clipped into the unit cube
     np.testing.assert_allclose(data["g"][moved], ref, rtol=0, atol=ATOL)
     np.testing.assert_allclose(data["gv"][moved][:, 1], -2 * ref, rtol=0, atol=2 * ATOL)
@@ -147,6 +133,27 @@ def test_carried_values_match_brute_force_on_a_curved_field(step):
         assert in_star.all()
     if step >= 0.3:
         assert (~in_star).sum() > 10
+
+
+def test_vertices_slid_within_a_boundary_face_take_their_holding_tets_values():
+    """Vertices of the cube's bottom face slid within it (z stays 0): a position in the
+    plane of a boundary face has a weight ~1e-17 either side of 0 towards the apex off
+    that face, in every tet at it; the carried curved field is still the interpolation
+    in the tet holding the point (VTK's probe took a tet beyond within its tolerance)."""
+    before = delaunay_mesh(150, seed=0, surface_points=300)
+    x, y, z = before.points.T
+    g = np.sin(3 * x) * np.exp(y) + z**2 + x * y
+    before = before.replace(point_data={"g": g})
+    bottom = np.flatnonzero((z == 0) & (np.minimum(x, y) > 0.05) & (np.maximum(x, y) < 0.95))
+    assert len(bottom) >= 5
+    rng = np.random.default_rng(4)
+    points = before.points.copy()
+    points[bottom, :2] += rng.uniform(-0.01, 0.01, (len(bottom), 2))
+    after = jtet.TetMesh(points, before.tets)
+    data, n_outside = carried_point_data(before, after)
+    ref, weight = brute_force_interpolation(before, g, points[bottom])
+    assert n_outside == 0 and (weight > -1e-12).all()
+    np.testing.assert_allclose(data["g"][bottom], ref, rtol=0, atol=ATOL)
 
 
 def test_nothing_moved_keeps_the_arrays():
