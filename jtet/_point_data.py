@@ -33,8 +33,8 @@ _PAIR_CHUNK = 1 << 18
 # A tet holds a point when every barycentric weight of the point is at least -this: a
 # vertex slid within a boundary face lies in its plane, and its weight towards the apex
 # off that face rounds to +-1e-17 (all its tets may give a negative one). A weight of
-# -1e-12 extrapolates a field by 1e-12 of its change over the tet: below what the data
-# can show, where the tet beyond (VTK's probe) was off by up to 1e-4.
+# -1e-12 extrapolates a field by 1e-12 of its change over the tet, where the tet beyond
+# that VTK's probe took was off by up to 0.03 (experiments/results/point_data.md).
 WEIGHT_SLACK = 1e-12
 
 
@@ -107,10 +107,10 @@ def _tets_around(
 ) -> tuple[Int[np.ndarray, " p"], Int[np.ndarray, " p"]]:
     """(point (p,), tet (p,)) candidate pairs, each once: for each pair (point, vertex
     of ``before``), the point with every tet of ``before`` at the vertex."""
-    index_of = np.zeros(before.n_points, np.int64)
-    index_of[vertex] = 1
-    vertices = np.flatnonzero(index_of)
-    index_of[:] = -1
+    mark = np.zeros(before.n_points, bool)
+    mark[vertex] = True
+    vertices = np.flatnonzero(mark)
+    index_of = np.full(before.n_points, -1, np.int64)
     index_of[vertices] = np.arange(len(vertices))
     index = index_of[vertex]
     star_index, star_tet = _star_pairs(before.tets, index_of)
@@ -133,11 +133,12 @@ def _float_values(
     looks for the tet holding it in its own input star first (the 983k-tet cube: all
     65.6k), then, with the inserted vertices, among the input tets at the vertices of
     its new star, each by barycentric weights (``_holding_tets``). The rest go to VTK's
-    probe over every tet, and then to the input tets at the vertices of the tet it
-    found: its cells' inside test has a tolerance, and near a face it may return the
-    tet beyond, whose extrapolation of a curved field was off by up to 1e-3 in the
-    tests. A point in none of those takes the probe's value if the probe found one (a
-    vertex slid just outside the input's boundary), else it is not ``found``."""
+    probe, over those tets and then over every tet, and then to the input tets at the
+    vertices of the tet it found: its cells' inside test has a tolerance, and near a
+    face it may return the tet beyond, whose extrapolation of a curved field was off by
+    up to 5e-4 on real runs' outputs. A point in none of those takes the probe's value
+    if the probe found one (a vertex slid just outside the input's boundary), else it is
+    not ``found``."""
     q = len(where)
     ids = np.flatnonzero(moved)
     corners = np.zeros((q, 4), np.int64)

@@ -50,7 +50,12 @@ from ._quality import (
     get_measure,
     tet_all_measures,
 )
-from ._topology import STAR_PERM, csr_rows
+from ._topology import csr_rows
+
+# For a tet whose local vertex i is the smoothed vertex v, the other three vertices in an
+# order that makes (v, f0, f1, f2) an even permutation of the tet, hence positively oriented
+# exactly when the tet is: (0,1,2,3), (1,0,3,2), (2,3,0,1), (3,2,1,0) without their head.
+STAR_PERM = np.array([[1, 2, 3], [0, 3, 2], [3, 0, 1], [2, 1, 0]], dtype=np.int64)
 
 SOLVERS = ("bfgs", "ncg", "bfgs_tr", "active_set", "hybrid")
 # Stars up to 56 tets share one kernel shape (K = 56). A second, smaller shape (K = 32)

@@ -25,10 +25,6 @@ TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 # (i, j, l, k) of (0, 1, 2, 3) is even: then (a, b, v_l, v_k) has the tet's orientation,
 # i.e. the ring steps from v_k to v_l.
 _EDGE_OTHERS = np.array([[3, 2], [1, 3], [2, 1], [3, 0], [0, 2], [1, 0]])
-# For a tet whose local vertex i is a vertex v, the other three vertices in an order
-# that makes (v, f0, f1, f2) an even permutation of the tet, hence positively oriented
-# exactly when the tet is: (0,1,2,3), (1,0,3,2), (2,3,0,1), (3,2,1,0) without their head.
-STAR_PERM = np.array([[1, 2, 3], [0, 3, 2], [3, 0, 1], [2, 1, 0]], dtype=np.int64)
 # Vertex kinds for smoothing / protection.
 FREE, SURFACE, SEGMENT, CORNER = 0, 1, 2, 3
 
@@ -219,9 +215,7 @@ def _group(keys: np.ndarray, dtype=np.int64) -> tuple[np.ndarray, np.ndarray, np
     return_index and return_inverse would sort twice.
     """
     perm, sk = _stable_sort(keys, int(keys.max()).bit_length() if len(keys) else 0)
-    new = np.empty(len(sk), bool)
-    new[:1] = True
-    np.not_equal(sk[1:], sk[:-1], out=new[1:])
+    new = first_of_runs(sk)
     gid_sorted = np.cumsum(new, dtype=dtype)
     gid_sorted -= 1
     inverse = np.empty(len(keys), dtype)
