@@ -93,17 +93,13 @@ def test_carried_onto_moved_new_and_outside_vertices():
     np.testing.assert_array_equal(data["marker"][still], marker[still])
 
 
-def _scratch(q: int) -> tuple:
-    return np.zeros((q, 4), np.int64), np.zeros((q, 4))
-
-
 @pytest.mark.parametrize("step", [0.002, 0.05, 0.3])
 def test_carried_values_match_brute_force_on_a_curved_field(step):
     """A curved field (no interpolation reproduces it) carried onto interior vertices
     moved at random, against the brute-force interpolation in the tet holding each new
     position: vertices found in their own input star, and (steps of 0.3, about the mean
-    edge length) many that left it and went to the probe. On a face shared by two tets
-    both give one value, to rounding."""
+    edge length) many that left it, found around their new star or by the probe. On a
+    face shared by two tets both give one value, to rounding."""
     from jtet._point_data import _holding_tets, _star_pairs
 
     before = delaunay_mesh(300, seed=5)
@@ -128,7 +124,8 @@ def test_carried_values_match_brute_force_on_a_curved_field(step):
     own[ids] = np.arange(len(ids))
     in_star = np.zeros(len(ids), bool)
     pairs = _star_pairs(before.tets, own)
-    _holding_tets(before, after.points[ids], *pairs, in_star, *_scratch(len(ids)))
+    corners, weights = np.zeros((len(ids), 4), np.int64), np.zeros((len(ids), 4))
+    _holding_tets(before, after.points[ids], *pairs, in_star, corners, weights)
     if step <= 0.002:
         assert in_star.all()
     if step >= 0.3:
