@@ -10,7 +10,7 @@ from jaxtyping import Bool, Float, Int
 from ._mesh import TetMesh
 from ._point_data import moved_vertices
 from ._predicates import orient3d
-from ._topology import distinct_values
+from ._topology import _stable_sort, distinct_values
 
 # Points inside a tet (barycentric weights, rows) at which a new tet looks for the input
 # tet that holds it: the centroid, then four points nearer one corner each, for when the
@@ -62,7 +62,7 @@ def _same_tets(
     """(after.n_tets,) id of the tet of ``before`` that each tet of ``after`` is (the
     same four vertex ids, and none of them ``moved`` when that mask is given), -1 for the
     others. Tets are keyed by their sorted vertex ids packed into two int64 and matched
-    through one lexsort."""
+    through one sort by both."""
     n = max(before.n_points, after.n_points)
 
     def keys(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -72,7 +72,11 @@ def _same_tets(
     hb, lb = keys(before.tets)
     ha, la = keys(after.tets)
     hi, lo = np.concatenate([hb, ha]), np.concatenate([lb, la])
-    order = np.lexsort((lo, hi))
+    # np.lexsort((lo, hi)) as two stable value sorts, low key first (983k-tet meshes:
+    # 0.82 -> 0.38 s)
+    by_lo, _ = _stable_sort(lo, int(lo.max(initial=0)).bit_length())
+    by_hi, _ = _stable_sort(hi[by_lo], int(hi.max(initial=0)).bit_length())
+    order = by_lo[by_hi]
     same = (hi[order[1:]] == hi[order[:-1]]) & (lo[order[1:]] == lo[order[:-1]])
     # a mesh holds no tet twice, so an equal pair is one tet of each mesh
     first, second = order[:-1][same], order[1:][same]
