@@ -1,7 +1,7 @@
 """What carrying point data through ``jtet.improve`` costs, and how exact it is.
 
 For each mesh: runs without point data and with three linear fields (a float64 scalar,
-a float32 vector, an int32 marker), alternating, in this process, after a warm-up run
+a float32 vector, an int32 marker) and a curved one (``S``), alternating, in this process, after a warm-up run
 that compiles; prints the median run times, their ratio, the seconds of the carrying itself
 (barycentric weights in the input tets around each moved vertex, a k-d tree for the
 integer array), how many vertices moved or were inserted, and the largest error of the
