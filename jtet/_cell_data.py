@@ -8,7 +8,7 @@ import numpy as np
 from jaxtyping import Bool, Float, Int
 
 from ._mesh import TetMesh
-from ._point_data import moved_vertices
+from ._point_data import moved_vertices, tet_grid
 from ._predicates import orient3d
 from ._topology import _stable_sort, distinct_values
 
@@ -56,12 +56,9 @@ def id_arrays(mesh: TetMesh) -> list[str]:
     return out
 
 
-def _same_tets(
-    before: TetMesh, after: TetMesh, moved: Bool[np.ndarray, " n_after"] | None = None
-) -> Int[np.ndarray, " m_after"]:
+def _same_tets(before: TetMesh, after: TetMesh) -> Int[np.ndarray, " m_after"]:
     """(after.n_tets,) id of the tet of ``before`` that each tet of ``after`` is (the
-    same four vertex ids, and none of them ``moved`` when that mask is given), -1 for the
-    others. Tets are keyed by their sorted vertex ids packed into two int64 and matched
+    same four vertex ids, moved or not), -1 for the others. Tets are keyed by their sorted vertex ids packed into two int64 and matched
     through one sort by both."""
     n = max(before.n_points, after.n_points)
 
@@ -83,8 +80,6 @@ def _same_tets(
     b, a = np.minimum(first, second), np.maximum(first, second) - before.n_tets
     out = np.full(after.n_tets, -1, np.int64)
     out[a] = b
-    if moved is not None:
-        out[moved[after.tets].any(axis=1)] = -1
     return out
 
 
@@ -99,20 +94,6 @@ def _strictly_inside(
         corners = [p[:, j] if j != i else x for j in range(4)]
         inside &= orient3d(*corners) > 0
     return inside
-
-
-def _tet_grid(mesh: TetMesh, tet_ids: Int[np.ndarray, " k"]):
-    """A ``pyvista.UnstructuredGrid`` of the tets ``tet_ids`` of ``mesh`` (all its points),
-    each cell holding its tet id in the cell array ``jtet_tet``."""
-    import pyvista as pv
-
-    tets = mesh.tets[tet_ids]
-    cells = np.concatenate([np.full((len(tets), 1), 4, np.int64), tets], axis=1)
-    grid = pv.UnstructuredGrid(
-        cells.ravel(), np.full(len(tets), pv.CellType.TETRA, np.uint8), mesh.points
-    )
-    grid.cell_data["jtet_tet"] = np.asarray(tet_ids, np.int64)
-    return grid
 
 
 def _holding_tets(
@@ -135,7 +116,7 @@ def _holding_tets(
     ids = np.full(len(which), -1, np.int64)
     overlaps = np.zeros(len(which), bool)
     todo = np.arange(len(which))
-    source = _tet_grid(before, np.arange(before.n_tets))
+    source = tet_grid(before, np.arange(before.n_tets))
     for i, weights in enumerate(_SAMPLE_WEIGHTS):
         if not len(todo):
             break
@@ -155,7 +136,7 @@ def _holding_tets(
             near = np.zeros(max(before.n_points, after.n_points), bool)
             near[after.tets[which[todo[~ok]]]] = True
             near[before.tets[hit[found & ~ok]]] = True
-            source = _tet_grid(before, np.flatnonzero(near[before.tets].any(axis=1)))
+            source = tet_grid(before, np.flatnonzero(near[before.tets].any(axis=1)))
         todo = todo[~ok]
     if len(todo):
         centroids = before.points[before.tets].mean(axis=1)
@@ -184,7 +165,7 @@ def carried_cell_data(before: TetMesh, after: TetMesh) -> tuple[dict, int, int]:
     data = before.cell_data
     if not data:
         return {}, 0, 0
-    same = _same_tets(before, after)  # the same vertex ids, moved or not
+    same = _same_tets(before, after)
     unmoved = ~moved_vertices(before, after)[after.tets].any(axis=1)
     source = np.where(unmoved, same, -1)
     n_new = int((source < 0).sum())

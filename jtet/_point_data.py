@@ -188,6 +188,20 @@ def _float_values(
     return values, found | probe_hit
 
 
+def tet_grid(mesh: TetMesh, tet_ids: Int[np.ndarray, " k"]):
+    """A ``pyvista.UnstructuredGrid`` of the tets ``tet_ids`` of ``mesh`` (all its points),
+    each cell holding its tet id in the cell array ``jtet_tet``."""
+    import pyvista as pv
+
+    tets = mesh.tets[tet_ids]
+    cells = np.concatenate([np.full((len(tets), 1), 4, np.int64), tets], axis=1)
+    grid = pv.UnstructuredGrid(
+        cells.ravel(), np.full(len(tets), pv.CellType.TETRA, np.uint8), mesh.points
+    )
+    grid.cell_data["jtet_tet"] = np.asarray(tet_ids, np.int64)
+    return grid
+
+
 def _probed(
     before: TetMesh,
     arrays: dict,
@@ -201,15 +215,9 @@ def _probed(
     (their values are garbage)."""
     import pyvista as pv
 
-    tet_ids = np.arange(before.n_tets) if tet_ids is None else tet_ids
-    tets = before.tets[tet_ids]
-    cells = np.concatenate([np.full((len(tets), 1), 4, np.int64), tets], axis=1)
-    source = pv.UnstructuredGrid(
-        cells.ravel(), np.full(len(tets), pv.CellType.TETRA, np.uint8), before.points
-    )
+    source = tet_grid(before, np.arange(before.n_tets) if tet_ids is None else tet_ids)
     for name, a in arrays.items():
         source.point_data[name] = a
-    source.cell_data["jtet_tet"] = tet_ids
     probed = pv.PolyData(where).sample(source, pass_cell_data=False, pass_point_data=False)
     found = np.asarray(probed.point_data["vtkValidPointMask"]).astype(bool)
     values = {name: np.asarray(probed.point_data[name]).reshape(len(where), *a.shape[1:])

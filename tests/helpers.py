@@ -185,15 +185,21 @@ def gmsh_mesh_and_write(gmsh, path, h: float, version: float | None = None) -> N
     gmsh.write(str(path))
 
 
-def brute_force_interpolation(mesh, f, where):
-    """f (n,) interpolated linearly at each point of ``where`` (q, 3) in the tet of
-    ``mesh`` holding it best (largest smallest barycentric weight), from the weights in
-    every tet by a dense linear solve; and that smallest weight (q,)."""
+def barycentric_in_every_tet(mesh, where):
+    """(q, m, 4): the barycentric weights of each point of ``where`` (q, 3) in every tet
+    of ``mesh`` (brute force, a dense linear solve per pair)."""
     p = mesh.points[mesh.tets]  # (m, 4, 3)
     edges = np.transpose(p[:, 1:] - p[:, :1], (0, 2, 1))  # (m, 3, 3) columns p_i - p_0
     rel = where[:, None, :] - p[None, :, 0]  # (q, m, 3)
     lam = np.linalg.solve(edges[None], rel[..., None])[..., 0]  # (q, m, 3)
-    weights = np.concatenate([1 - lam.sum(axis=2, keepdims=True), lam], axis=2)
+    return np.concatenate([1 - lam.sum(axis=2, keepdims=True), lam], axis=2)
+
+
+def brute_force_interpolation(mesh, f, where):
+    """f (n,) interpolated linearly at each point of ``where`` (q, 3) in the tet of
+    ``mesh`` holding it best (largest smallest barycentric weight); and that smallest
+    weight (q,)."""
+    weights = barycentric_in_every_tet(mesh, where)
     best = np.argmax(weights.min(axis=2), axis=1)
     w = weights[np.arange(len(where)), best]
     return (w * f[mesh.tets[best]]).sum(axis=1), w.min(axis=1)
