@@ -13,6 +13,8 @@ from jtet._topology import (
     SURFACE,
     Topology,
     corner_counts,
+    distinct_values,
+    first_of_runs,
     local_index,
     match_rows,
 )
@@ -20,6 +22,25 @@ from jtet._topology import (
 
 def _volume6(p):
     return np.dot(p[1] - p[0], np.cross(p[2] - p[0], p[3] - p[0]))
+
+
+@pytest.mark.parametrize(
+    "values",
+    [
+        np.zeros(0, np.int64),
+        np.array([7]),
+        np.random.default_rng(0).integers(0, 5, 1000),  # few labels, many copies
+        np.random.default_rng(1).integers(0, 2**62, (300, 4)),  # wide keys, 2-D
+        np.random.default_rng(2).permutation(5000).astype(np.int32),  # all distinct
+    ],
+)
+def test_distinct_values_and_first_of_runs_match_numpy(values):
+    """``distinct_values`` against np.unique (flattened); ``first_of_runs`` against a
+    Python scan of the sorted values."""
+    np.testing.assert_array_equal(distinct_values(values), np.unique(values))
+    s = np.sort(values, axis=None)
+    expected = [i == 0 or s[i] != s[i - 1] for i in range(len(s))]
+    np.testing.assert_array_equal(first_of_runs(s), np.array(expected, bool))
 
 
 def _pytetwild_mesh():
