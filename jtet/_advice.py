@@ -36,19 +36,34 @@ def boundary_only_share(mesh) -> tuple[float, bool]:
     return float(pinned.mean()), bool(slidable.any())
 
 
+def _worst_kinds(mesh, quality: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ids (w,) of the worst tets, within ``TIE`` of ``quality``'s (m,) minimum, and
+    the kinds (w, 4) of their vertices)."""
+    quality = np.asarray(quality)
+    if not len(quality):
+        return np.zeros(0, np.int64), np.zeros((0, 4), np.int8)
+    worst = np.flatnonzero(quality <= quality.min() + TIE)
+    # the kinds of these vertices only: after perturbation rounds the mesh has no
+    # topology, and a whole build here was ~3 % of a holeplate run
+    return worst, mesh.vertex_kinds(mesh.tets[worst].reshape(-1)).reshape(-1, 4)
+
+
 def pinned_worst_tets(mesh, quality: np.ndarray) -> np.ndarray:
     """Ids of the worst tets (within ``TIE`` of ``quality``'s (m,) minimum) whose four
     vertices all lie on the boundary or on interfaces (no FREE vertex), with at least
     one of them on a flat facet or a straight subsegment (not a CORNER): the tets that
     ``boundary="fixed"`` keeps from being smoothed and ``"slide"`` may move."""
-    quality = np.asarray(quality)
-    if not len(quality):
-        return np.zeros(0, np.int64)
-    worst = np.flatnonzero(quality <= quality.min() + TIE)
-    # the kinds of these vertices only: after perturbation rounds the mesh has no
-    # topology, and a whole build here was ~3 % of a holeplate run
-    kinds = mesh.vertex_kinds(mesh.tets[worst].reshape(-1)).reshape(-1, 4)  # (w, 4)
+    worst, kinds = _worst_kinds(mesh, quality)
     return worst[_pinned(kinds)[1]]
+
+
+def cornered_worst_tets(mesh, quality: np.ndarray) -> np.ndarray:
+    """Ids of the worst tets (within ``TIE`` of ``quality``'s (m,) minimum) whose four
+    vertices are all CORNERs of the boundary or of interfaces (where their surfaces bend
+    or meet): no boundary setting moves them, so only flips and new vertices change
+    such a tet."""
+    worst, kinds = _worst_kinds(mesh, quality)
+    return worst[(kinds == CORNER).all(axis=1)]
 
 
 def notes(
@@ -88,7 +103,8 @@ def notes(
             "raise it further, at more time"
         )
     share, slidable = input_boundary_only
-    if share > BOUNDARY_ONLY_SHARE and options.boundary == "fixed":
+    boundary_only = share > BOUNDARY_ONLY_SHARE and options.boundary == "fixed"
+    if boundary_only:
         out.append(
             f"{share:.0%} of the input's tets have all four vertices on the boundary or on "
             "interfaces, where boundary 'fixed' keeps them: smoothing moves only interior "
@@ -99,17 +115,37 @@ def notes(
             + ". A mesh generated with interior points (TetGen -q, Gmsh) can be improved "
             "much further"
         )  # fmt: skip
+
+    def worst_tet(t: int) -> str:
+        return (
+            f"the worst tet by {options.quality} (quality {quality[t]:.4f}, dihedral "
+            f"angles {min_dihedral[t]:.2f}-{max_dihedral[t]:.2f} deg)"
+        )
+
     if options.boundary == "fixed" and "smooth" in options.ops:  # only smoothing slides
         stuck = pinned_worst_tets(mesh, quality)
         if len(stuck):
-            t = stuck[0]
             out.append(
-                f"the worst tet by {options.quality} (quality {quality[t]:.4f}, dihedral "
-                f"angles {min_dihedral[t]:.2f}-{max_dihedral[t]:.2f} deg) has all four "
-                "vertices on the boundary or on interfaces, which boundary 'fixed' keeps in "
-                "place; boundary 'slide' (--boundary slide) lets them slide within flat "
-                "facets and along straight edges, and may raise it"
+                f"{worst_tet(stuck[0])} has all four vertices on the boundary or on "
+                "interfaces, which boundary 'fixed' keeps in place; boundary 'slide' "
+                "(--boundary slide) lets them slide within flat facets and along straight "
+                "edges, and may raise it"
             )
+            return out
+    # the boundary-only note above already says that flips are what can change such tets
+    cornered = np.zeros(0, np.int64) if boundary_only else cornered_worst_tets(mesh, quality)
+    if len(cornered):
+        flips = "edge" in options.ops or "face" in options.ops
+        out.append(
+            f"{worst_tet(cornered[0])} has all four vertices at corners of the boundary or "
+            "of interfaces (where their surfaces bend or meet), which no boundary setting "
+            "moves; "
+            + ("only flips or new vertices inside it can change it, and none of the "
+               "run's flips raised it" if flips else
+               "only flips (--ops edge,face) or new vertices inside it can change it")
+            + ". The boundary and interface triangles around it bound it: a mesh whose "
+            "surfaces are smoother or finer there can be improved further"
+        )  # fmt: skip
     return out
 
 

@@ -7,7 +7,13 @@ import numpy as np
 from helpers import grid_mesh
 
 import jtet
-from jtet._advice import BOUNDARY_ONLY_SHARE, boundary_only_share, notes, pinned_worst_tets
+from jtet._advice import (
+    BOUNDARY_ONLY_SHARE,
+    boundary_only_share,
+    cornered_worst_tets,
+    notes,
+    pinned_worst_tets,
+)
 from jtet._quality import tet_all_measures
 from jtet.cli import main
 
@@ -39,6 +45,56 @@ def test_pinned_worst_tets_reads_every_tied_tet():
     q[[free[0], stuck[1]]] = 0.25  # tied worst: one free, one pinned
     q[stuck[0]] = 0.25 + 1e-6  # not tied (beyond _advice.TIE)
     assert pinned_worst_tets(m, q).tolist() == [stuck[1]]
+
+
+def test_cornered_worst_tets_against_coordinates():
+    # one cube: every tet's four vertices are corners of the cube; a 2x2x2 grid: no tet's
+    for n, every in ((1, True), (2, False)):
+        m = grid_mesh(n)
+        kinds = _kinds_from_coordinates(np.asarray(m.points))[m.tets]
+        expect = (kinds == 3).all(axis=1)
+        assert expect.all() if every else not expect.any()
+        for t in range(m.n_tets):
+            q = np.ones(m.n_tets)
+            q[t] = 0.5
+            assert cornered_worst_tets(m, q).tolist() == ([t] if expect[t] else [])
+
+
+def _ball_labelled_grid() -> jtet.TetMesh:
+    """A perturbed 6x6x6 grid whose tets with centroids within 0.3 of the centre are
+    region 1: the interface between the regions bends at nearly every vertex (labels
+    given to tets after meshing, as segmented images get them)."""
+    m = grid_mesh(6, perturb=0.2, seed=1)
+    centroids = np.asarray(m.points)[m.tets].mean(axis=1)
+    return m.replace(region=(np.linalg.norm(centroids - 0.5, axis=1) < 0.3).astype(np.int64))
+
+
+def test_improve_notes_a_worst_tet_held_by_corners():
+    r = jtet.improve(_ball_labelled_grid(), check=True)
+    (note,) = r.notes
+    out = r.mesh
+    _, lo, hi, qualities = tet_all_measures(out.points, out.tets)
+    q = qualities[r.options.quality]
+    (t, *_) = cornered_worst_tets(out, q)
+    assert f"{lo[t]:.2f}-{hi[t]:.2f} deg" in note and "corners" in note
+    assert "none of the run's flips raised it" in note
+    # what the note says: no boundary setting moves its vertices
+    slid = jtet.improve(out, ops=("smooth",), boundary="slide", check=True).mesh
+    assert np.array_equal(slid.points[out.tets[t]], out.points[out.tets[t]])
+    # without flips the note names them
+    (no_flips,) = notes(out, jtet.Options(ops=("smooth",)), q, lo, hi)
+    assert "--ops edge,face" in no_flips
+
+
+def test_the_boundary_only_note_stands_for_the_corner_note():
+    m = grid_mesh(1)  # every vertex a corner of the cube, every tet without a free one
+    _, lo, hi, qualities = tet_all_measures(m.points, m.tets)
+    q = qualities["biased_min_sine"]
+    opts = jtet.Options(good_quality=None)
+    (corner_note,) = notes(m, opts, q, lo, hi)
+    assert "corners" in corner_note
+    (boundary_note,) = notes(m, opts, q, lo, hi, input_boundary_only=boundary_only_share(m))
+    assert boundary_note.startswith("100% of the input's tets")
 
 
 def _mesh_with_a_pinned_worst_tet() -> jtet.TetMesh:
