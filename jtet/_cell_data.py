@@ -58,8 +58,8 @@ def id_arrays(mesh: TetMesh) -> list[str]:
 
 def _same_tets(before: TetMesh, after: TetMesh) -> Int[np.ndarray, " m_after"]:
     """(after.n_tets,) id of the tet of ``before`` that each tet of ``after`` is (the
-    same four vertex ids, moved or not), -1 for the others. Tets are keyed by their sorted vertex ids packed into two int64 and matched
-    through one sort by both."""
+    same four vertex ids, moved or not), -1 for the others. Tets are keyed by their
+    sorted vertex ids packed into two int64 and matched through one ordering by both."""
     n = max(before.n_points, after.n_points)
 
     def keys(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
