@@ -418,8 +418,9 @@ def improve(
     # the run's topologies (the checks', every step's) treat subfacets bent by less than
     # the feature angle as one surface; the caller's mesh object is left as it was
     mesh = mesh._with_feature_angle(opts.feature_angle)
-    if mesh.periodic or mesh.node_sets:
-        return _improve_pinned(mesh, opts, callback)
+    seam = _unpinned_seam(mesh)
+    if mesh.periodic or mesh.node_sets or len(seam):
+        return _improve_pinned(mesh, opts, callback, seam)
     if opts.regions is not None or len(mesh.protected_tets):
         # the run changes only these tets: those of the regions, minus the protected ones
         sel = np.ones(mesh.n_tets, bool)
@@ -616,19 +617,33 @@ def _improve_carrying_cell_data(mesh: TetMesh, opts: Options, callback) -> Impro
     )
 
 
-def _improve_pinned(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
-    """``improve`` of a mesh with periodic links (``TetMesh.periodic``) or node sets
-    (``TetMesh.node_sets``). The periodic vertices and the boundary edges between two of
-    them are protected for the run (no move, no 2-2 flip on a periodic surface), so
-    every periodic surface keeps its triangulation, its partner's image; the vertices of
-    each node set are protected (but those of a set of every vertex, which constrains
-    nothing). Vertex ids never change, so the pairs and the sets stay valid. The result
-    has the input's own protected edges and vertices (those of the run were never
-    removed nor moved), its periodic links and node sets."""
+def _unpinned_seam(mesh: TetMesh) -> np.ndarray:
+    """Sorted ids of the vertices at the same coordinates as another vertex (a seam:
+    coincident surfaces whose sides share no vertex), but the protected ones."""
+    from ._validity import coincident_points
+
+    seam = np.unique(coincident_points(mesh.points, mesh.tets))
+    return seam[~np.isin(seam, mesh.protected_vertices)]
+
+
+def _improve_pinned(
+    mesh: TetMesh, opts: Options, callback, seam: np.ndarray | None = None
+) -> ImproveResult:
+    """``improve`` of a mesh with periodic links (``TetMesh.periodic``), node sets
+    (``TetMesh.node_sets``) or a ``seam`` (ids of vertices that coincide with others).
+    The periodic and seam vertices and the boundary edges between two of them are
+    protected for the run (no move, no 2-2 flip on a periodic surface or either side of
+    a seam), so every periodic surface keeps its triangulation, its partner's image, and
+    the two sides of a seam still match vertex for vertex; the vertices of each node set
+    are protected (but those of a set of every vertex, which constrains nothing). Vertex
+    ids never change, so the pairs and the sets stay valid. The result has the input's
+    own protected edges and vertices (those of the run were never removed nor moved),
+    its periodic links and node sets."""
     import dataclasses
 
+    seam = np.zeros(0, np.int64) if seam is None else seam
     links = [link.pairs.reshape(-1) for link in mesh.periodic]
-    verts = np.unique(np.concatenate([np.zeros(0, np.int64), *links]))
+    verts = np.unique(np.concatenate([seam, *links]))
     edges = _boundary_edges_between(mesh.tets, verts, mesh.n_points)
     sets = [s.ids for s in mesh.node_sets if len(s.ids) < mesh.n_points]
     verts = np.unique(np.concatenate([verts, *sets]))
@@ -642,7 +657,18 @@ def _improve_pinned(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
         periodic=mesh.periodic,
         node_sets=mesh.node_sets,
     )
-    return dataclasses.replace(result, mesh=out)
+    notes = list(result.notes)
+    if len(seam):
+        notes.insert(
+            0,
+            f"{len(seam)} vertices lie at the same coordinates as others: surfaces inside "
+            "the mesh whose two sides share no vertex (a crack, a cohesive interface, "
+            "parts that were not merged). They stayed in place and the boundary edges "
+            "between them were not flipped, so the two sides still match vertex for "
+            "vertex; if the sides belong together, merge the points first: the tets there "
+            "can then be improved further",
+        )
+    return dataclasses.replace(result, mesh=out, notes=notes)
 
 
 def _boundary_edges_between(tets, verts, n: int) -> np.ndarray:

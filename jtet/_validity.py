@@ -18,7 +18,8 @@ What is checked (each problem is counted and up to ``MAX_EXAMPLES`` examples are
 * region interfaces (faces between tets of different regions) are closed or end on the
   boundary: an interface edge not on the boundary lies in at least two interface faces;
 * protected faces and edges are still faces and edges of the mesh;
-* unreferenced points (reported, but not an error: the input may carry them).
+* unreferenced points, and points at the same coordinates as another point (a seam:
+  two coincident surfaces that share no vertex); reported, but not errors.
 """
 
 from __future__ import annotations
@@ -162,6 +163,8 @@ class ValidityReport:
     degenerate_tets: tuple = ()
     n_unreferenced_points: int = 0
     unreferenced_points: tuple = ()
+    n_coincident_points: int = 0
+    coincident_points: tuple = ()
     orientation_exact: bool = True
 
     # (count field, example field, description) in the order __str__ lists them
@@ -257,14 +260,25 @@ class ValidityReport:
             f"{self.n_interface_faces} region-interface faces"
         )
         lines = [head] + [f"  - {p}" for p in self.problems()]
+        return "\n".join(lines + [f"  (note: {note})" for note in self.notes()])
+
+    def notes(self) -> list[str]:
+        """One line per remark that does not make the mesh invalid."""
+        out = []
         if self.n_unreferenced_points:
-            lines.append(
-                f"  (note: {self.n_unreferenced_points} unreferenced point(s), e.g. "
-                f"{', '.join(map(str, self.unreferenced_points))})"
+            out.append(
+                f"{self.n_unreferenced_points} unreferenced point(s), e.g. "
+                f"{', '.join(map(str, self.unreferenced_points))}"
+            )
+        if self.n_coincident_points:
+            out.append(
+                f"{self.n_coincident_points} point(s) at the same coordinates as another "
+                "point of the tets (a seam: surfaces inside the mesh whose sides share no "
+                f"vertex), e.g. (first, copy) {', '.join(map(str, self.coincident_points))}"
             )
         if not self.orientation_exact:
-            lines.append("  (note: orientation decided by a non-robust float determinant)")
-        return "\n".join(lines)
+            out.append("orientation decided by a non-robust float determinant")
+        return out
 
     def as_dict(self) -> dict:
         """JSON-friendly dict of every field plus ``ok``."""
@@ -299,6 +313,41 @@ def component_roots(n: int, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
             if np.array_equal(up, root):
                 break
             root = up
+
+
+# Odd 64-bit multipliers mixing a point's three coordinate bit patterns into one sort key
+_MIX = np.array([0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 0x165667B19E3779F9], np.uint64)
+
+
+def coincident_points(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(k, 2) pairs (first, other) of points used by ``tets`` (m, 4) at exactly the same
+    coordinates (``points`` (n, 3); -0.0 equals 0.0): every used point that repeats
+    another's coordinates, paired with the smallest id at them, sorted by ``other``.
+
+    One sort of a 64-bit mix of the coordinates' bits, not a lexicographic sort of the
+    rows (167k points: ~15 against ~80 ms); only points whose mixes collide are compared
+    coordinate by coordinate, so a collision of distinct points finds nothing.
+    """
+    used = np.zeros(len(points), bool)
+    used[np.asarray(tets, np.int64).reshape(-1)] = True
+    ids = np.flatnonzero(used)
+    p = np.ascontiguousarray(points[ids], np.float64) + 0.0  # -0.0 + 0.0 is +0.0
+    mixed = np.bitwise_xor.reduce(p.view(np.uint64) * _MIX, axis=1)
+    order = np.argsort(mixed)
+    same = mixed[order][1:] == mixed[order][:-1]
+    if not same.any():
+        return np.zeros((0, 2), np.int64)
+    member = np.zeros(len(order), bool)
+    member[1:] |= same
+    member[:-1] |= same
+    cand = ids[order[member]]
+    cand = cand[np.lexsort((cand, *points[cand].T[::-1] + 0.0))]  # by x, y, z, then id
+    c = points[cand] + 0.0
+    run_start = np.ones(len(cand), bool)
+    run_start[1:] = (c[1:] != c[:-1]).any(axis=1)
+    first = cand[np.maximum.accumulate(np.where(run_start, np.arange(len(cand)), 0))]
+    pairs = np.column_stack([first, cand])[~run_start]
+    return pairs[np.argsort(pairs[:, 1])]
 
 
 def check_validity(mesh) -> ValidityReport:
@@ -446,6 +495,9 @@ def check_validity(mesh) -> ValidityReport:
     used = np.bincount(tets.reshape(-1), minlength=n) > 0 if m else np.zeros(n, bool)
     r["n_unreferenced_points"] = int((~used).sum())
     r["unreferenced_points"] = _examples(np.flatnonzero(~used))
+    pairs = coincident_points(points, tets)
+    r["n_coincident_points"] = len(pairs)
+    r["coincident_points"] = _examples(pairs)
 
     return ValidityReport(n_points=n, n_tets=m, **r)
 

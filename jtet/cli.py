@@ -501,13 +501,13 @@ def cmd_stats(args) -> int:
     for path, f in zip(args.mesh, files, strict=True):
         print(f"{path}: {f['mesh']}")
     print(format_table(*table_stats, labels=table_labels))
-    if len(files) == 1:
-        report = files[0]["validity"]
-        print("valid" if report.ok else f"problems:\n{report}")
-    else:
-        for path, f in zip(args.mesh, files, strict=True):
-            report = f["validity"]
-            print(f"{path}: valid" if report.ok else f"{path}: problems:\n{report}")
+    for path, f in zip(args.mesh, files, strict=True):
+        report = f["validity"]
+        name = "" if len(files) == 1 else f"{path}: "
+        if report.ok:  # the notes too (a valid mesh's report prints only the problems)
+            print("\n".join([f"{name}valid", *(f"{name}note: {n}" for n in report.notes())]))
+        else:
+            print(f"{name}problems:\n{report}")
     if args.groups:
         from ._stats import format_groups
 

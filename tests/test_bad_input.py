@@ -462,6 +462,56 @@ def test_crack_of_duplicated_points_is_kept():
     assert result.mesh.topology.boundary_face.sum() == mesh.topology.boundary_face.sum()
 
 
+def _seam_mesh(seed: int) -> jtet.TetMesh:
+    """A perturbed grid cut along its flat mid-plane x = 0.5 (a crack, or a cohesive
+    interface): the tets beyond it get copies of the plane's points, so the two sides
+    coincide and share no vertex."""
+    m = grid_mesh(6, perturb=0.3, seed=seed, two_regions=True)
+    right = m.region == 1
+    on_plane = np.zeros(m.n_points, bool)
+    on_plane[m.tets[right].reshape(-1)] = True
+    on_plane &= np.isin(np.arange(m.n_points), m.tets[~right])
+    copy = np.arange(m.n_points)
+    copy[on_plane] = m.n_points + np.arange(on_plane.sum())
+    tets = np.where(right[:, None], copy[m.tets], m.tets)
+    return jtet.TetMesh(np.vstack([m.points, m.points[on_plane]]), tets)
+
+
+def _seam_faces(mesh: jtet.TetMesh, pairs: np.ndarray) -> tuple[set, set]:
+    """The boundary triangles on the seam of each side, the copies' side mapped to the
+    originals' ids: equal sets when the sides still match triangle for triangle."""
+    to_first = np.arange(mesh.n_points)
+    to_first[pairs[:, 1]] = pairs[:, 0]
+    topo = mesh.topology
+    faces = topo.faces[topo.boundary_face]
+    left = {tuple(f) for f in faces[np.isin(faces, pairs[:, 0]).all(axis=1)]}
+    right = faces[np.isin(faces, pairs[:, 1]).all(axis=1)]
+    return left, {tuple(sorted(to_first[f])) for f in right}
+
+
+@pytest.mark.parametrize("boundary", ["fixed", "slide"])
+def test_a_seam_of_duplicated_points_still_matches(boundary):
+    # sliding moved the two sides' vertices apart (on a Gmsh-meshed box pair cut the
+    # same way, 46 of 198 seam triangle pairs still met), and a 2-2 flip on one side
+    # would change its triangles alone: the seam's vertices and boundary edges are pinned
+    from jtet._validity import coincident_points
+
+    mesh = _seam_mesh(seed=4)
+    pairs = coincident_points(mesh.points, mesh.tets)
+    assert len(pairs) == 49  # the 7 x 7 points of the plane
+    left, right = _seam_faces(mesh, pairs)
+    assert left == right and len(left) == 72
+    result = _improves_safely(mesh, boundary=boundary)
+    out = result.mesh
+    assert result.stats_after.min_dihedral > result.stats_before.min_dihedral
+    np.testing.assert_array_equal(out.points[pairs[:, 0]], out.points[pairs[:, 1]])
+    assert _seam_faces(out, pairs) == (left, right)
+    assert result.notes[0].startswith("98 vertices lie at the same coordinates as others")
+    # the run's pins are not written into the result
+    assert len(out.protected_vertices) == len(out.protected_edges) == 0
+    assert len(out.is_valid().coincident_points)
+
+
 def test_unreferenced_duplicate_points():
     m = delaunay_mesh(40, seed=5)
     mesh = jtet.TetMesh(np.vstack([m.points, m.points[:5]]), m.tets)

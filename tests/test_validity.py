@@ -185,6 +185,46 @@ def test_unreferenced_point_is_only_reported(base):
     assert "unreferenced" in str(r)
 
 
+def _coincident_brute_force(points, tets):
+    """(first, other) for every used point whose coordinates an earlier used one has."""
+    first, pairs = {}, []
+    for i in sorted(set(tets.reshape(-1).tolist())):
+        key = tuple(float(x) + 0.0 for x in points[i])  # -0.0 and 0.0: one key
+        if key in first:
+            pairs.append((first[key], i))
+        else:
+            first[key] = i
+    return np.array(pairs, np.int64).reshape(-1, 2)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_coincident_points_against_brute_force(seed):
+    from jtet._validity import coincident_points
+
+    rng = np.random.default_rng(seed)
+    # coordinates on a coarse lattice: many equal x, y or z, some equal rows
+    points = rng.integers(0, 4, (300, 3)).astype(float) / 3
+    points[rng.random(300) < 0.1, 1] *= -1.0  # -0.0 where y is 0
+    tets = rng.integers(0, 300, (40, 4))  # a fifth or so of the points unused
+    expected = _coincident_brute_force(points, tets)
+    assert len(expected) > 10
+    np.testing.assert_array_equal(coincident_points(points, tets), expected)
+    # distinct points: none, whatever their hash mixes do
+    cloud = rng.random((500, 3))
+    assert coincident_points(cloud, np.arange(500).reshape(-1, 4)).shape == (0, 2)
+
+
+def test_coincident_points_are_only_reported():
+    # two unit cubes side by side, not merged: the 4 points of the face between them
+    # are there twice, and each cube is a valid mesh of its own
+    (pa, ta), (pb, tb) = _cube([0.0, 0, 0]), _cube([1.0, 0, 0])
+    r = check_validity(jtet.TetMesh(np.vstack([pa, pb]), np.vstack([ta, tb + len(pa)])))
+    assert r.ok and r.n_coincident_points == 4
+    x1 = np.flatnonzero(pa[:, 0] == 1.0)
+    assert sorted(r.coincident_points) == [(int(i), int(i) - 4 + len(pa)) for i in x1]
+    assert "(note: 4 point(s) at the same coordinates as another point of the tets" in str(r)
+
+
 def _cube(shift):
     g = grid_mesh(1)
     return g.points + shift, g.tets
