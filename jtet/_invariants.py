@@ -70,6 +70,12 @@ class InvariantChecker:
         self.labelled = self._label_areas(mesh)
         self.pinned = mesh.protected_vertices.copy()
         self.pinned_at = mesh.points[self.pinned]
+        # a seam's two sides match vertex for vertex and triangle for triangle (``improve``
+        # pins them): its coincident vertices stay together, its boundary triangles stay
+        from ._validity import coincident_points
+
+        self.seam = coincident_points(mesh.points, mesh.tets)
+        self.seam_faces = self._seam_faces(mesh)
         self.scale = float(np.abs(mesh.volumes).sum())
         # with a feature angle, flips may replace bent subfacets: the surfaces keep their
         # vertices and labels, but their shape and the volumes they enclose change
@@ -88,6 +94,24 @@ class InvariantChecker:
         area = np.linalg.norm(np.cross(f[:, 1] - f[:, 0], f[:, 2] - f[:, 0]), axis=1) / 2.0
         labels, inv = np.unique(mesh.protected_face_labels, return_inverse=True)
         return dict(zip(labels.tolist(), np.bincount(inv, area).tolist(), strict=True))
+
+    def _seam_faces(self, mesh: TetMesh) -> np.ndarray:
+        """(k, 3) sorted rows: the boundary faces of ``mesh`` that lie on a seam of the
+        start mesh, i.e. whose three vertices are seam vertices and whose twin (the face
+        of the coincident vertices on the other side) is a boundary face too."""
+        if len(self.seam) == 0:
+            return np.zeros((0, 3), np.int64)
+        first = np.arange(mesh.n_points)
+        first[self.seam[:, 1]] = self.seam[:, 0]
+        on = np.zeros(mesh.n_points, bool)
+        on[self.seam.reshape(-1)] = True
+        T = mesh.topology
+        faces = T.faces[T.boundary_face]
+        faces = faces[on[faces].all(axis=1)]
+        _, twin, count = np.unique(
+            np.sort(first[faces], axis=1), axis=0, return_inverse=True, return_counts=True
+        )
+        return faces[count[twin.reshape(-1)] > 1]
 
     @staticmethod
     def _count_bad(mesh: TetMesh) -> int:
@@ -133,6 +157,18 @@ class InvariantChecker:
         moved = (mesh.points[self.pinned] != self.pinned_at).any(axis=1)
         if moved.any():
             fail(f"protected vertex {int(self.pinned[moved][0])} moved")
+        if len(self.seam):
+            first, other = mesh.points[self.seam[:, 0]], mesh.points[self.seam[:, 1]]
+            apart = np.flatnonzero((first != other).any(axis=1))
+            if len(apart):
+                a, b = self.seam[apart[0]]
+                fail(f"vertices {a} and {b}, one point at the start (a seam), moved apart")
+            # every seam triangle of the start is still there, with its twin
+            _, count = np.unique(
+                np.vstack([self.seam_faces, self._seam_faces(mesh)]), axis=0, return_counts=True
+            )
+            if (count == 2).sum() < len(self.seam_faces):
+                fail("the boundary triangles of a seam changed")
         for which, ref in (("boundary", self.boundary), ("interface", self.interface)):
             labels, sig, verts = _surface_signature(mesh, which)
             same = np.array_equal(labels, ref[0]) and np.array_equal(verts, ref[2])

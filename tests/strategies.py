@@ -55,6 +55,7 @@ class MeshSpec:
     protect_boundary: float = 0.0  # fraction of boundary faces protected
     face_labels: int = 0  # protected faces get labels 0 .. face_labels - 1 (0: all 0)
     protect_vertices: float = 0.0  # fraction of vertices protected (never moved)
+    seam: bool = False  # the tets beyond a random plane get copies of the points they share
 
 
 def _points(spec: MeshSpec, rng: np.random.Generator) -> np.ndarray:
@@ -147,13 +148,30 @@ def build_mesh(spec: MeshSpec) -> jtet.TetMesh | None:
     pv = None
     if spec.protect_vertices:
         pv = np.flatnonzero(rng.random(len(pts)) < spec.protect_vertices)
-    return jtet.TetMesh(pts, mesh.tets, region, pf, pe, labels, pv)
+    tets = mesh.tets
+    if spec.seam:  # a crack: two coincident surfaces that share no vertex
+        assert region is pf is pe is pv is None, "a seam's spec has no labels"
+        c = pts[tets].mean(axis=1)
+        beyond = (c - c.mean(axis=0)) @ rng.standard_normal(3) > 0
+        on = np.zeros((2, len(pts)), bool)
+        on[0, tets[~beyond].reshape(-1)] = True
+        on[1, tets[beyond].reshape(-1)] = True
+        shared = np.flatnonzero(on.all(axis=0))
+        copy = np.arange(len(pts))
+        copy[shared] = len(pts) + np.arange(len(shared))
+        pts = np.vstack([pts, pts[shared]])
+        tets = np.where(beyond[:, None], copy[tets], tets)
+    return jtet.TetMesh(pts, tets, region, pf, pe, labels, pv)
 
 
 @st.composite
-def mesh_specs(draw, damage: bool | None = None, labels: bool | None = None) -> MeshSpec:
-    """Random ``MeshSpec``. ``damage`` / ``labels``: force inverted tets / regions and
-    protection on (True) or off (False); None draws them."""
+def mesh_specs(
+    draw, damage: bool | None = None, labels: bool | None = None, seam: bool | None = False
+) -> MeshSpec:
+    """Random ``MeshSpec``. ``damage`` / ``labels`` / ``seam``: force inverted tets /
+    regions and protection / a seam on (True) or off (False); None draws them. A seam
+    needs ``improve``, which pins it (a pass alone may flip one side's triangles), and
+    comes without labels."""
     kind = draw(st.sampled_from(KINDS))
     n = draw(st.integers(20, 200))
     seed = draw(st.integers(0, 2**32 - 1))
@@ -177,7 +195,10 @@ def mesh_specs(draw, damage: bool | None = None, labels: bool | None = None) -> 
         pb = draw(st.sampled_from([0.0, 0.0, 0.3, 1.0]))
     fl = draw(st.sampled_from([0, 2, 3])) if lab else 0
     pv = draw(st.sampled_from([0.0, 0.0, 0.1, 0.5])) if lab else 0.0
-    return MeshSpec(kind, n, seed, scale, n_moved, move, regions, n_regions, pe, pf, pb, fl, pv)
+    cut = (draw(st.booleans()) if seam is None else seam) and not lab
+    return MeshSpec(
+        kind, n, seed, scale, n_moved, move, regions, n_regions, pe, pf, pb, fl, pv, cut
+    )
 
 
 @st.composite

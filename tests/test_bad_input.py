@@ -512,6 +512,26 @@ def test_a_seam_of_duplicated_points_still_matches(boundary):
     assert len(out.is_valid().coincident_points)
 
 
+def test_the_invariant_checks_find_a_torn_seam(monkeypatch):
+    # what the pins prevent, done without them: a seam vertex slid apart from its copy,
+    # and flips that change one side's triangles (the run without pins of the test above)
+    from jtet import _driver
+    from jtet._errors import InvariantError
+
+    mesh = _seam_mesh(seed=4)
+    checker = InvariantChecker(mesh)
+    inner = ((mesh.points[checker.seam[:, 1], 1:] % 1.0) != 0).all(axis=1)
+    a, b = checker.seam[np.flatnonzero(inner)[0]]  # not on the box's sides
+    slid = mesh.points.copy()
+    slid[b, 1] += 1e-3  # in the plane x = 0.5: the volumes stay
+    with pytest.raises(InvariantError, match=f"vertices {a} and {b}, one point at the start"):
+        checker.check(mesh.replace(points=slid), 0, "smooth")
+    monkeypatch.setattr(_driver, "_unpinned_seam", lambda mesh: np.zeros(0, np.int64))
+    flipped = jtet.improve(mesh, ops=("edge",), perturb=0).mesh
+    with pytest.raises(InvariantError, match="the boundary triangles of a seam changed"):
+        checker.check(flipped, 0, "edge")
+
+
 def test_stats_notes_a_seam(tmp_path, capsys):
     path = _save(_seam_mesh(seed=4), tmp_path / "seam.vtu")
     capsys.readouterr()

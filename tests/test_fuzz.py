@@ -243,13 +243,13 @@ def _improve(spec, opts):
 
 
 @_cases("improve")
-@given(mesh_specs(damage=False), options())
+@given(mesh_specs(damage=False, seam=None), options())
 def test_improve(spec, opts):
     _improve(spec, opts)
 
 
 @_cases("improve_damaged")
-@given(mesh_specs(damage=True), options(DAMAGE_OPS))
+@given(mesh_specs(damage=True, seam=None), options(DAMAGE_OPS))
 def test_improve_inverted_input(spec, opts):
     _improve(spec, opts)
 
