@@ -665,8 +665,9 @@ def _improve_pinned(
             "the mesh whose two sides share no vertex (a crack, a cohesive interface, "
             "parts that were not merged). They stayed in place and the boundary edges "
             "between them were not flipped, so the two sides still match vertex for "
-            "vertex; if the sides belong together, merge the points first: the tets there "
-            "can then be improved further",
+            "vertex. If the sides belong together, merge the points before improving "
+            "(Gmsh: mesh.removeDuplicateNodes, or volumes fragmented before meshing): the "
+            "tets there can then be improved further",
         )
     return dataclasses.replace(result, mesh=out, notes=notes)
 
