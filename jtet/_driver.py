@@ -619,11 +619,19 @@ def _improve_carrying_cell_data(mesh: TetMesh, opts: Options, callback) -> Impro
 
 def _unpinned_seam(mesh: TetMesh) -> np.ndarray:
     """Sorted ids of the vertices at the same coordinates as another vertex (a seam:
-    coincident surfaces whose sides share no vertex), but the protected ones."""
+    coincident surfaces whose sides share no vertex); none when the mesh protects all of
+    them and every boundary edge between two of them already (the run on the mesh the
+    pins make, among others)."""
     from ._validity import coincident_points
 
     seam = np.unique(coincident_points(mesh.points, mesh.tets))
-    return seam[~np.isin(seam, mesh.protected_vertices)]
+    if len(seam) == 0 or not np.isin(seam, mesh.protected_vertices).all():
+        return seam
+    n = np.int64(mesh.n_points)
+    edges = _boundary_edges_between(mesh.tets, seam, mesh.n_points)
+    pe = mesh.protected_edges
+    held = np.isin(edges[:, 0] * n + edges[:, 1], pe[:, 0] * n + pe[:, 1]).all()
+    return seam[:0] if held else seam
 
 
 def _improve_pinned(

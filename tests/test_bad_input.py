@@ -512,6 +512,20 @@ def test_a_seam_of_duplicated_points_still_matches(boundary):
     assert len(out.is_valid().coincident_points)
 
 
+def test_a_seam_of_protected_vertices_is_pinned_whole():
+    # the user's protected vertices hold the seam's points, not the boundary edges between
+    # them, which 2-2 flips would then change on one side: the run pins those edges too
+    from jtet._validity import coincident_points
+
+    mesh = _seam_mesh(seed=4)
+    seam = np.unique(coincident_points(mesh.points, mesh.tets))
+    held = mesh.replace(protected_vertices=seam, protected_vertex_labels=np.full(len(seam), 7))
+    result = _improves_safely(held, ops=("edge",), perturb=0)
+    assert result.notes[0].startswith("50 vertices lie at the same coordinates")
+    np.testing.assert_array_equal(result.mesh.protected_vertices, seam)
+    np.testing.assert_array_equal(result.mesh.protected_vertex_labels, 7)
+
+
 def test_the_invariant_checks_find_a_torn_seam(monkeypatch):
     # what the pins prevent, done without them: a seam vertex slid apart from its copy,
     # and flips that change one side's triangles (the run without pins of the test above)
