@@ -418,7 +418,7 @@ def improve(
     # the run's topologies (the checks', every step's) treat subfacets bent by less than
     # the feature angle as one surface; the caller's mesh object is left as it was
     mesh = mesh._with_feature_angle(opts.feature_angle)
-    seam = _unpinned_seam(mesh)
+    seam = _seam_to_pin(mesh)
     if mesh.periodic or mesh.node_sets or len(seam):
         return _improve_pinned(mesh, opts, callback, seam)
     if opts.regions is not None or len(mesh.protected_tets):
@@ -617,7 +617,7 @@ def _improve_carrying_cell_data(mesh: TetMesh, opts: Options, callback) -> Impro
     )
 
 
-def _unpinned_seam(mesh: TetMesh) -> np.ndarray:
+def _seam_to_pin(mesh: TetMesh) -> np.ndarray:
     """Sorted ids of the vertices at the same coordinates as another vertex (a seam:
     coincident surfaces whose sides share no vertex); none when the mesh protects all of
     them and every boundary edge between two of them already (the run on the mesh the

@@ -325,8 +325,9 @@ def coincident_points(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     another's coordinates, paired with the smallest id at them, sorted by ``other``.
 
     One sort of a 64-bit mix of the coordinates' bits, not a lexicographic sort of the
-    rows (167k points: ~15 against ~80 ms); only points whose mixes collide are compared
-    coordinate by coordinate, so a collision of distinct points finds nothing.
+    rows (the 983k-tet cube's 167k points: ~22 ms in all, where the lexicographic sort
+    alone takes ~80); only points whose mixes collide are compared coordinate by
+    coordinate, so a collision of distinct points finds nothing.
     """
     used = np.zeros(len(points), bool)
     used[np.asarray(tets, np.int64).reshape(-1)] = True

@@ -504,7 +504,7 @@ def cmd_stats(args) -> int:
     for path, f in zip(args.mesh, files, strict=True):
         report = f["validity"]
         name = "" if len(files) == 1 else f"{path}: "
-        if report.ok:  # the notes too (a valid mesh's report prints only the problems)
+        if report.ok:  # and its notes: unreferenced or coincident points
             print("\n".join([f"{name}valid", *(f"{name}note: {n}" for n in report.notes())]))
         else:
             print(f"{name}problems:\n{report}")

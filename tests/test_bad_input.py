@@ -540,7 +540,7 @@ def test_the_invariant_checks_find_a_torn_seam(monkeypatch):
     slid[b, 1] += 1e-3  # in the plane x = 0.5: the volumes stay
     with pytest.raises(InvariantError, match=f"vertices {a} and {b}, one point at the start"):
         checker.check(mesh.replace(points=slid), 0, "smooth")
-    monkeypatch.setattr(_driver, "_unpinned_seam", lambda mesh: np.zeros(0, np.int64))
+    monkeypatch.setattr(_driver, "_seam_to_pin", lambda mesh: np.zeros(0, np.int64))
     flipped = jtet.improve(mesh, ops=("edge",), perturb=0).mesh
     with pytest.raises(InvariantError, match="the boundary triangles of a seam changed"):
         checker.check(flipped, 0, "edge")
