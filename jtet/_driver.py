@@ -13,6 +13,7 @@ import functools
 import sys
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -419,7 +420,7 @@ def improve(
     # the feature angle as one surface; the caller's mesh object is left as it was
     mesh = mesh._with_feature_angle(opts.feature_angle)
     seam = _seam_to_pin(mesh)
-    if mesh.periodic or mesh.node_sets or len(seam):
+    if mesh.periodic or mesh.node_sets or seam is not None:
         return _improve_pinned(mesh, opts, callback, seam)
     if opts.regions is not None or len(mesh.protected_tets):
         # the run changes only these tets: those of the regions, minus the protected ones
@@ -617,42 +618,78 @@ def _improve_carrying_cell_data(mesh: TetMesh, opts: Options, callback) -> Impro
     )
 
 
-def _seam_to_pin(mesh: TetMesh) -> np.ndarray:
-    """Sorted ids of the vertices at the same coordinates as another vertex (a seam:
-    coincident surfaces whose sides share no vertex); none when the mesh protects all of
-    them and every boundary edge between two of them already (the run on the mesh the
-    pins make, among others)."""
+class _Seam(NamedTuple):
+    """What a run pins of a seam (coincident surfaces whose sides share no vertex)."""
+
+    n_coincident: int  # vertices at the same coordinates as another vertex of the tets
+    verts: np.ndarray  # (j,) those and the other vertices of the seam's triangles
+    edges: np.ndarray  # (k, 2) sorted: the seam triangles' edges, and the boundary edges
+    # between two coincident vertices
+
+
+def _seam_to_pin(mesh: TetMesh) -> _Seam | None:
+    """The seam of ``mesh``: its vertices at the same coordinates as another vertex, the
+    seam's triangles (boundary faces whose twin, the face of the coincident vertices on
+    the other side, is a boundary face too), their vertices (a crack's front, which both
+    sides share, among them) and edges. None without a seam, or when the mesh protects
+    all of those already (the run on the mesh the pins make, among others)."""
     from ._validity import coincident_points
 
-    seam = np.unique(coincident_points(mesh.points, mesh.tets))
-    if len(seam) == 0 or not np.isin(seam, mesh.protected_vertices).all():
-        return seam
-    n = np.int64(mesh.n_points)
-    edges = _boundary_edges_between(mesh.tets, seam, mesh.n_points)
+    pairs = coincident_points(mesh.points, mesh.tets)
+    if len(pairs) == 0:
+        return None
+    n = mesh.n_points
+    first = np.arange(n)
+    first[pairs[:, 1]] = pairs[:, 0]
+    coincident = np.unique(pairs)
+    on = np.zeros(n, bool)
+    on[coincident] = True
+    faces = _boundary_faces_at(mesh.tets, on, 1)
+    _, twin, count = np.unique(
+        np.sort(first[faces], axis=1), axis=0, return_inverse=True, return_counts=True
+    )
+    seam_faces = faces[count[twin.reshape(-1)] > 1]
+    seam = _Seam(
+        len(coincident),
+        np.unique(np.concatenate([coincident, seam_faces.reshape(-1)])),
+        np.unique(
+            np.concatenate(
+                [
+                    seam_faces[:, [[0, 1], [0, 2], [1, 2]]].reshape(-1, 2),
+                    _boundary_edges_between(mesh.tets, coincident, n),
+                ]
+            ),
+            axis=0,
+        ),
+    )
+    key = np.int64(n)
     pe = mesh.protected_edges
-    held = np.isin(edges[:, 0] * n + edges[:, 1], pe[:, 0] * n + pe[:, 1]).all()
-    return seam[:0] if held else seam
+    held = (
+        np.isin(seam.verts, mesh.protected_vertices).all()
+        and np.isin(seam.edges[:, 0] * key + seam.edges[:, 1], pe[:, 0] * key + pe[:, 1]).all()
+    )
+    return None if held else seam
 
 
-def _improve_pinned(
-    mesh: TetMesh, opts: Options, callback, seam: np.ndarray | None = None
-) -> ImproveResult:
+def _improve_pinned(mesh: TetMesh, opts: Options, callback, seam: _Seam | None = None):
     """``improve`` of a mesh with periodic links (``TetMesh.periodic``), node sets
-    (``TetMesh.node_sets``) or a ``seam`` (ids of vertices that coincide with others).
-    The periodic and seam vertices and the boundary edges between two of them are
+    (``TetMesh.node_sets``) or a ``seam`` (``_seam_to_pin``). The periodic vertices and
+    the boundary edges between two of them, and the seam's vertices and edges, are
     protected for the run (no move, no 2-2 flip on a periodic surface or either side of
     a seam), so every periodic surface keeps its triangulation, its partner's image, and
-    the two sides of a seam still match vertex for vertex; the vertices of each node set
-    are protected (but those of a set of every vertex, which constrains nothing). Vertex
-    ids never change, so the pairs and the sets stay valid. The result has the input's
-    own protected edges and vertices (those of the run were never removed nor moved),
-    its periodic links and node sets."""
+    the two sides of a seam still match vertex for vertex, triangle for triangle; the
+    vertices of each node set are protected (but those of a set of every vertex, which
+    constrains nothing). Vertex ids never change, so the pairs and the sets stay valid.
+    The result (an ``ImproveResult``) has the input's own protected edges and vertices
+    (those of the run were never removed nor moved), its periodic links and node sets."""
     import dataclasses
 
-    seam = np.zeros(0, np.int64) if seam is None else seam
     links = [link.pairs.reshape(-1) for link in mesh.periodic]
-    verts = np.unique(np.concatenate([seam, *links]))
+    verts = np.unique(np.concatenate([np.zeros(0, np.int64), *links]))
     edges = _boundary_edges_between(mesh.tets, verts, mesh.n_points)
+    if seam is not None:
+        verts = np.union1d(verts, seam.verts)
+        edges = np.concatenate([edges, seam.edges])
     sets = [s.ids for s in mesh.node_sets if len(s.ids) < mesh.n_points]
     verts = np.unique(np.concatenate([verts, *sets]))
     pinned = mesh._with_pinned(edges, verts, periodic=(), node_sets=())
@@ -666,36 +703,42 @@ def _improve_pinned(
         node_sets=mesh.node_sets,
     )
     notes = list(result.notes)
-    if len(seam):
+    if seam is not None:
         notes.insert(
             0,
-            f"{len(seam)} vertices lie at the same coordinates as others: surfaces inside "
-            "the mesh whose two sides share no vertex (a crack, a cohesive interface, "
-            "parts that were not merged). They stayed in place and the boundary edges "
-            "between them were not flipped, so the two sides still match vertex for "
-            "vertex. If the sides belong together, merge the points before improving "
-            "(Gmsh: mesh.removeDuplicateNodes, or volumes fragmented before meshing): the "
-            "tets there can then be improved further",
+            f"{seam.n_coincident} vertices lie at the same coordinates as others: "
+            "surfaces inside the mesh whose two sides share no vertex (a crack, a cohesive "
+            "interface, parts that were not merged). They and the other vertices of the "
+            "triangles there (a crack's front) stayed in place and those triangles' edges "
+            "were not flipped, so the two sides still match vertex for vertex. If the "
+            "sides belong together, merge the points before improving (Gmsh: "
+            "mesh.removeDuplicateNodes, or volumes fragmented before meshing): the tets "
+            "there can then be improved further",
         )
     return dataclasses.replace(result, mesh=out, notes=notes)
 
 
-def _boundary_edges_between(tets, verts, n: int) -> np.ndarray:
-    """(k, 2) sorted rows: the edges of boundary faces of ``tets`` (m, 4) whose two
-    vertices are both in ``verts`` (j,) of ``n``. Only the tets with two or more corners
-    in ``verts`` hold such a face, and every tet holding one of their faces with two such
-    corners is among them: the faces are counted there, not through a whole-mesh
-    topology, which the run on the pinned mesh builds again anyway (its subsegments
-    change)."""
+def _boundary_faces_at(tets: np.ndarray, on: np.ndarray, k: int) -> np.ndarray:
+    """(f, 3) sorted rows: the boundary faces of ``tets`` (m, 4) with at least ``k``
+    vertices where ``on`` (n,) bool. Only the tets with ``k`` or more corners there hold
+    such a face, and every tet holding one is among them: the faces are counted there,
+    not through a whole-mesh topology, which the run on the pinned mesh builds again
+    anyway (its subsegments change)."""
     from ._topology import TET_FACES, corner_counts
 
+    near = tets[corner_counts(on, tets) >= k]
+    faces = np.sort(near[:, TET_FACES].reshape(-1, 3), axis=1)
+    faces = faces[on[faces].sum(axis=1) >= k]
+    rows, count = np.unique(faces, axis=0, return_counts=True)
+    return rows[count == 1]
+
+
+def _boundary_edges_between(tets, verts, n: int) -> np.ndarray:
+    """(k, 2) sorted rows: the edges of boundary faces of ``tets`` (m, 4) whose two
+    vertices are both in ``verts`` (j,) of ``n``."""
     on = np.zeros(n, bool)
     on[verts] = True
-    near = tets[corner_counts(on, tets) >= 2]
-    faces = np.sort(near[:, TET_FACES].reshape(-1, 3), axis=1)
-    faces = faces[on[faces].sum(axis=1) >= 2]
-    rows, count = np.unique(faces, axis=0, return_counts=True)
-    edges = rows[count == 1][:, [[0, 1], [0, 2], [1, 2]]].reshape(-1, 2)
+    edges = _boundary_faces_at(tets, on, 2)[:, [[0, 1], [0, 2], [1, 2]]].reshape(-1, 2)
     return np.unique(edges[on[edges].all(axis=1)], axis=0)
 
 

@@ -97,8 +97,9 @@ class InvariantChecker:
 
     def _seam_faces(self, mesh: TetMesh) -> np.ndarray:
         """(k, 3) sorted rows: the boundary faces of ``mesh`` that lie on a seam of the
-        start mesh, i.e. whose three vertices are seam vertices and whose twin (the face
-        of the coincident vertices on the other side) is a boundary face too."""
+        start mesh, i.e. that have a vertex of the seam and whose twin (the face of the
+        coincident vertices on the other side; a crack's front is both sides' own) is a
+        boundary face too."""
         if len(self.seam) == 0:
             return np.zeros((0, 3), np.int64)
         first = np.arange(mesh.n_points)
@@ -107,7 +108,7 @@ class InvariantChecker:
         on[self.seam.reshape(-1)] = True
         T = mesh.topology
         faces = T.faces[T.boundary_face]
-        faces = faces[on[faces].all(axis=1)]
+        faces = faces[on[faces].any(axis=1)]
         _, twin, count = np.unique(
             np.sort(first[faces], axis=1), axis=0, return_inverse=True, return_counts=True
         )

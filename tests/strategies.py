@@ -56,6 +56,7 @@ class MeshSpec:
     face_labels: int = 0  # protected faces get labels 0 .. face_labels - 1 (0: all 0)
     protect_vertices: float = 0.0  # fraction of vertices protected (never moved)
     seam: bool = False  # the tets beyond a random plane get copies of the points they share
+    # (or of those beyond a second plane: a crack with a front)
 
 
 def _points(spec: MeshSpec, rng: np.random.Generator) -> np.ndarray:
@@ -157,6 +158,9 @@ def build_mesh(spec: MeshSpec) -> jtet.TetMesh | None:
         on[0, tets[~beyond].reshape(-1)] = True
         on[1, tets[beyond].reshape(-1)] = True
         shared = np.flatnonzero(on.all(axis=0))
+        if rng.random() < 0.5:  # copy only the points on one side of a second plane: a
+            # crack whose front (the points left shared) runs inside the mesh
+            shared = shared[(pts[shared] - c.mean(axis=0)) @ rng.standard_normal(3) > 0]
         copy = np.arange(len(pts))
         copy[shared] = len(pts) + np.arange(len(shared))
         pts = np.vstack([pts, pts[shared]])

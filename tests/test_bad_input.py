@@ -512,6 +512,31 @@ def test_a_seam_of_duplicated_points_still_matches(boundary):
     assert len(out.is_valid().coincident_points)
 
 
+def test_a_crack_keeps_its_front():
+    # a crack ending inside the mesh: half of the mid-plane's grid points (y < 0.5) are
+    # copied for the tets beyond it, those at y = 0.5 (its front) stay shared. Both
+    # sides' faces at the front lie in one plane, so the front's vertices looked flat
+    # and slid: the crack grew or shrank (the checks stopped the run: "the boundary
+    # surface changed"). They are vertices of the seam's triangles, pinned too.
+    from jtet._validity import coincident_points
+
+    m = grid_mesh(4, perturb=0.3, seed=4, two_regions=True)
+    grid = grid_mesh(4).points  # the same ids, unperturbed
+    cracked = np.flatnonzero(np.isclose(grid[:, 0], 0.5) & (grid[:, 1] < 0.49))
+    front = np.flatnonzero(np.isclose(grid[:, 0], 0.5) & np.isclose(grid[:, 1], 0.5))
+    copy = np.arange(m.n_points)
+    copy[cracked] = m.n_points + np.arange(len(cracked))
+    tets = np.where((m.region == 1)[:, None], copy[m.tets], m.tets)
+    mesh = jtet.TetMesh(np.vstack([m.points, m.points[cracked]]), tets)
+    pairs = coincident_points(mesh.points, mesh.tets)
+    assert len(pairs) == 10  # y = 0 and 0.25, 5 values of z
+    result = _improves_safely(mesh, boundary="slide")  # checks the seam's triangles
+    out = result.mesh
+    np.testing.assert_array_equal(out.points[front], mesh.points[front])
+    np.testing.assert_array_equal(out.points[pairs[:, 0]], out.points[pairs[:, 1]])
+    assert result.notes[0].startswith("20 vertices lie at the same coordinates as others")
+
+
 def test_a_seam_of_protected_vertices_is_pinned_whole():
     # the user's protected vertices hold the seam's points, not the boundary edges between
     # them, which 2-2 flips would then change on one side: the run pins those edges too
@@ -540,7 +565,7 @@ def test_the_invariant_checks_find_a_torn_seam(monkeypatch):
     slid[b, 1] += 1e-3  # in the plane x = 0.5: the volumes stay
     with pytest.raises(InvariantError, match=f"vertices {a} and {b}, one point at the start"):
         checker.check(mesh.replace(points=slid), 0, "smooth")
-    monkeypatch.setattr(_driver, "_seam_to_pin", lambda mesh: np.zeros(0, np.int64))
+    monkeypatch.setattr(_driver, "_seam_to_pin", lambda mesh: None)
     flipped = jtet.improve(mesh, ops=("edge",), perturb=0).mesh
     with pytest.raises(InvariantError, match="the boundary triangles of a seam changed"):
         checker.check(flipped, 0, "edge")
