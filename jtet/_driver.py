@@ -633,22 +633,16 @@ def _seam_to_pin(mesh: TetMesh) -> _Seam | None:
     the other side, is a boundary face too), their vertices (a crack's front, which both
     sides share, among them) and edges. None without a seam, or when the mesh protects
     all of those already (the run on the mesh the pins make, among others)."""
-    from ._validity import coincident_points
+    from ._validity import coincident_points, seam_triangles
 
     pairs = coincident_points(mesh.points, mesh.tets)
     if len(pairs) == 0:
         return None
     n = mesh.n_points
-    first = np.arange(n)
-    first[pairs[:, 1]] = pairs[:, 0]
     coincident = np.unique(pairs)
     on = np.zeros(n, bool)
     on[coincident] = True
-    faces = _boundary_faces_at(mesh.tets, on, 1)
-    _, twin, count = np.unique(
-        np.sort(first[faces], axis=1), axis=0, return_inverse=True, return_counts=True
-    )
-    seam_faces = faces[count[twin.reshape(-1)] > 1]
+    seam_faces = seam_triangles(_boundary_faces_at(mesh.tets, on, 1), pairs, n)
     seam = _Seam(
         len(coincident),
         np.unique(np.concatenate([coincident, seam_faces.reshape(-1)])),

@@ -6,6 +6,7 @@ import numpy as np
 
 from ._errors import InvariantError
 from ._mesh import TetMesh
+from ._validity import coincident_points, seam_triangles
 
 # Volumes are sums of O(m) float64 terms of both signs; a flip regroups them, so the sums
 # differ by round-off ~ m * eps * max|term|. 1e-12 relative leaves 3-4 digits of margin
@@ -72,8 +73,6 @@ class InvariantChecker:
         self.pinned_at = mesh.points[self.pinned]
         # a seam's two sides match vertex for vertex and triangle for triangle (``improve``
         # pins them): its coincident vertices stay together, its boundary triangles stay
-        from ._validity import coincident_points
-
         self.seam = coincident_points(mesh.points, mesh.tets)
         self.seam_faces = self._seam_faces(mesh)
         self.scale = float(np.abs(mesh.volumes).sum())
@@ -96,23 +95,12 @@ class InvariantChecker:
         return dict(zip(labels.tolist(), np.bincount(inv, area).tolist(), strict=True))
 
     def _seam_faces(self, mesh: TetMesh) -> np.ndarray:
-        """(k, 3) sorted rows: the boundary faces of ``mesh`` that lie on a seam of the
-        start mesh, i.e. that have a vertex of the seam and whose twin (the face of the
-        coincident vertices on the other side; a crack's front is both sides' own) is a
-        boundary face too."""
+        """(k, 3) sorted rows: the boundary faces of ``mesh`` on a seam of the start
+        mesh (``_validity.seam_triangles``)."""
         if len(self.seam) == 0:
             return np.zeros((0, 3), np.int64)
-        first = np.arange(mesh.n_points)
-        first[self.seam[:, 1]] = self.seam[:, 0]
-        on = np.zeros(mesh.n_points, bool)
-        on[self.seam.reshape(-1)] = True
         T = mesh.topology
-        faces = T.faces[T.boundary_face]
-        faces = faces[on[faces].any(axis=1)]
-        _, twin, count = np.unique(
-            np.sort(first[faces], axis=1), axis=0, return_inverse=True, return_counts=True
-        )
-        return faces[count[twin.reshape(-1)] > 1]
+        return seam_triangles(T.faces[T.boundary_face], self.seam, mesh.n_points)
 
     @staticmethod
     def _count_bad(mesh: TetMesh) -> int:

@@ -351,6 +351,22 @@ def coincident_points(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return pairs[np.argsort(pairs[:, 1])]
 
 
+def seam_triangles(faces: np.ndarray, pairs: np.ndarray, n_points: int) -> np.ndarray:
+    """(t, 3): the rows of ``faces`` (f, 3), boundary faces of a mesh of ``n_points``,
+    that lie on a seam: they have a vertex of the coincident ``pairs`` (k, 2)
+    (``coincident_points``), and their twin, the face of the coincident vertices on the
+    other side (a crack's front is both sides' own), is among ``faces`` too."""
+    first = np.arange(n_points)
+    first[pairs[:, 1]] = pairs[:, 0]
+    on = np.zeros(n_points, bool)
+    on[pairs.reshape(-1)] = True
+    faces = faces[on[faces].any(axis=1)]
+    _, twin, count = np.unique(
+        np.sort(first[faces], axis=1), axis=0, return_inverse=True, return_counts=True
+    )
+    return faces[count[twin.reshape(-1)] > 1]
+
+
 def check_validity(mesh) -> ValidityReport:
     """Check ``mesh`` (a ``TetMesh``, or anything with ``points`` (n,3), ``tets`` (m,4),
     optional ``region`` (m,), ``protected_faces`` (k,3), ``protected_edges`` (k,2)).
