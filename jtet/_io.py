@@ -85,6 +85,7 @@ _READ_FORMATS = {
     ".e": "exodus",
     ".ex2": "exodus",
     ".g": "exodus",
+    ".med": "med",
 }
 _FORMAT_NAMES = {
     "vtu": "VTK XML unstructured grid",
@@ -96,6 +97,7 @@ _FORMAT_NAMES = {
     "abaqus": "Abaqus input",
     "netgen": "Netgen",
     "exodus": "Exodus II",
+    "med": "MED",
 }
 _KNOWN_EXTENSIONS = ", ".join(_READ_FORMATS)
 
@@ -1415,6 +1417,8 @@ def load(path: str | os.PathLike) -> TetMesh:
         arrays, extras = _netgen_arrays(p, source)
     elif fmt == "exodus":
         arrays, extras = _exodus_arrays(p, source)
+    elif fmt == "med":
+        arrays, extras = _med_arrays(p, source)
     elif fmt == "xdmf":
         from ._xdmf import read_xdmf, xdmf_to_meshio
 
@@ -1545,6 +1549,15 @@ def _exodus_arrays(path: Path, source: str):
     return _candidate_arrays(read_exo, path, source)
 
 
+def _med_arrays(path: Path, source: str):
+    """A MED file (``_med``): tet groups -> regions, triangle, segment and point-cell
+    groups -> labelled protected faces, edges and vertices, node groups -> node sets,
+    fields on the nodes and tets -> point and cell data."""
+    from ._med import read_med
+
+    return _candidate_arrays(read_med, path, source)
+
+
 def _xdmf_label_names(names, source: str) -> dict:
     """{(dim, label): name} from an XDMF file's ``[[dim, label, name], ...]``."""
     try:
@@ -1615,6 +1628,11 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str 
         from ._exodus import write_exo
 
         write_exo(mesh, tmp, cell_data)
+        return
+    if fmt == "med":
+        from ._med import write_med
+
+        write_med(mesh, tmp, cell_data, name_from=Path(heavy_name or tmp.name))
         return
     if fmt == "xdmf":
         from ._xdmf import companion, write_xdmf
@@ -1835,8 +1853,8 @@ def save(
     p = Path(path)
     fmt = output_format(p)
     cell_data = _check_cell_data(mesh, cell_data)
-    if fmt in ("medit", "tetgen", "abaqus", "netgen", "exodus"):
-        dropped = list(cell_data) if fmt != "exodus" else []
+    if fmt in ("medit", "tetgen", "abaqus", "netgen", "exodus", "med"):
+        dropped = list(cell_data) if fmt not in ("exodus", "med") else []
         if len(dropped) > 4:
             dropped = [f"{len(dropped)} cell arrays ({', '.join(dropped[:3])}, ...)"]
         if fmt in ("tetgen", "abaqus", "exodus") and len(mesh.protected_edges):
@@ -1844,7 +1862,7 @@ def save(
         no_vertices = fmt == "tetgen"
         if len(mesh.protected_vertices) and no_vertices:
             dropped.append("protected vertices")
-        if len(mesh.label_names) and fmt not in ("abaqus", "netgen", "exodus"):
+        if len(mesh.label_names) and fmt not in ("abaqus", "netgen", "exodus", "med"):
             dropped.append(f"{len(mesh.label_names)} label name(s) (Gmsh physical names)")
         if mesh.periodic and fmt != "netgen":
             dropped.append(f"{len(mesh.periodic)} periodic link(s)")
@@ -1860,6 +1878,9 @@ def save(
                 "exodus": "regions (element blocks), protected faces (side sets) and "
                 "vertices (node sets), their names, the cell arrays (element variables) "
                 "and the point data (nodal variables)",
+                "med": "regions, protected faces, edges and vertices (groups of tets, "
+                "triangles, segments and point cells, with their names), node sets (node "
+                "groups), the point data and the cell arrays (fields)",
             }.get(fmt, "region labels and protected faces")
             warnings.warn(
                 f"{p}: the {_FORMAT_NAMES[fmt]} format stores only the {stored}; "
@@ -1921,10 +1942,11 @@ def save(
                 stacklevel=2,
             )
     for what, data, formats, where in (
-        ("point", mesh.point_data, ("vtu", "vtk", "xdmf", "gmsh", "tetgen", "medit", "exodus"),
-         ".vtu, .vtk, .xdmf, Gmsh, TetGen, Medit and Exodus"),
-        ("cell", mesh.cell_data, ("vtu", "vtk", "xdmf", "gmsh", "exodus"),
-         ".vtu, .vtk, .xdmf, Gmsh and Exodus"),
+        ("point", mesh.point_data,
+         ("vtu", "vtk", "xdmf", "gmsh", "tetgen", "medit", "exodus", "med"),
+         ".vtu, .vtk, .xdmf, Gmsh, TetGen, Medit, Exodus and MED"),
+        ("cell", mesh.cell_data, ("vtu", "vtk", "xdmf", "gmsh", "exodus", "med"),
+         ".vtu, .vtk, .xdmf, Gmsh, Exodus and MED"),
     ):  # fmt: skip
         if data and fmt not in formats:
             names = list(data)
@@ -1934,11 +1956,11 @@ def save(
                 f"{', ...' if len(names) > 3 else ''})",
                 stacklevel=2,
             )
-    if mesh.node_sets and fmt not in ("vtu", "vtk", "abaqus", "exodus"):
+    if mesh.node_sets and fmt not in ("vtu", "vtk", "abaqus", "exodus", "med"):
         warnings.warn(
             f"{p}: the {_FORMAT_NAMES[fmt]} format has no node sets; not saved: "
             f"{len(mesh.node_sets)} node set(s) ({', '.join(_node_set_names(mesh)[:3])}"
-            f"{', ...' if len(mesh.node_sets) > 3 else ''}) (use .inp, .exo or .vtu)",
+            f"{', ...' if len(mesh.node_sets) > 3 else ''}) (use .inp, .exo, .med or .vtu)",
             stacklevel=2,
         )
     for what, values in (

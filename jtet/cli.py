@@ -788,7 +788,7 @@ def build_parser() -> argparse.ArgumentParser:
         "paths",
         nargs="+",
         metavar="IN [OUT]",
-        help="input mesh (.vtu .vtk .msh .mesh .meshb .node/.ele .xdmf .inp .vol .exo) and output mesh (format "
+        help="input mesh (.vtu .vtk .msh .mesh .meshb .node/.ele .xdmf .inp .vol .exo .med) and output mesh (format "
         "from the extension; carries per-tet quality arrays); with --out-dir, only inputs",
     )
     pi.add_argument(
@@ -861,7 +861,8 @@ def build_parser() -> argparse.ArgumentParser:
         "curves and points",
     )
     pc.add_argument(
-        "input", help="input mesh (.vtu .vtk .msh .mesh .meshb .node/.ele .xdmf .inp .vol .exo)"
+        "input",
+        help="input mesh (.vtu .vtk .msh .mesh .meshb .node/.ele .xdmf .inp .vol .exo .med)",
     )
     pc.add_argument("output", help="output mesh (format from the extension)")
     pc.add_argument(

@@ -955,7 +955,7 @@ def test_missing_file_directory_extension_empty(tmp_path):
         _io.load(tmp_path / "lonely.node")
 
 
-@pytest.mark.parametrize("ext", ["vtu", "vtk", "msh", "mesh", "meshb", "node", "exo"])
+@pytest.mark.parametrize("ext", ["vtu", "vtk", "msh", "mesh", "meshb", "node", "exo", "med"])
 def test_random_bytes_are_a_file_error_and_print_nothing(tmp_path, capfd, ext):
     rng = np.random.default_rng(7)
     path = tmp_path / f"junk.{ext}"
@@ -970,7 +970,7 @@ def test_random_bytes_are_a_file_error_and_print_nothing(tmp_path, capfd, ext):
     assert out == "" and err == ""  # VTK / meshio chatter is captured, not printed
 
 
-@pytest.mark.parametrize("ext", ["msh", "vtu", "vtk", "mesh", "meshb", "exo"])
+@pytest.mark.parametrize("ext", ["msh", "vtu", "vtk", "mesh", "meshb", "exo", "med"])
 @pytest.mark.parametrize("frac", [0.3, 0.8, 0.99])
 def test_truncated_files_are_a_file_error(tmp_path, capfd, labelled, ext, frac):
     full = tmp_path / f"full.{ext}"

@@ -59,7 +59,7 @@ def test_improve_never_moves_their_vertices(mesh):
     np.testing.assert_array_equal(only_all.mesh.points, free.points)
 
 
-@pytest.mark.parametrize("ext", ["vtu", "vtk", "inp", "exo"])
+@pytest.mark.parametrize("ext", ["vtu", "vtk", "inp", "exo", "med"])
 def test_formats_that_hold_them(tmp_path, mesh, ext):
     sets = [("a b", [1, 4, 9], 3), ("c", [4, 5])]
     m = mesh.replace(region=np.ones(mesh.n_tets, np.int64), node_sets=sets)
@@ -73,6 +73,8 @@ def test_formats_that_hold_them(tmp_path, mesh, ext):
     assert got == [("a_b" if ext == "inp" else "a b", [1, 4, 9]), ("c", [4, 5])]
     if ext == "exo":
         assert [s.label for s in back.node_sets] == [3, 4]  # the second takes a free id
+    if ext == "med":
+        assert [s.label for s in back.node_sets] == [None, None]  # MED groups have names only
 
 
 def test_long_node_set_names_come_back_whole(tmp_path, mesh):

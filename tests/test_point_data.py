@@ -186,10 +186,10 @@ def test_point_data_checked():
     assert "point data b" in repr(with_data)
 
 
-@pytest.mark.parametrize("ext", ["vtu", "vtk", "xdmf", "exo"])
+@pytest.mark.parametrize("ext", ["vtu", "vtk", "xdmf", "exo", "med"])
 def test_point_data_round_trip(tmp_path, ext):
     """The formats that store point data give back every array exactly, dtype and all
-    (Exodus: its variables are float64)."""
+    (Exodus, MED: their variables / fields are float64)."""
     mesh = delaunay_mesh(80, seed=5)
     marker = (np.arange(mesh.n_points) % 7).astype(np.int64)
     mesh = mesh.replace(point_data={**_fields(mesh.points, marker), "on": marker > 3})
@@ -199,7 +199,7 @@ def test_point_data_round_trip(tmp_path, ext):
         back = jtet.load(path)
     assert list(back.point_data) == list(mesh.point_data)
     for name, a in mesh.point_data.items():
-        dtype = np.float64 if ext == "exo" else a.dtype
+        dtype = np.float64 if ext in ("exo", "med") else a.dtype
         assert back.point_data[name].dtype == dtype, name
         np.testing.assert_array_equal(back.point_data[name], a)
 
