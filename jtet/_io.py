@@ -2,7 +2,8 @@
 
 Readers: ``.vtu`` / ``.vtk`` through VTK's own readers; ``.msh`` (Gmsh 2.2 and 4.1),
 ``.mesh`` (Medit) and ``.node`` / ``.ele`` (TetGen) through meshio; ``.meshb`` (binary
-Medit), ``.xdmf``, ``.inp`` and ``.vol`` by jtet's own modules. Every failure
+Medit), ``.xdmf``, ``.inp``, ``.vol``, ``.exo`` and ``.med`` by jtet's own modules. Every
+failure
 is a ``MeshFileError`` (the file) or a ``MeshInputError`` (its contents) with the path and a
 one-line reason; VTK's and meshio's console chatter is captured, never printed.
 
@@ -1364,7 +1365,9 @@ def load(path: str | os.PathLike) -> TetMesh:
     labelled protected faces), ``.inp`` (flat Abaqus / CalculiX input files; element
     sets -> regions, element-face surfaces -> labelled protected faces), ``.vol`` /
     ``.vol.gz`` (Netgen / NGSolve; materials -> regions, surface elements -> labelled
-    protected faces, ``_netgen``). Triangles that are faces of the tets become protected
+    protected faces, ``_netgen``), ``.med`` (MED: Salome, code_aster; groups of tets ->
+    regions, of triangles, segments and point cells -> labelled protected faces, edges and
+    vertices, node groups -> node sets, ``_med``). Triangles that are faces of the tets become protected
     faces, labelled by their physical tags / references / markers; lines and points (Medit: ``Edges``, ``RequiredVertices``) that are edges and
     vertices of the tets become protected edges and vertices. Point arrays of numbers
     (``.vtu``, ``.vtk``; ``.xdmf`` node attributes; TetGen point attributes; the Medit
@@ -1838,7 +1841,9 @@ def save(
     element sets and the protected faces as element-face surfaces (``_abaqus``). ``.vol``
     (Netgen / NGSolve) stores the regions as materials, every boundary, interface and
     protected face as a surface element, the protected edges and vertices and the names
-    (``_netgen``). What a format cannot store is dropped with a warning.
+    (``_netgen``). ``.med`` (MED 3.0) stores everything but periodic links and protected
+    tets: a group per label, node groups, the point data and cell arrays as fields
+    (``_med``). What a format cannot store is dropped with a warning.
 
     The file is written to a temporary file in the same directory and moved into place, so
     ``path`` is either the complete new file or left untouched.

@@ -127,7 +127,8 @@ def _read(f, source: str):
     dim = int(med_mesh.attrs.get("ESP", 3))
     if dim != 3:
         raise MeshInputError(f"{source}: the points are {dim}-D; jtet needs a 3-D tet mesh")
-    step, n_steps = _last(med_mesh, "mesh", source)
+    # MED 2 files hold the nodes and cells in the mesh's group itself
+    step, n_steps = (med_mesh, 1) if "NOE" in med_mesh else _last(med_mesh, "mesh", source)
     if n_steps > 1:
         warnings.warn(
             f"{source}: the mesh is read at the last of its {n_steps} computing steps",
@@ -142,10 +143,10 @@ def _read(f, source: str):
     bad, skipped = {}, {}
     for kind, group in step.get("MAI", {}).items():
         if kind in _SOLIDS:
-            bad[_SOLIDS[kind]] = int(group["NOD" if "NOD" in group else "INN"].attrs["NBR"])
+            bad[_SOLIDS[kind]] = _cell_count(group)
             continue
         if kind not in _READ:
-            skipped[kind] = int(group["NOD"].attrs["NBR"]) if "NOD" in group else 0
+            skipped[kind] = _cell_count(group)
             continue
         k = _READ[kind][1]
         nod = group["NOD"]
@@ -162,7 +163,11 @@ def _read(f, source: str):
         listing = ", ".join(f"{k} x {c}" for k, c in skipped.items())
         warnings.warn(f"{source}: cells jtet does not read were left out: {listing}", stacklevel=4)
 
-    fas = f["FAS"][mesh_name] if "FAS" in f and mesh_name in f["FAS"] else None
+    fas = None
+    if "FAS" in f and mesh_name in f["FAS"]:
+        fas = f["FAS"][mesh_name]
+    elif "FAS" in med_mesh:  # MED 2
+        fas = med_mesh["FAS"]
     cell_groups = _family_groups(fas, "ELEME")
     names: dict[tuple[int, int], str] = {}
     labelled = {}
@@ -196,6 +201,15 @@ def _read(f, source: str):
 
 
 _READ_ROLE_K = {role: k for role, k in _READ.values()}
+
+
+def _cell_count(group) -> int:
+    """The number of cells of a cell type's group (polygons and polyhedra count theirs in
+    FAM or NUM, the others in NOD too)."""
+    for key in ("FAM", "NUM", "NOD"):
+        if key in group and "NBR" in group[key].attrs:
+            return int(group[key].attrs["NBR"])
+    return 0
 
 
 def _families(group, count: int, source: str) -> np.ndarray | None:
