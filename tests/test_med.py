@@ -263,3 +263,83 @@ def test_fields_at_the_last_step(tmp_path):
     with pytest.warns(UserWarning, match="last step: T"):
         mesh = jtet.load(path)
     np.testing.assert_array_equal(mesh.point_data["T"], [10.0, 20, 30, 40])
+
+
+def _medcoupling_file(path, mesh, faces, x0, y0, left):
+    """``mesh`` written by MEDCoupling (Salome's MED library for Python): tets in MED's
+    vertex order, groups "left" and "all" of tets (overlapping), "x0" and "y0" of
+    triangles, a node group "probe" and a field "T" on the nodes."""
+    mc = pytest.importorskip("medcoupling")
+
+    def umesh(dim, kind, cells):
+        um = mc.MEDCouplingUMesh("m", dim)
+        um.setCoords(mc.DataArrayDouble(np.ascontiguousarray(mesh.points)))
+        k = cells.shape[1]
+        conn = np.hstack([np.full((len(cells), 1), kind), cells]).astype(np.int64).ravel()
+        index = np.arange(len(cells) + 1, dtype=np.int64) * (k + 1)
+        um.setConnectivity(mc.DataArrayInt64(conn), mc.DataArrayInt64(index))
+        return um
+
+    def group(name, ids):
+        a = mc.DataArrayInt64(np.asarray(ids, np.int64))
+        a.setName(name)
+        return a
+
+    vol = umesh(3, mc.NORM_TETRA4, mesh.tets[:, [0, 2, 1, 3]])
+    tri = umesh(2, mc.NORM_TRI3, np.concatenate([faces[x0], faces[y0]]))
+    tri.setCoords(vol.getCoords())
+    mm = mc.MEDFileUMesh()
+    mm.setMeshAtLevel(0, vol)
+    mm.setMeshAtLevel(-1, tri)
+    mm.setGroupsAtLevel(0, [group("left", left), group("all", np.arange(mesh.n_tets))])
+    mm.setGroupsAtLevel(
+        -1, [group("x0", np.arange(len(x0))), group("y0", len(x0) + np.arange(len(y0)))]
+    )
+    mm.addNodeGroup(group("probe", [4, 7, 9]))
+    mm.write(str(path), 2)
+    field = mc.MEDCouplingFieldDouble(mc.ON_NODES, mc.ONE_TIME)
+    field.setMesh(vol)
+    field.setName("T")
+    field.setArray(mc.DataArrayDouble(np.ascontiguousarray(mesh.points[:, 0])))
+    field.setTime(0.0, 0, 0)
+    mc.WriteFieldUsingAlreadyWrittenMesh(str(path), field)
+
+
+def test_medcoupling_files_both_ways(tmp_path):
+    """MEDCoupling, the MED library Salome reads and writes with, as the reference: its
+    file loads with jtet's tets, groups, node group and field; jtet's file loads in it
+    with positive volumes (MED's orientation), the same groups and the fields."""
+    mesh = delaunay_mesh(60, seed=3, surface_points=20)
+    p = mesh.points
+    faces = _boundary_faces(mesh.tets)
+    x0 = np.flatnonzero((p[faces][:, :, 0] == 0).all(axis=1))
+    y0 = np.flatnonzero(
+        (p[faces][:, :, 1] == 0).all(axis=1) & ~(p[faces][:, :, 0] == 0).all(axis=1)
+    )
+    left = np.flatnonzero(p[mesh.tets].mean(axis=1)[:, 0] < 0.5)
+    theirs = tmp_path / "mc.med"
+    _medcoupling_file(theirs, mesh, faces, x0, y0, left)
+    back = jtet.load(theirs)
+    np.testing.assert_array_equal(back.tets, mesh.tets)
+    regions = _by_name(back, 3, back.region)
+    assert set(regions) == {"all", "all+left"}  # the tets of both groups, and the others
+    np.testing.assert_array_equal(regions["all+left"], left)
+    assert len(regions["all"]) == mesh.n_tets - len(left)
+    faces_back = _by_name(back, 2, back.protected_face_labels)
+    assert _rows(back.protected_faces[faces_back["x0"]]) == _rows(faces[x0])
+    assert _rows(back.protected_faces[faces_back["y0"]]) == _rows(faces[y0])
+    assert [(s.name, s.ids.tolist()) for s in back.node_sets] == [("probe", [4, 7, 9])]
+    np.testing.assert_array_equal(back.point_data["T"], p[:, 0])
+
+    import medcoupling as mc
+
+    ours = tmp_path / "ours.med"
+    jtet.save(back, ours, cell_data={"q": back.quality("min_sine")})
+    mm = mc.MEDFileUMesh.New(str(ours))
+    assert set(mm.getGroupsNames()) == {"all", "left", "x0", "y0", "probe"}
+    volumes = mm.getMeshAtLevel(0).getMeasureField(False).getArray().toNumPyArray()
+    np.testing.assert_allclose(volumes, mesh.volumes, rtol=1e-12)  # signed: all positive
+    left_again = mm.getGroupArr(0, "left").toNumPyArray()
+    np.testing.assert_array_equal(np.sort(left_again), left)
+    np.testing.assert_array_equal(np.sort(mm.getGroupArr(1, "probe").toNumPyArray()), [4, 7, 9])
+    assert set(mc.MEDFileFields.New(str(ours)).getFieldsNames()) == {"T", "q"}
