@@ -48,6 +48,7 @@ from ._errors import MeshFileError, MeshInputError
 _SWAP = [0, 2, 1, 3]
 # cell types jtet reads: (jtet's role, vertices per cell)
 _READ = {"TE4": ("tet", 4), "TR3": ("face", 3), "SE2": ("edge", 2), "PO1": ("vertex", 1)}
+_VERTICES_OF_ROLE = dict(_READ.values())
 # solids jtet refuses, with the names its messages give them; T10 gets the quadratic hint
 _SOLIDS = {
     "T10": "TETRA10",
@@ -172,7 +173,7 @@ def _read(f, source: str):
     names: dict[tuple[int, int], str] = {}
     labelled = {}
     for role, dim_of in (("tet", 3), ("face", 2), ("edge", 1), ("vertex", 0)):
-        ids, fam = cells.get(role, (np.zeros((0, _READ_ROLE_K[role]), np.int64), None))
+        ids, fam = cells.get(role, (np.zeros((0, _VERTICES_OF_ROLE[role]), np.int64), None))
         labels = (
             np.zeros(len(ids), np.int64)
             if fam is None
@@ -198,9 +199,6 @@ def _read(f, source: str):
             "cell_data": cell_data,
         },
     )
-
-
-_READ_ROLE_K = {role: k for role, k in _READ.values()}
 
 
 def _cell_count(group) -> int:
