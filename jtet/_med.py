@@ -267,7 +267,10 @@ def _node_sets(families: np.ndarray | None, groups: dict) -> list:
 def _fields(f, mesh_name: str, n_points: int, n_tets: int, source: str):
     """(point_data, cell_data): the file's fields on every node (``NOE``) and on every
     tet (``MAI.TE4``, one value per tet) at their last step; others left out with a
-    warning."""
+    warning. jtet's own per-tet arrays (region, quality) are not read: every output gets
+    fresh ones."""
+    from ._io import _carried_array_name
+
     point_data: dict = {}
     cell_data: dict = {}
     if "CHA" not in f:
@@ -287,6 +290,8 @@ def _fields(f, mesh_name: str, n_points: int, n_tets: int, source: str):
                 support, (None, 0)
             )
             gauss = int(data.attrs.get("NGA", 1)) if data is not None else 0
+            if target is cell_data and not _carried_array_name(name):
+                continue
             if target is None or profile != _NO_PROFILE or data is None or gauss != 1:
                 left.append(f"{name} ({support})")
                 continue

@@ -118,6 +118,19 @@ def test_round_trip_keeps_everything_by_name(tmp_path):
     np.testing.assert_array_equal(back.cell_data["q"], mesh.quality("min_sine"))
 
 
+def test_quality_arrays_are_not_read_back(tmp_path):
+    """The per-tet arrays ``jtet improve`` writes are fields of its MED output; loading
+    that output leaves them out (every output gets fresh ones), as for the other formats."""
+    from jtet._report import quality_cell_data
+
+    mesh = _labelled_mesh()
+    path = tmp_path / "out.med"
+    jtet.save(mesh, path, cell_data=quality_cell_data(mesh))
+    with h5py.File(path) as f:
+        assert {"min_dihedral", "volume", "material"} <= set(f["CHA"])
+    assert list(jtet.load(path).cell_data) == ["material"]
+
+
 def test_gmsh_reads_jtet_files(tmp_path):
     """Gmsh (the MED library) reads jtet's file: positive tets in Gmsh's vertex order,
     the groups as physical groups with their names, the fields as views."""
