@@ -48,6 +48,15 @@ _TETS = re.compile(r"^C3D4[A-Z]*$")
 _TRIANGLES = re.compile(r"^(S3|S3R|STRI3|CPS3|CPE3|CAX3|M3D3|SFM3D3|R3D3|DS3|F3D3)[A-Z]*$")
 _LINES = re.compile(r"^(T3D2|B31|B21|T2D2|R3D2|SPRINGA|DCOUP3D)[A-Z]*$")
 _OTHER_SOLIDS = re.compile(r"^(C3D|DC3D|AC3D)(\d+)")
+# numbers in a row of a linear cell: the element id and its nodes
+_ROW_WIDTH = {"tet": 5, "triangle": 4, "line": 3}
+# quadratic cells, read as their corners with ``jtet.load(path, linear=True)``: (kind,
+# numbers a row: the element id and its nodes, corners first)
+_QUADRATIC = (
+    (re.compile(r"^(C3D10|DC3D10|AC3D10)[A-Z]*$"), "tet", 11),
+    (re.compile(r"^(STRI65|S6|CPS6|CPE6|CAX6|M3D6|DS6|SFM3D6|R3D6)[A-Z]*$"), "triangle", 7),
+    (re.compile(r"^(T3D3|B32|T2D3|B22)[A-Z]*$"), "line", 4),
+)
 
 
 def _set_name(name: str, taken: set) -> str:
@@ -259,7 +268,7 @@ def read_inp(path: Path, source: str):
     """The arrays of ``TetMesh.from_arrays`` (and label names) of the Abaqus input file
     ``path``: (points, tets, region, faces, face labels, edges, edge labels, names)
     with faces / edges as candidate rows for ``_mesh_cells``."""
-    from ._io import _non_tet_message
+    from ._io import _non_tet_message, note_mid_nodes, reading_linear
 
     try:
         text = path.read_text(errors="replace")
@@ -274,6 +283,7 @@ def read_inp(path: Path, source: str):
                 "the mesh without parts and assemblies, or with its includes merged)"
             )
     node_blocks, elements = [], {"tet": [], "triangle": [], "line": []}
+    mid_nodes: list[np.ndarray] = []  # node ids of quadratic cells' mid-edge nodes
     others: dict[str, int] = {}
     sets: dict[str, tuple[str, np.ndarray, int]] = {}  # NAME -> (name, element ids, order)
     node_sets: dict[str, tuple[str, np.ndarray, int]] = {}  # the same, of node ids
@@ -298,12 +308,18 @@ def read_inp(path: Path, source: str):
                 "tet" if _TETS.match(etype) else "triangle" if _TRIANGLES.match(etype)
                 else "line" if _LINES.match(etype) else None
             )  # fmt: skip
+            width = _ROW_WIDTH.get(kind)
+            quadratic = reading_linear() and kind is None
+            if quadratic:
+                kind, width = next(((k, w) for p, k, w in _QUADRATIC if p.match(etype)), (None, 0))
             if kind is None:
                 if _OTHER_SOLIDS.match(etype):
                     others[etype] = others.get(etype, 0) + _line_count(data)
                 continue
-            width = {"tet": 5, "triangle": 4, "line": 3}[kind]
             rows = _numbers(data, width, f"*ELEMENT, TYPE={etype}", source, np.int64)
+            if quadratic:  # the element id and the corners; the mid-edge nodes noted
+                mid_nodes.append(rows[:, _ROW_WIDTH[kind] :])
+                rows = rows[:, : _ROW_WIDTH[kind]]
             elements[kind].append(rows)
             if params.get("ELSET"):
                 name = params["ELSET"]
@@ -370,6 +386,9 @@ def read_inp(path: Path, source: str):
         dup = int(tet_rows[np.flatnonzero(np.diff(tet_rows[:, 0]) == 0)[0], 0])
         raise MeshInputError(f"{source}: element {dup} is defined twice")
     tets = index_of(tet_rows[:, 1:], "a C3D4 element")
+    if mid_nodes:  # their indices, for ``load`` to leave out
+        ids = np.concatenate([m.reshape(-1) for m in mid_nodes])
+        note_mid_nodes(index_of(ids, "a quadratic element"))
     region, names = _regions(tet_rows[:, 0], sets, comments, source)
     faces, face_labels = _surfaces(tet_rows, tets, surfaces, sets, comments, names, source)
     start = int(face_labels.max(initial=0))

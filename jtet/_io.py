@@ -21,6 +21,7 @@ files meshio alone refuses: ``Mesh.SaveAll``, views saved with the mesh, partiti
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import functools
 import io
 import itertools
@@ -70,6 +71,10 @@ _VTK_VERTEX, _VTK_LINE, _VTK_TRIANGLE = 1, 3, 5
 # Quadratic and higher-order tetrahedra: VTK_QUADRATIC_TETRA, VTK_HIGHER_ORDER_TETRAHEDRON,
 # VTK_LAGRANGE_TETRAHEDRON, VTK_BEZIER_TETRAHEDRON.
 _VTK_HIGH_ORDER_TETS = (24, 64, 71, 78)
+# VTK_QUADRATIC_TETRA, _TRIANGLE, _EDGE -> the linear cell of their corners
+_VTK_QUADRATIC = {24: 10, 22: 5, 21: 3}
+# the same for meshio's cell blocks: (linear type, its corners)
+_MESHIO_QUADRATIC = {"tetra10": ("tetra", 4), "triangle6": ("triangle", 3), "line3": ("line", 2)}
 
 _READ_FORMATS = {
     ".vtu": "vtu",
@@ -260,6 +265,10 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     if n_cells == 0:
         raise MeshInputError(f"{source}: the mesh is empty: it has no cells")
     celltypes = np.asarray(grid.celltypes).astype(np.int64)
+    if reading_linear():  # quadratic cells as their linear cells (``load(linear=True)``)
+        quadratic = np.isin(celltypes, list(_VTK_QUADRATIC))
+        for quad, lin in _VTK_QUADRATIC.items():
+            celltypes[celltypes == quad] = lin
     is_tet = celltypes == _VTK_TETRA
     kinds, counts = np.unique(celltypes[~is_tet], return_counts=True)
     dims = np.array([_vtk_cell_dimension(t) for t in kinds], dtype=np.int64)
@@ -285,6 +294,9 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     offsets = np.asarray(grid.offset if offsets is None else offsets, dtype=np.int64)
     conn = np.asarray(grid.cell_connectivity, dtype=np.int64)
     sizes = np.diff(offsets)[is_tet]
+    if reading_linear() and quadratic.any():
+        sizes = np.where(quadratic[is_tet] & (sizes == 10), 4, sizes)
+        _skip_vtk_mid_nodes(conn, offsets, quadratic)
     if (sizes != 4).any():
         c = int(np.flatnonzero(is_tet)[np.flatnonzero(sizes != 4)[0]])
         raise MeshInputError(
@@ -323,6 +335,17 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
         pv, vertex_labels, *_mesh_vertices(tets, *cells(_VTK_VERTEX, 1), n, source)
     )
     return points, tets, region, pf, pe, face_labels, pv, edge_labels, vertex_labels
+
+
+def _skip_vtk_mid_nodes(conn: np.ndarray, offsets: np.ndarray, quadratic: np.ndarray) -> None:
+    """Note the mid-edge nodes of a grid's ``quadratic`` (mask) cells, whose corners come
+    first in VTK's order, for ``load`` to leave out (``quadratic_corners``)."""
+    start, stop = offsets[:-1][quadratic], offsets[1:][quadratic]
+    corner_count = np.where(stop - start == 10, 4, np.where(stop - start == 6, 3, 2))
+    first = start + corner_count
+    lengths = stop - first
+    rows = np.repeat(first - np.cumsum(np.r_[0, lengths[:-1]]), lengths) + np.arange(lengths.sum())
+    note_mid_nodes(conn[rows])
 
 
 def _field_labels(grid, name: str, rows, source: str) -> np.ndarray | None:
@@ -715,7 +738,9 @@ def _vtk_file_arrays(path: Path, fmt: str, source: str):
 
     def read():
         _limit_child_memory(path)
-        return _vtk_arrays_here(path, fmt, source)
+        # the mid-edge nodes the child skips (``load(linear=True)``) come back with the
+        # arrays: the child's list is its own copy
+        return _vtk_arrays_here(path, fmt, source), _MID_NODES.get()
 
     def crashed(how: str) -> MeshFileError:
         return MeshFileError(
@@ -723,7 +748,10 @@ def _vtk_file_arrays(path: Path, fmt: str, source: str):
             "file is damaged)"
         )
 
-    return call_in_child(read, crashed)
+    arrays, mid_nodes = call_in_child(read, crashed)
+    if mid_nodes:
+        _MID_NODES.get().extend(mid_nodes)
+    return arrays
 
 
 def _write_vtk_file(grid, path: Path, fmt: str) -> None:
@@ -977,6 +1005,11 @@ def _meshio_to_arrays(m, source: str, fmt: str = "", triangles=None, required=No
     protecting its vertices too (with ``boundary="slide"`` they could slide)."""
     # a Gmsh file's $NodeData / $ElementData views, a Medit file's solution: not carried
     _warn_dropped_arrays(list(m.point_data), list(m.cell_data), source)
+    if reading_linear():  # quadratic blocks as their corners (``load(linear=True)``)
+        for block in m.cells:
+            if block.type in _MESHIO_QUADRATIC:
+                block.type, k = _MESHIO_QUADRATIC[block.type]
+                block.data = quadratic_corners(block.data, k)
     keep_blocks, bad = [], {}
     for i, block in enumerate(m.cells):
         dim = getattr(block, "dim", 3)
@@ -1354,7 +1387,89 @@ def _last_line(path: Path) -> str:
     return next((ln for ln in reversed(tail.splitlines()) if ln.split("#")[0].split()), "")
 
 
-def load(path: str | os.PathLike) -> TetMesh:
+# ``load(path, linear=True)``: the readers read quadratic cells (10-node tets, 6-node
+# triangles, 3-node lines) as their corners and put the ids of the mid-edge nodes they
+# skip here; None (the default): they refuse quadratic tets
+_MID_NODES: contextvars.ContextVar[list | None] = contextvars.ContextVar(
+    "jtet_mid_nodes", default=None
+)
+
+
+def reading_linear() -> bool:
+    """Whether the file being loaded is read with quadratic cells as linear ones."""
+    return _MID_NODES.get() is not None
+
+
+def quadratic_corners(cells: np.ndarray, k: int) -> np.ndarray:
+    """The first ``k`` columns of quadratic ``cells`` (every format lists a quadratic
+    cell's corners first, in the order of its linear cell), noting the other columns as
+    mid-edge nodes that ``load`` drops unless a cell uses them."""
+    cells = np.asarray(cells, np.int64)
+    note_mid_nodes(cells[:, k:])
+    return cells[:, :k]
+
+
+def note_mid_nodes(ids: np.ndarray) -> None:
+    """Note vertex ids of mid-edge nodes that a reader skipped, for ``load`` to leave out."""
+    _MID_NODES.get().append(np.asarray(ids, np.int64).reshape(-1))
+
+
+def _without_points(mesh: TetMesh, drop: np.ndarray) -> TetMesh:
+    """``mesh`` without the points ``drop`` (ids no tet or protected entity uses), its ids
+    renumbered; node sets, periodic links and point data follow."""
+    keep = np.ones(mesh.n_points, bool)
+    keep[drop] = False
+    new = np.cumsum(keep) - 1
+
+    def ids(a):
+        return new[np.asarray(a, np.int64)]
+
+    periodic = [
+        (link.dim, link.tags, link.affine, ids(link.pairs[keep[link.pairs].all(axis=1)]))
+        for link in mesh.periodic
+        if keep[link.pairs].all(axis=1).any()
+    ]
+    return TetMesh.from_arrays(
+        mesh.points[keep],
+        ids(mesh.tets),
+        mesh.region,
+        ids(mesh.protected_faces),
+        ids(mesh.protected_edges),
+        mesh.protected_face_labels,
+        ids(mesh.protected_vertices),
+        mesh.protected_edge_labels,
+        mesh.protected_vertex_labels,
+        label_names=dict(mesh.label_names),
+        periodic=periodic,
+        protected_tets=ids(mesh.protected_tets),
+        node_sets=[(ns.name, ids(ns.ids[keep[ns.ids]]), ns.label) for ns in mesh.node_sets],
+        point_data={k: v[keep] for k, v in mesh.point_data.items()},
+        cell_data=dict(mesh.cell_data),
+    )
+
+
+def _drop_mid_nodes(mesh: TetMesh, found: list, source: str) -> TetMesh:
+    """``mesh`` read with quadratic cells as linear ones, without the mid-edge nodes in
+    ``found`` that no cell or protected entity uses (with a warning); periodic links
+    keep their pairs of corners."""
+    mid = np.unique(np.concatenate([np.zeros(0, np.int64), *found]))
+    if not len(mid):
+        return mesh
+    used = np.zeros(mesh.n_points, bool)
+    for a in (mesh.tets, mesh.protected_faces, mesh.protected_edges, mesh.protected_vertices):
+        used[np.asarray(a, np.int64).reshape(-1)] = True
+    drop = mid[(mid >= 0) & (mid < mesh.n_points)]
+    drop = drop[~used[drop]]
+    warnings.warn(
+        f"{source}: quadratic cells read as linear ones (their corners); {len(drop)} "
+        "mid-edge node(s) left out. The output is a linear mesh: make it quadratic again "
+        "in your mesher or solver (Gmsh: SetOrder 2; code_aster: CREA_MAILLAGE LINE_QUAD)",
+        stacklevel=3,
+    )
+    return _without_points(mesh, drop) if len(drop) else mesh
+
+
+def load(path: str | os.PathLike, *, linear: bool = False) -> TetMesh:
     """Read a tetrahedral mesh file.
 
     Formats by extension: ``.vtu``, ``.vtk`` (VTK), ``.msh`` (Gmsh 2.2 / 4.1; physical
@@ -1378,10 +1493,26 @@ def load(path: str | os.PathLike) -> TetMesh:
     ``TetMesh.cell_data``, but for region labels and jtet's own quality arrays. A
     globally reversed orientation is fixed with a warning (see ``TetMesh.from_arrays``).
 
+    ``linear=True`` reads quadratic cells (10-node tets, 6-node triangles, 3-node lines;
+    ``jtet improve --linear``) as their corners, and leaves out the mid-edge nodes no
+    other cell uses (node sets and point data follow), with a warning: jtet improves
+    linear tets, and the output is linear. Without it such a file is refused.
+
     Raises:
         MeshFileError: the file is missing, a directory, of unknown extension, or unreadable.
         MeshInputError: the file was read but does not hold a valid pure tet mesh.
     """
+    token = _MID_NODES.set([] if linear else None)
+    try:
+        mesh = _load(path)
+        found = _MID_NODES.get()
+    finally:
+        _MID_NODES.reset(token)
+    return _drop_mid_nodes(mesh, found, str(path)) if found else mesh
+
+
+def _load(path) -> TetMesh:
+    """``load`` without the mid-edge nodes' removal."""
     p = Path(path)
     if not p.exists():
         raise MeshFileError(f"{p}: no such file")

@@ -49,6 +49,9 @@ _SWAP = [0, 2, 1, 3]
 # cell types jtet reads: (jtet's role, vertices per cell)
 _READ = {"TE4": ("tet", 4), "TR3": ("face", 3), "SE2": ("edge", 2), "PO1": ("vertex", 1)}
 _VERTICES_OF_ROLE = dict(_READ.values())
+# quadratic cells, read as their corners with ``jtet.load(path, linear=True)``
+_QUADRATIC = {"T10": ("tet", 4), "TR6": ("face", 3), "SE3": ("edge", 2)}
+_QUADRATIC_NODES = {"T10": 10, "TR6": 6, "SE3": 3}
 # solids jtet refuses, with the names its messages give them; T10 gets the quadratic hint
 _SOLIDS = {
     "T10": "TETRA10",
@@ -110,7 +113,7 @@ def _last(group, what: str, source: str):
 
 
 def _read(f, source: str):
-    from ._io import _non_tet_message
+    from ._io import _non_tet_message, quadratic_corners, reading_linear
 
     if "ENS_MAA" not in f:
         raise MeshFileError(f"{source}: not a MED file (an HDF5 file without ENS_MAA)")
@@ -140,20 +143,26 @@ def _read(f, source: str):
     points = np.asarray(coords[()], np.float64).reshape(3, n).T
     node_families = _families(step["NOE"], n, source)
 
-    cells: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    linear = reading_linear()
+    blocks: dict[str, list] = {}  # role -> [(ids, family numbers or None), ...]
     bad, skipped = {}, {}
     for kind, group in step.get("MAI", {}).items():
-        if kind in _SOLIDS:
+        quadratic = linear and kind in _QUADRATIC
+        if kind in _SOLIDS and not quadratic:
             bad[_SOLIDS[kind]] = _cell_count(group)
             continue
-        if kind not in _READ:
+        if kind not in _READ and not quadratic:
             skipped[kind] = _cell_count(group)
             continue
-        k = _READ[kind][1]
+        role, k = _QUADRATIC[kind] if quadratic else _READ[kind]
+        width = _QUADRATIC_NODES[kind] if quadratic else k
         nod = group["NOD"]
         count = int(nod.attrs["NBR"])
-        ids = np.asarray(nod[()], np.int64).reshape(k, count).T - 1
-        cells[_READ[kind][0]] = (ids, _families(group, count, source))
+        ids = np.asarray(nod[()], np.int64).reshape(width, count).T - 1
+        if quadratic:  # corners first, in the order of the linear cell
+            ids = quadratic_corners(ids, k)
+        blocks.setdefault(role, []).append((ids, _families(group, count, source)))
+    cells = {role: _joined_blocks(found) for role, found in blocks.items()}
     if bad:
         quadratic = _SOLIDS["T10"] in bad
         raise MeshInputError(_non_tet_message(source, list(bad), list(bad.values()), quadratic))
@@ -199,6 +208,18 @@ def _read(f, source: str):
             "cell_data": cell_data,
         },
     )
+
+
+def _joined_blocks(found: list) -> tuple[np.ndarray, np.ndarray | None]:
+    """(ids, family numbers or None) of the cells of one role from several types (TE4
+    and T10 read as linear ones)."""
+    if len(found) == 1:
+        return found[0]
+    ids = np.concatenate([i for i, _ in found])
+    if all(f is None for _, f in found):
+        return ids, None
+    fam = [np.zeros(len(i), np.int64) if f is None else f for i, f in found]
+    return ids, np.concatenate(fam)
 
 
 def _cell_count(group) -> int:
