@@ -46,6 +46,16 @@ _TETS = ("TETRA", "TET", "TETRAHEDRON")
 _TRIANGLES = ("TRI", "TRIANGLE", "TRISHELL", "SHELL")  # a 3-node shell is a triangle
 _BARS = ("BAR", "BEAM", "TRUSS", "EDGE")
 _POINTS = ("SPHERE", "CIRCLE", "POINT", "NODE")
+# nodes of a quadratic cell of each kind (TETRA10, TRI6, BAR3), corners first
+_QUADRATIC = {"tet": 10, "triangle": 6, "bar": 3}
+
+
+def _family_kind(family: str) -> str | None:
+    """ "tet", "triangle" or "bar" for an element type's family, else None."""
+    return (
+        "tet" if family in _TETS else "triangle" if family in _TRIANGLES
+        else "bar" if family in _BARS else None
+    )  # fmt: skip
 
 
 class _Reader:
@@ -156,7 +166,7 @@ def read_exo(path: Path, source: str):
 
 
 def _read(r: _Reader, source: str):
-    from ._io import _non_tet_message
+    from ._io import _non_tet_message, quadratic_corners, reading_linear
 
     coords = [r.array(f"coord{c}") for c in "xyz"]
     stacked = r.array("coord") if coords[0] is None else None  # the older layout
@@ -190,6 +200,10 @@ def _read(r: _Reader, source: str):
         family = kind.rstrip("0123456789")
         conn = conn.reshape(len(conn), -1) - 1
         width = conn.shape[1]
+        if reading_linear() and _QUADRATIC.get(_family_kind(family)) == width:
+            # a quadratic block as its corners (``jtet.load(path, linear=True)``)
+            width = {10: 4, 6: 3, 3: 2}[width]
+            conn = quadratic_corners(conn, width)
         dim = (
             3 if family in _TETS and width == 4 else 2 if family in _TRIANGLES and width == 3
             else 1 if family in _BARS and width == 2 else 0 if family in _POINTS and width == 1

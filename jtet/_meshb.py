@@ -69,6 +69,8 @@ def read_meshb(path: Path, source: str):
     Medit file ``path``, in its sections' order. ``MeshFileError`` for a file that is no
     such file or is damaged, ``MeshInputError`` for one of another kind of mesh (2-D,
     other volume elements)."""
+    from ._io import quadratic_corners, reading_linear
+
     data = np.fromfile(path, np.uint8)
     reader = _Reader(data, source)
     points, blocks, required, others = None, [], {}, {}
@@ -91,6 +93,10 @@ def read_meshb(path: Path, source: str):
                 rows = reader.table(start, count, [reader.real] * dim + [reader.int])
                 points = rows[:, :dim].astype(np.float64)
                 end = start + count * (dim * reader.real.itemsize + reader.int.itemsize)
+            elif code == 30 and reading_linear():  # P2 tets as their corners
+                rows = reader.table(start, count, [reader.int] * 11).astype(np.int64)
+                end = start + count * 11 * reader.int.itemsize
+                blocks.append(("tetra", quadratic_corners(rows[:, :10] - 1, 4), rows[:, -1]))
             elif code in OTHER_VOLUMES:
                 name, k = OTHER_VOLUMES[code]
                 others[name] = others.get(name, 0) + count

@@ -214,8 +214,20 @@ def _numbers(rows: list[str], width: int | None, what: str, source: str, kind=np
 def _volume_elements(rows: list[str], source: str) -> tuple[np.ndarray, np.ndarray]:
     """(tets (m, 4) 0-based in VTK's order, material numbers (m,)) of ``volumeelements``
     (rows: matnr np p1 .. pnp); ``MeshInputError`` naming other elements."""
+    from ._io import quadratic_corners, reading_linear
+
     counts = np.array([ln.split()[1] if len(ln.split()) > 1 else "0" for ln in rows[:1]])
     table = None
+    if reading_linear() and len(counts) and counts[0] == "10":
+        # second-order tets as their corners (``jtet.load(path, linear=True)``)
+        try:
+            table = _numbers(rows, 12, "volumeelements", source, np.int64)
+        except MeshFileError:
+            table = None
+        if table is not None and (table[:, 1] == 10).all():
+            corners = quadratic_corners(table[:, 2:] - 1, 4)
+            return corners[:, _SWAP], table[:, 0]
+        table = None
     if len(counts) and counts[0] == "4":
         try:
             table = _numbers(rows, 6, "volumeelements", source, np.int64)
