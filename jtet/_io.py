@@ -136,11 +136,21 @@ def _vtk_cell_name(cell_type: int) -> str:
         return f"VTK cell type {int(cell_type)}"
 
 
-def _non_tet_message(source: str, names: list[str], counts: list[int], high_order: bool) -> str:
+def _non_tet_message(
+    source: str, names: list[str], counts: list[int], high_order: bool, linear_reads: bool = True
+) -> str:
+    """The refusal of a file's non-tet 3-D cells, with their names and counts;
+    ``high_order``: some are quadratic or higher-order tets, which ``--linear`` reads as
+    linear ones (``linear_reads``: this reader can)."""
     total = sum(counts)
     listing = ", ".join(f"{n} x {c}" for n, c in zip(names, counts, strict=True))
     msg = f"{source}: {total} cells are not tetrahedra ({listing}); jtet needs a pure tet mesh"
-    if high_order:
+    if high_order and linear_reads:
+        msg += (
+            " (quadratic / higher-order tetrahedra: jtet improves linear ones; --linear, "
+            "jtet.load(path, linear=True), reads 10-node tets as their 4 corner vertices)"
+        )
+    elif high_order:
         msg += (
             " (quadratic / higher-order tetrahedra are not supported: keep only their 4 corner"
             " vertices to get a linear tet mesh)"
@@ -1342,7 +1352,9 @@ def _check_tetgen_elements(ele: Path) -> None:
         return
     if int(fields[1]) == 10:
         count = int(fields[0]) if fields[0].isdigit() else 0
-        raise MeshInputError(_non_tet_message(str(ele), ["10-node tetrahedron"], [count], True))
+        raise MeshInputError(
+            _non_tet_message(str(ele), ["10-node tetrahedron"], [count], True, linear_reads=False)
+        )
     raise MeshInputError(f"{ele}: {fields[1]} nodes per element; jtet reads 4-node tetrahedra")
 
 

@@ -461,7 +461,7 @@ def cmd_stats(args) -> int:
     # every file is read before anything is printed: a bad one is the only output; one
     # mesh at a time is held, only its (small) results are kept
     files = [
-        _mesh_summary(path, args.worst, args.quality, args.by_region, args.groups)
+        _mesh_summary(path, args.worst, args.quality, args.by_region, args.groups, args.linear)
         for path in args.mesh
     ]
     stats = [f["stats"] for f in files]
@@ -524,7 +524,12 @@ def cmd_stats(args) -> int:
 
 
 def _mesh_summary(
-    path: str, n_worst: int, measure: str, by_region: bool = False, groups: bool = False
+    path: str,
+    n_worst: int,
+    measure: str,
+    by_region: bool = False,
+    groups: bool = False,
+    linear: bool = False,
 ) -> dict:
     """What ``jtet stats`` prints of one file: the mesh's one-line description, its
     statistics (and, ``by_region``, those of each region), validity report, ``n_worst``
@@ -533,7 +538,7 @@ def _mesh_summary(
     from ._quality import tet_all_measures
     from ._stats import mesh_groups, mesh_stats, region_stats, worst_tets
 
-    mesh = load(path)
+    mesh = load(path, linear=linear)
     per_tet = tet_all_measures(mesh.points, mesh.tets)
     try:
         regions = region_stats(mesh, per_tet=per_tet) if by_region else {}
@@ -747,12 +752,21 @@ def _add_drop(p) -> None:
     )
 
 
+def _add_linear(p) -> None:
+    p.add_argument(
+        "--linear",
+        action="store_true",
+        help="read quadratic cells (10-node tets, 6-node triangles, 3-node lines) as their "
+        "corners and leave out their mid-edge nodes; the output is linear",
+    )
+
+
 def _read_input(src: Path, args):
     """The mesh of ``src``, its regions renamed by ``--relabel``, without the data
     arrays ``--drop`` names."""
     from ._io import load
 
-    mesh = load(src)
+    mesh = load(src, linear=getattr(args, "linear", False))
     if getattr(args, "relabel", None):
         try:
             mesh = mesh.relabel(args.relabel)
@@ -815,6 +829,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_relabel(pi)
     _add_drop(pi)
+    _add_linear(pi)
     pi.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
     pi.add_argument("-q", "--quiet", action="store_true")
     pi.set_defaults(func=cmd_improve)
@@ -854,6 +869,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="list what the file's groups became: regions, labels of protected surfaces, "
         "curves and points, node sets, with names and sizes (--json: a 'groups' list)",
     )
+    _add_linear(ps)
     ps.set_defaults(func=cmd_stats)
     pc = sub.add_parser(
         "convert",
@@ -872,6 +888,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_relabel(pc)
     _add_drop(pc)
+    _add_linear(pc)
     pc.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
     pc.add_argument("-q", "--quiet", action="store_true")
     pc.set_defaults(func=cmd_convert)

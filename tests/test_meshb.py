@@ -211,3 +211,24 @@ def test_cli_converts_between_ascii_and_binary(tmp_path):
     assert main(["convert", str(src), str(tmp_path / "a.mesh")]) == 0
     assert main(["convert", str(tmp_path / "a.mesh"), str(tmp_path / "b.meshb")]) == 0
     _assert_same(jtet.load(tmp_path / "b.meshb"), jtet.load(src))
+
+
+def test_p2_tets_read_as_linear(tmp_path, monkeypatch):
+    """A TetrahedraP2 section (keyword 30: corners first, then the mid-edge nodes; written
+    here by jtet's writer given that keyword) is refused with the --linear hint, and read
+    as its corners with ``linear=True``."""
+    from jtet import _meshb
+
+    corners = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    edges = [(0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)]
+    points = np.vstack([corners, [(corners[a] + corners[b]) / 2 for a, b in edges]])
+    monkeypatch.setitem(_meshb.ORDER, "tetra10", 30)
+    path = tmp_path / "p2.meshb"
+    _meshb.write_meshb(path, points, [("tetra10", np.arange(10)[None], np.array([7]))], {})
+    with pytest.raises(MeshInputError, match="--linear"):
+        jtet.load(path)
+    with pytest.warns(UserWarning, match="6 mid-edge node"):
+        mesh = jtet.load(path, linear=True)
+    np.testing.assert_array_equal(mesh.points, corners)
+    np.testing.assert_array_equal(mesh.tets, [[0, 1, 2, 3]])
+    np.testing.assert_array_equal(mesh.region, [7])

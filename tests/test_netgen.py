@@ -268,3 +268,21 @@ def test_bad_netgen_files_without_sections(tmp_path):
     (tmp_path / "d.vol.gz").write_bytes(b"not gzip at all")
     with pytest.raises(MeshFileError, match="cannot read"):
         jtet.load(tmp_path / "d.vol.gz")
+
+
+def test_second_order_tets_read_as_linear(tmp_path):
+    """A 10-node volume element (Netgen's second order: the corners first) is refused
+    with the --linear hint and read as its corners with ``linear=True``."""
+    corners = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    edges = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    points = np.vstack([corners, [(corners[a] + corners[b]) / 2 for a, b in edges]])
+    text = "mesh3d\ndimension\n3\nvolumeelements\n1\n1 10 1 3 2 4 5 6 7 8 9 10\n"
+    text += f"points\n{len(points)}\n" + "".join(f"{x} {y} {z}\n" for x, y, z in points)
+    path = tmp_path / "tet10.vol"
+    path.write_text(text + "endmesh\n")
+    with pytest.raises(MeshInputError, match="--linear"):
+        jtet.load(path)
+    with pytest.warns(UserWarning, match="6 mid-edge node"):
+        mesh = jtet.load(path, linear=True)
+    np.testing.assert_array_equal(mesh.points, corners)
+    np.testing.assert_array_equal(mesh.tets, [[0, 1, 2, 3]])  # Netgen's order undone
