@@ -32,7 +32,20 @@ from pathlib import Path
 
 # surface files (``jtet tetrahedralize``'s input) are read and checked, not loaded
 SURFACES = ("stl", "obj", "ply", "off", "vtp")
-FORMATS = ("vtu", "vtk", "msh", "mesh", "meshb", "node", "xdmf", "inp", "vol", "exo", "med", *SURFACES)
+FORMATS = (
+    "vtu",
+    "vtk",
+    "msh",
+    "mesh",
+    "meshb",
+    "node",
+    "xdmf",
+    "inp",
+    "vol",
+    "exo",
+    "med",
+    *SURFACES,
+)
 BAD_TOKENS = (b"-1", b"0", b"99999999", b"nan", b"1e308", b"abc", b"")
 
 

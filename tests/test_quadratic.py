@@ -127,3 +127,19 @@ def test_cli_flag(tmp_path, gmsh_files, capsys):
     improved = jtet.load(out)
     assert improved.n_points == jtet.load(gmsh_files / "linear.msh").n_points
     assert main(["stats", str(src), "--linear"]) == 0
+
+
+def test_xdmf_written_by_meshio(tmp_path):
+    """meshio's XDMF file of one ``tetra10``: refused, then read as its corners."""
+    meshio = pytest.importorskip("meshio")
+    corners = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    edges = [(0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)]
+    points = np.vstack([corners, [(corners[a] + corners[b]) / 2 for a, b in edges]])
+    path = tmp_path / "q.xdmf"
+    meshio.write(path, meshio.Mesh(points, [("tetra10", np.arange(10)[None])]))
+    with pytest.raises(MeshInputError, match="--linear"):
+        jtet.load(path)
+    with pytest.warns(UserWarning, match="6 mid-edge node"):
+        mesh = jtet.load(path, linear=True)
+    np.testing.assert_array_equal(mesh.points, corners)
+    np.testing.assert_array_equal(mesh.tets, [[0, 1, 2, 3]])
