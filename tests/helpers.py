@@ -108,10 +108,35 @@ def shifted(mesh: "jtet.TetMesh", offset: int = 70_000) -> "jtet.TetMesh":
     )
 
 
-def named_ball_in_box(*paths, save_all_entities=False, names=True):
+def unit_tet10() -> tuple[np.ndarray, np.ndarray]:
+    """(corners (4, 3), nodes (10, 3)) of the unit corner tet as a 10-node tet: its
+    corners first, then the midpoints of edges 01, 12, 02, 03, 13, 23 (VTK's, Abaqus'
+    and Exodus' order of a quadratic tet's mid-edge nodes)."""
+    corners = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    edges = [(0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)]
+    return corners, np.vstack([corners, [(corners[a] + corners[b]) / 2 for a, b in edges]])
+
+
+def read_as_unit_tet(path) -> "jtet.TetMesh":
+    """Load the file of ``unit_tet10``'s 10-node tet ``path``: refused with the --linear
+    hint, then read with ``linear=True`` as the unit corner tet (its 6 mid-edge nodes
+    left out, with a warning); that mesh."""
+    from jtet._errors import MeshInputError
+
+    with pytest.raises(MeshInputError, match="--linear"):
+        jtet.load(path)
+    with pytest.warns(UserWarning, match="6 mid-edge node"):
+        mesh = jtet.load(path, linear=True)
+    np.testing.assert_array_equal(mesh.points, unit_tet10()[0])
+    np.testing.assert_array_equal(mesh.tets, [[0, 1, 2, 3]])
+    return mesh
+
+
+def named_ball_in_box(*paths, save_all_entities=False, names=True, second_order=()):
     """A ball (physical volume 1 "ball") in a box (2 "box"), the box's walls as physical
     surface 10 "walls", meshed once and written to each of ``paths`` (.msh 2.2 / 4.1,
-    .inp, ...; the format from the extension)."""
+    .inp, ...; the format from the extension); then made quadratic (Gmsh's order 2) and
+    written to each of ``second_order`` (a path, or (path, MSH version))."""
     with gmsh_model() as gmsh:
         box = gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
         ball = gmsh.model.occ.addSphere(0.5, 0.5, 0.5, 0.25)
@@ -130,6 +155,13 @@ def named_ball_in_box(*paths, save_all_entities=False, names=True):
             gmsh.option.setNumber("Mesh.SaveAll", 1)
         gmsh_mesh_and_write(gmsh, paths[0], 0.2)
         for path in paths[1:]:
+            gmsh.write(str(path))
+        if second_order:
+            gmsh.model.mesh.setOrder(2)
+        for item in second_order:
+            path, version = item if isinstance(item, tuple) else (item, None)
+            if version is not None:
+                gmsh.option.setNumber("Mesh.MshFileVersion", version)
             gmsh.write(str(path))
 
 

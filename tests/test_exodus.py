@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import delaunay_mesh
+from helpers import delaunay_mesh, read_as_unit_tet, unit_tet10
 
 import jtet
 from jtet._errors import MeshFileError, MeshInputError
@@ -342,9 +342,7 @@ def test_nodal_variable_of_another_length_refused(tmp_path):
 def test_tetra10_block_reads_as_linear(tmp_path):
     """A TETRA10 block (corners first, then the mid-edge nodes) is refused with the
     --linear hint, and read as its TETRA4 corners with ``linear=True``."""
-    corners = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
-    edges = [(0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)]
-    points = np.vstack([corners, [(corners[a] + corners[b]) / 2 for a, b in edges]])
+    _, points = unit_tet10()
 
     def build(f):
         f.createDimension("num_nodes", len(points))
@@ -353,9 +351,4 @@ def test_tetra10_block_reads_as_linear(tmp_path):
         _block(f, 1, [np.arange(1, 11)], "TETRA10")
 
     path = _write_netcdf(tmp_path / "tet10.exo", build)
-    with pytest.raises(MeshInputError, match="--linear"):
-        jtet.load(path)
-    with pytest.warns(UserWarning, match="6 mid-edge node"):
-        mesh = jtet.load(path, linear=True)
-    np.testing.assert_array_equal(mesh.points, corners)
-    np.testing.assert_array_equal(mesh.tets, [[0, 1, 2, 3]])
+    read_as_unit_tet(path)

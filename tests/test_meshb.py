@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import delaunay_mesh, run_mmg3d
+from helpers import delaunay_mesh, read_as_unit_tet, run_mmg3d, unit_tet10
 
 import jtet
 from jtet._errors import MeshFileError, MeshInputError
@@ -219,16 +219,9 @@ def test_p2_tets_read_as_linear(tmp_path, monkeypatch):
     as its corners with ``linear=True``."""
     from jtet import _meshb
 
-    corners = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
-    edges = [(0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)]
-    points = np.vstack([corners, [(corners[a] + corners[b]) / 2 for a, b in edges]])
+    _, points = unit_tet10()
     monkeypatch.setitem(_meshb.ORDER, "tetra10", 30)
     path = tmp_path / "p2.meshb"
     _meshb.write_meshb(path, points, [("tetra10", np.arange(10)[None], np.array([7]))], {})
-    with pytest.raises(MeshInputError, match="--linear"):
-        jtet.load(path)
-    with pytest.warns(UserWarning, match="6 mid-edge node"):
-        mesh = jtet.load(path, linear=True)
-    np.testing.assert_array_equal(mesh.points, corners)
-    np.testing.assert_array_equal(mesh.tets, [[0, 1, 2, 3]])
+    mesh = read_as_unit_tet(path)
     np.testing.assert_array_equal(mesh.region, [7])

@@ -7,7 +7,7 @@ import warnings
 
 import numpy as np
 import pytest
-from helpers import gmsh_model
+from helpers import named_ball_in_box, read_as_unit_tet, unit_tet10
 
 import jtet
 from jtet._errors import MeshInputError
@@ -22,26 +22,11 @@ def _key_rows(points, cells) -> set:
 
 @pytest.fixture(scope="module")
 def gmsh_files(tmp_path_factory):
-    """Gmsh's ball in a box (physical volumes "ball" / "box", the surfaces "surf"):
-    the linear mesh as .msh, then the same mesh at order 2 in five formats."""
+    """Gmsh's ball in a box (``named_ball_in_box``): the linear mesh as .msh, then the
+    same mesh at order 2 in five formats."""
     out = tmp_path_factory.mktemp("quadratic")
-    with gmsh_model() as gmsh:
-        box = gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
-        ball = gmsh.model.occ.addSphere(0.5, 0.5, 0.5, 0.25)
-        gmsh.model.occ.fragment([(3, box)], [(3, ball)])
-        gmsh.model.occ.synchronize()
-        vols = sorted(t for _, t in gmsh.model.getEntities(3))
-        gmsh.model.addPhysicalGroup(3, [vols[0]], 1, "ball")
-        gmsh.model.addPhysicalGroup(3, [vols[1]], 2, "box")
-        gmsh.model.addPhysicalGroup(2, [t for _, t in gmsh.model.getEntities(2)], 7, "surf")
-        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.3)
-        gmsh.model.mesh.generate(3)
-        gmsh.write(str(out / "linear.msh"))
-        gmsh.model.mesh.setOrder(2)
-        for ext in ("msh", "vtk", "inp", "med"):
-            gmsh.write(str(out / f"quadratic.{ext}"))
-        gmsh.option.setNumber("Mesh.MshFileVersion", 2.2)
-        gmsh.write(str(out / "quadratic22.msh"))
+    second = [out / f"quadratic.{ext}" for ext in ("msh", "vtk", "inp", "med")]
+    named_ball_in_box(out / "linear.msh", second_order=[*second, (out / "quadratic22.msh", 2.2)])
     return out
 
 
@@ -132,14 +117,7 @@ def test_cli_flag(tmp_path, gmsh_files, capsys):
 def test_xdmf_written_by_meshio(tmp_path):
     """meshio's XDMF file of one ``tetra10``: refused, then read as its corners."""
     meshio = pytest.importorskip("meshio")
-    corners = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
-    edges = [(0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)]
-    points = np.vstack([corners, [(corners[a] + corners[b]) / 2 for a, b in edges]])
+    _, points = unit_tet10()
     path = tmp_path / "q.xdmf"
     meshio.write(path, meshio.Mesh(points, [("tetra10", np.arange(10)[None])]))
-    with pytest.raises(MeshInputError, match="--linear"):
-        jtet.load(path)
-    with pytest.warns(UserWarning, match="6 mid-edge node"):
-        mesh = jtet.load(path, linear=True)
-    np.testing.assert_array_equal(mesh.points, corners)
-    np.testing.assert_array_equal(mesh.tets, [[0, 1, 2, 3]])
+    read_as_unit_tet(path)
