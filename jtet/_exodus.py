@@ -51,7 +51,7 @@ _QUADRATIC = {"tet": 10, "triangle": 6, "bar": 3}
 
 
 def _family_kind(family: str) -> str | None:
-    """ "tet", "triangle" or "bar" for an element type's family, else None."""
+    """The kind of cell ("tet", "triangle", "bar") of an element type's family, or None."""
     return (
         "tet" if family in _TETS else "triangle" if family in _TRIANGLES
         else "bar" if family in _BARS else None
