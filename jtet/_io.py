@@ -275,8 +275,9 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     if n_cells == 0:
         raise MeshInputError(f"{source}: the mesh is empty: it has no cells")
     celltypes = np.asarray(grid.celltypes).astype(np.int64)
-    if reading_linear():  # quadratic cells as their linear cells (``load(linear=True)``)
-        quadratic = np.isin(celltypes, list(_VTK_QUADRATIC))
+    # quadratic cells as their linear cells (``load(linear=True)``)
+    quadratic = np.isin(celltypes, list(_VTK_QUADRATIC)) if reading_linear() else None
+    if quadratic is not None:
         for quad, lin in _VTK_QUADRATIC.items():
             celltypes[celltypes == quad] = lin
     is_tet = celltypes == _VTK_TETRA
@@ -304,7 +305,7 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     offsets = np.asarray(grid.offset if offsets is None else offsets, dtype=np.int64)
     conn = np.asarray(grid.cell_connectivity, dtype=np.int64)
     sizes = np.diff(offsets)[is_tet]
-    if reading_linear() and quadratic.any():
+    if quadratic is not None and quadratic.any():
         sizes = np.where(quadratic[is_tet] & (sizes == 10), 4, sizes)
         _skip_vtk_mid_nodes(conn, offsets, quadratic)
     if (sizes != 4).any():

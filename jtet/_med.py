@@ -50,8 +50,8 @@ _SWAP = [0, 2, 1, 3]
 _READ = {"TE4": ("tet", 4), "TR3": ("face", 3), "SE2": ("edge", 2), "PO1": ("vertex", 1)}
 _VERTICES_OF_ROLE = dict(_READ.values())
 # quadratic cells, read as their corners with ``jtet.load(path, linear=True)``
-_QUADRATIC = {"T10": ("tet", 4), "TR6": ("face", 3), "SE3": ("edge", 2)}
-_QUADRATIC_NODES = {"T10": 10, "TR6": 6, "SE3": 3}
+# (role, corners, nodes), the corners listed first
+_QUADRATIC = {"T10": ("tet", 4, 10), "TR6": ("face", 3, 6), "SE3": ("edge", 2, 3)}
 # solids jtet refuses, with the names its messages give them; T10 gets the quadratic hint
 _SOLIDS = {
     "T10": "TETRA10",
@@ -154,8 +154,7 @@ def _read(f, source: str):
         if kind not in _READ and not quadratic:
             skipped[kind] = _cell_count(group)
             continue
-        role, k = _QUADRATIC[kind] if quadratic else _READ[kind]
-        width = _QUADRATIC_NODES[kind] if quadratic else k
+        role, k, width = _QUADRATIC[kind] if quadratic else (*_READ[kind], _READ[kind][1])
         nod = group["NOD"]
         count = int(nod.attrs["NBR"])
         ids = np.asarray(nod[()], np.int64).reshape(width, count).T - 1
@@ -306,7 +305,7 @@ def _fields(f, mesh_name: str, n_points: int, n_tets: int, source: str):
         n_comp = int(field.attrs.get("NCO", 1))
         for support, values in step.items():
             profile = _text(values.attrs.get("PFL", _NO_PROFILE))
-            data = values.get(profile) if profile in values else None
+            data = values.get(profile)
             target, count = {"NOE": (point_data, n_points), "MAI.TE4": (cell_data, n_tets)}.get(
                 support, (None, 0)
             )
