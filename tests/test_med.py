@@ -6,7 +6,7 @@ import warnings
 import h5py
 import numpy as np
 import pytest
-from helpers import delaunay_mesh, gmsh_model, named_ball_in_box
+from helpers import delaunay_mesh, gmsh_model, named_ball_in_box, unit_tet10
 
 import jtet
 from jtet._errors import MeshFileError, MeshInputError
@@ -356,3 +356,67 @@ def test_medcoupling_files_both_ways(tmp_path):
     np.testing.assert_array_equal(np.sort(left_again), left)
     np.testing.assert_array_equal(np.sort(mm.getGroupArr(1, "probe").toNumPyArray()), [4, 7, 9])
     assert set(mc.MEDFileFields.New(str(ours)).getFieldsNames()) == {"T", "q"}
+
+
+def test_med2_layout_reads_as_the_med3_one(tmp_path):
+    """MED 2 files keep the nodes and cells in the mesh's group itself (no computing
+    step) and the families under it: the same file moved to that layout loads the same."""
+    mesh = _labelled_mesh()
+    med3, med2 = tmp_path / "a.med", tmp_path / "b.med"
+    jtet.save(mesh, med3)
+    jtet.save(mesh, med2)
+    with h5py.File(med2, "r+") as f:
+        group = f["ENS_MAA"]["b"]
+        (step,) = list(group)
+        for key in ("NOE", "MAI"):
+            group.move(f"{step}/{key}", key)
+        del group[step]
+        f.move("FAS/b", "ENS_MAA/b/FAS")
+    a, b = jtet.load(med3), jtet.load(med2)
+    np.testing.assert_array_equal(a.tets, b.tets)
+    np.testing.assert_array_equal(a.region, b.region)
+    assert a.label_names == b.label_names
+    assert [(s.name, s.ids.tolist()) for s in a.node_sets] == [
+        (s.name, s.ids.tolist()) for s in b.node_sets
+    ]
+
+
+def test_mesh_of_several_steps_reads_its_last(tmp_path):
+    """A mesh whose coordinates change over computing steps: the last step (by NDT) is
+    read, with a warning."""
+    path = _tiny(tmp_path, name="steps.med")
+    with h5py.File(path, "r+") as f:
+        group = f["ENS_MAA"]["steps"]
+        (first,) = list(group)
+        later = "0000000000000000000200000000000000000001"
+        group.copy(group[first], group, name=later)
+        group[later].attrs["NDT"] = 2
+        coords = group[later]["NOE"]["COO"]
+        coords[...] = coords[()] * 2
+    with pytest.warns(UserWarning, match="last of its 2 computing steps"):
+        mesh = jtet.load(path)
+    assert mesh.volumes.sum() == pytest.approx(8 / 6)  # the unit tet scaled by 2
+
+
+def test_linear_tets_beside_quadratic_ones(tmp_path):
+    """TE4 and T10 cells in one file, read with ``linear=True``: both kinds of tets
+    (the T10's corners in MED's order swapped too), the T10 without families in region
+    0, its 6 mid-edge nodes left out."""
+    corners, nodes = unit_tet10()
+    apex = np.array([[1 / 3, 1 / 3, -1.0]])  # below the face z = 0
+    points = np.vstack([corners, apex, nodes[4:]])  # 5 corners, then 6 mid-edge nodes
+    path = tmp_path / "mixed.med"
+    jtet.save(jtet.TetMesh(points, [[0, 1, 2, 3]], region=[3]), path)
+    below = np.array([0, 2, 1, 4])  # jtet's order, positive
+    with h5py.File(path, "r+") as f:
+        group = _step(f)["MAI"].create_group("T10")
+        nod = np.concatenate([below[[0, 2, 1, 3]], np.arange(5, 11)])  # MED's order
+        d = group.create_dataset("NOD", data=nod + 1)
+        d.attrs["NBR"] = 1
+    with pytest.warns(UserWarning, match="6 mid-edge node"):
+        mesh = jtet.load(path, linear=True)
+    np.testing.assert_array_equal(mesh.points, points[:5])
+    # the types in the file's (HDF5's, by name) order: T10 before TE4
+    np.testing.assert_array_equal(mesh.tets, [below, [0, 1, 2, 3]])
+    np.testing.assert_array_equal(mesh.region, [0, 3])
+    assert (mesh.volumes > 0).all()
