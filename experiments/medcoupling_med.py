@@ -17,6 +17,7 @@ a jtet dependency.
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -26,21 +27,18 @@ import numpy as np
 import jtet
 from jtet._report import quality_cell_data  # the per-tet arrays jtet improve writes
 
+sys.path.insert(0, str(Path(__file__).parent))
+from meshgen import gmsh_ball_in_box  # noqa: E402
 
-def gmsh_ball_in_box(path: Path, h: float) -> None:
+
+def write_gmsh_med(path: Path, h: float) -> None:
     """Write Gmsh's mesh of a ball in a box, with its four physical groups, to ``path``."""
     import gmsh
 
     gmsh.initialize()
     try:
         gmsh.option.setNumber("General.Terminal", 0)
-        box = gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
-        ball = gmsh.model.occ.addSphere(0.5, 0.5, 0.5, 0.25)
-        gmsh.model.occ.fragment([(3, box)], [(3, ball)])
-        gmsh.model.occ.synchronize()
-        vols = sorted(t for _, t in gmsh.model.getEntities(3))
-        inner = min(vols, key=lambda v: gmsh.model.occ.getMass(3, v))
-        outer = max(vols, key=lambda v: gmsh.model.occ.getMass(3, v))
+        inner, outer = gmsh_ball_in_box(0.25)
         gmsh.model.addPhysicalGroup(3, [inner], 1, "ball")
         gmsh.model.addPhysicalGroup(3, [outer], 2, "box")
         sphere = [t for _, t in gmsh.model.getBoundary([(3, inner)], oriented=False)]
@@ -101,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     work = Path(tempfile.mkdtemp(prefix="jtet-med-"))
     src, mid, out = work / "gmsh.med", work / "with_f.med", work / "improved.med"
-    gmsh_ball_in_box(src, args.h)
+    write_gmsh_med(src, args.h)
     mesh = jtet.load(src)
     x, y, z = mesh.points.T
     mesh = mesh.replace(point_data={"f": 1 + 2 * x - y + 3 * z})

@@ -187,6 +187,22 @@ def gmsh_shape(shape: str, h: float, seed: int = 0, optimize: bool = False) -> j
         gmsh.finalize()
 
 
+def gmsh_ball_in_box(radius: float) -> tuple[int, int]:
+    """(ball, box): the volume tags of a unit cube and a ball of ``radius`` at its centre,
+    added to Gmsh's current model and fragmented, so the spherical interface is conforming
+    (shared triangles)."""
+    import gmsh
+
+    occ = gmsh.model.occ
+    box = occ.addBox(0, 0, 0, 1, 1, 1)
+    ball = occ.addSphere(0.5, 0.5, 0.5, radius)
+    occ.fragment([(3, box)], [(3, ball)])
+    occ.synchronize()
+    vols = sorted(t for _, t in gmsh.model.getEntities(3))
+    ball = min(vols, key=lambda v: occ.getMass(3, v))  # the smaller of the two volumes
+    return ball, max(vols, key=lambda v: occ.getMass(3, v))
+
+
 def gmsh_two_regions(h: float, seed: int = 0, radius: float = 0.3) -> jtet.TetMesh:
     """A unit cube with a ball of ``radius`` at its centre; regions 1 (outside), 2 (ball).
 
@@ -198,16 +214,9 @@ def gmsh_two_regions(h: float, seed: int = 0, radius: float = 0.3) -> jtet.TetMe
     gmsh.initialize()
     try:
         _gmsh_options(h, seed, optimize=False)
-        occ = gmsh.model.occ
-        box = occ.addBox(0, 0, 0, 1, 1, 1)
-        ball = occ.addSphere(0.5, 0.5, 0.5, radius)
-        occ.fragment([(3, box)], [(3, ball)])
-        occ.synchronize()
-        labels = {}
-        for _, vol in gmsh.model.getEntities(3):
-            # the ball is the smaller of the two volumes
-            labels[vol] = 2 if occ.getMass(3, vol) < 0.5 else 1
+        ball, box = gmsh_ball_in_box(radius)
         gmsh.model.mesh.generate(3)
+        labels = {box: 1, ball: 2}
         return _gmsh_extract(labels)
     finally:
         gmsh.finalize()
