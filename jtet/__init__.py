@@ -10,6 +10,7 @@ from ._errors import MeshInputError as MeshInputError
 from ._io import demo_mesh as demo_mesh
 from ._io import load as load
 from ._io import save as save
+from ._mesh import CurvedEdges as CurvedEdges
 from ._mesh import NodeSet as NodeSet
 from ._mesh import TetMesh as TetMesh
 from ._options import Options as Options

@@ -92,9 +92,19 @@ def _id_lines(ids: np.ndarray) -> str:
     return text
 
 
-def write_inp(mesh, path: Path) -> None:
-    """Write ``mesh`` as the Abaqus / CalculiX input file ``path`` (see the module)."""
+def write_inp(mesh, path: Path, quad=None) -> None:
+    """Write ``mesh`` as the Abaqus / CalculiX input file ``path`` (see the module); with
+    ``quad`` (``_quadratic.quadratic_mesh(mesh)``) as ``C3D10`` elements over its nodes
+    (Abaqus lists a C3D10's nodes in VTK's order), the node sets with their mid-edge
+    nodes."""
     from . import __version__
+
+    nodes, tets, node_sets_of_mesh, kind = mesh.points, mesh.tets, mesh.node_sets, "C3D4"
+    faces = mesh.protected_faces
+    if quad is not None:
+        nodes, tets, node_sets_of_mesh, kind = quad.points, quad.tets, quad.node_sets, "C3D10"
+        faces = quad.cells(mesh.protected_faces)
+    n_nodes = len(nodes)
 
     taken: set = set()
     names = mesh.label_names
@@ -114,7 +124,7 @@ def write_inp(mesh, path: Path) -> None:
     # derives from regions and surfaces take a suffix where a name is taken)
     own_sets = [
         (_set_name(ns.name or f"NSET{ns.label}".replace("-", "M"), node_taken), ns.ids)
-        for ns in mesh.node_sets
+        for ns in node_sets_of_mesh
     ]
     point_labels = np.unique(mesh.protected_vertex_labels)
     points = {
@@ -125,17 +135,18 @@ def write_inp(mesh, path: Path) -> None:
     out += [f"** jtet region {r} {s}\n" for r, s in region_sets.items()]
     out += [f"** jtet surface {k} {s}\n" for k, s in surfaces.items()]
     out += [f"** jtet point {k} {s}\n" for k, s in points.items()]
-    out.append(f"*HEADING\njtet mesh: {mesh.n_points} nodes, {mesh.n_tets} C3D4 elements\n")
-    ids = np.arange(1, mesh.n_points + 1, dtype=np.float64)[:, None]
+    out.append(f"*HEADING\njtet mesh: {n_nodes} nodes, {mesh.n_tets} {kind} elements\n")
+    ids = np.arange(1, n_nodes + 1, dtype=np.float64)[:, None]
     out.append("*NODE\n")
     # 16 significant digits, as Gmsh writes them: CalculiX refuses a number of 17 digits
     # with an exponent ("1.3601257419226798e-06"), and 16 keep each coordinate to within
     # a relative 1e-16 (an ulp or two)
-    out.append(format_rows(np.hstack([ids, mesh.points]), "%d, %.16g, %.16g, %.16g\n"))
-    table = np.column_stack([np.arange(1, mesh.n_tets + 1), mesh.tets + 1])
+    out.append(format_rows(np.hstack([ids, nodes]), "%d, %.16g, %.16g, %.16g\n"))
+    table = np.column_stack([np.arange(1, mesh.n_tets + 1), tets + 1])
+    row = ", ".join(["%d"] * table.shape[1]) + "\n"
     for r, name in region_sets.items():
-        out.append(f"*ELEMENT, TYPE=C3D4, ELSET={name}\n")
-        out.append(format_rows(table[mesh.region == r], "%d, %d, %d, %d, %d\n"))
+        out.append(f"*ELEMENT, TYPE={kind}, ELSET={name}\n")
+        out.append(format_rows(table[mesh.region == r], row))
     if "EALL" not in taken:
         # every element: CalculiX decks (cgx's, PrePoMax's) put their sections on Eall,
         # which a read of such a deck's mesh keeps as no region when there are others
@@ -144,12 +155,10 @@ def write_inp(mesh, path: Path) -> None:
     # them (Mesh.SaveGroupsOfNodes): decks written for Gmsh's files (*BOUNDARY on a
     # physical group's name) run on jtet's
     surface_nodes = {
-        k: _nodes_of(mesh.protected_faces[mesh.protected_face_labels == k], mesh.n_points)
-        for k in surfaces
+        k: _nodes_of(faces[mesh.protected_face_labels == k], n_nodes) for k in surfaces
     }  # also the <surface>_NODES sets below
     node_sets = [
-        (name, _nodes_of(mesh.tets[mesh.region == r], mesh.n_points))
-        for r, name in region_sets.items()
+        (name, _nodes_of(tets[mesh.region == r], n_nodes)) for r, name in region_sets.items()
     ]
     node_sets += [(name, surface_nodes[k]) for k, name in surfaces.items()]
     for name, nodes in node_sets:
@@ -269,6 +278,7 @@ def read_inp(path: Path, source: str):
     ``path``: (points, tets, region, faces, face labels, edges, edge labels, names)
     with faces / edges as candidate rows for ``_mesh_cells``."""
     from ._io import _non_tet_message, note_mid_nodes, reading_linear
+    from ._quadratic import MID_EDGES
 
     try:
         text = path.read_text(errors="replace")
@@ -283,7 +293,7 @@ def read_inp(path: Path, source: str):
                 "the mesh without parts and assemblies, or with its includes merged)"
             )
     node_blocks, elements = [], {"tet": [], "triangle": [], "line": []}
-    mid_nodes: list[np.ndarray] = []  # node ids of quadratic cells' mid-edge nodes
+    mid_nodes: list = []  # node ids of quadratic cells' mid-edge nodes (and their edges')
     others: dict[str, int] = {}
     sets: dict[str, tuple[str, np.ndarray, int]] = {}  # NAME -> (name, element ids, order)
     node_sets: dict[str, tuple[str, np.ndarray, int]] = {}  # the same, of node ids
@@ -318,7 +328,9 @@ def read_inp(path: Path, source: str):
                 continue
             rows = _numbers(data, width, f"*ELEMENT, TYPE={etype}", source, np.int64)
             if quadratic:  # the element id and the corners; the mid-edge nodes noted
-                mid_nodes.append(rows[:, _ROW_WIDTH[kind] :])
+                # (a C3D10's in VTK's order, with their edges: ``quadratic_corners``)
+                ends = rows[:, 1:5][:, MID_EDGES[4]] if kind == "tet" else None
+                mid_nodes.append((rows[:, _ROW_WIDTH[kind] :], ends))
                 rows = rows[:, : _ROW_WIDTH[kind]]
             elements[kind].append(rows)
             if params.get("ELSET"):
@@ -386,9 +398,12 @@ def read_inp(path: Path, source: str):
         dup = int(tet_rows[np.flatnonzero(np.diff(tet_rows[:, 0]) == 0)[0], 0])
         raise MeshInputError(f"{source}: element {dup} is defined twice")
     tets = index_of(tet_rows[:, 1:], "a C3D4 element")
-    if mid_nodes:  # their indices, for ``load`` to leave out
-        ids = np.concatenate([m.reshape(-1) for m in mid_nodes])
-        note_mid_nodes(index_of(ids, "a quadratic element"))
+    is_mid = np.zeros(len(nodes), bool)  # a node set's mid-edge nodes are no corners
+    for ids, ends in mid_nodes:  # their indices, for ``load`` to leave out
+        ends = None if ends is None else index_of(ends.reshape(-1), "a quadratic element")
+        ids = index_of(ids.reshape(-1), "a quadratic element")
+        note_mid_nodes(ids, ends)
+        is_mid[ids] = True
     region, names = _regions(tet_rows[:, 0], sets, comments, source)
     faces, face_labels = _surfaces(tet_rows, tets, surfaces, sets, comments, names, source)
     start = int(face_labels.max(initial=0))
@@ -399,19 +414,20 @@ def read_inp(path: Path, source: str):
     faces = np.concatenate([faces, extra_faces])
     face_labels = np.concatenate([face_labels, extra_labels])
     entities = [(3, tets, region), (2, faces, face_labels), (1, lines, line_labels)]
-    pins, pin_labels, kept = _point_sets(node_sets, index_of, entities, names, comments, len(nodes))
+    pins, pin_labels, kept = _point_sets(node_sets, index_of, entities, names, comments, is_mid)
     return (nodes[:, 1:], tets, region, faces, face_labels, lines, line_labels, pins,
             pin_labels, {"label_names": names, "node_sets": kept})  # fmt: skip
 
 
-def _point_sets(node_sets, index_of, entities, names, comments, n: int):
+def _point_sets(node_sets, index_of, entities, names, comments, is_mid: np.ndarray):
     """Protected vertices (k,), their labels (k,) and ``TetMesh.node_sets`` from the
     node sets of the file: those jtet wrote for its protected vertices (``** jtet point``
     comments) are protected vertices again; those that are the nodes of a named region,
-    surface or curve (Gmsh's ``SaveGroupsOfNodes`` sets and jtet's ``<surface>_NODES``)
-    are written again from those; every other one (what a deck's boundary conditions
-    and loads name) is a node set, kept as it is (``names`` gains the protected
-    vertices' names)."""
+    surface or curve (Gmsh's ``SaveGroupsOfNodes`` sets and jtet's ``<surface>_NODES``;
+    their mid-edge nodes, ``is_mid`` (n,) bool, aside) are written again from those;
+    every other one (what a deck's boundary conditions and loads name) is a node set,
+    kept as it is (``names`` gains the protected vertices' names)."""
+    n = len(is_mid)
     derived = {}
     default = {3: "REGION", 2: "SURFACE", 1: "CURVE"}  # write_inp's names of unnamed labels
     for dim, cells, labels in entities:
@@ -430,7 +446,7 @@ def _point_sets(node_sets, index_of, entities, names, comments, n: int):
                 names[(0, label)] = name
             pins.append(nodes)
             pin_labels.append(np.full(len(nodes), label, np.int64))
-        elif derived.get(key) != nodes.tobytes():
+        elif derived.get(key) != nodes[~is_mid[nodes]].tobytes():
             kept.append((name, nodes))
     return np.concatenate(pins), np.concatenate(pin_labels), kept
 

@@ -411,6 +411,8 @@ def improve(
     from ._stats import mesh_stats
 
     opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
+    if mesh.has_curved_edges:
+        return _improve_keeping_curved_edges(mesh, opts, callback)
     if mesh.point_data:
         return _improve_carrying_point_data(mesh, opts, callback)
     if mesh.cell_data:
@@ -511,6 +513,36 @@ def improve(
             input_boundary_only,
         ),
         perturb_rounds=rounds,
+    )
+
+
+def _improve_keeping_curved_edges(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
+    """``improve`` of a mesh with curved edges (``TetMesh.curved_edges``): the run works
+    on the mesh without them, and the result keeps those whose edge it still has, with
+    both ends in place (``_quadratic.curved_edges_kept``)."""
+    import dataclasses
+
+    from ._quadratic import curved_edges_kept
+
+    result = improve(mesh.replace(curved_edges=None), opts, callback=callback)
+    keep = curved_edges_kept(mesh, result.mesh)
+    curved = mesh.curved_edges
+    n_kept, n_lost = int(keep.sum()), int((~keep).sum())
+    notes = [
+        *result.notes,
+        f"curved edges: {n_kept} of the input's {len(keep)} mid-edge nodes off their edge's "
+        "midpoint (a curved boundary) kept for a quadratic output (--quadratic)"
+        + (
+            f"; {n_lost} dropped (their edge was flipped or an end moved: a quadratic "
+            "output puts the midpoint there)"
+            if n_lost
+            else ""
+        ),
+    ]
+    return dataclasses.replace(
+        result,
+        mesh=result.mesh.replace(curved_edges=(curved.edges[keep], curved.points[keep])),
+        notes=notes,
     )
 
 

@@ -73,6 +73,7 @@ _VTK_VERTEX, _VTK_LINE, _VTK_TRIANGLE = 1, 3, 5
 _VTK_HIGH_ORDER_TETS = (24, 64, 71, 78)
 # VTK_QUADRATIC_TETRA, _TRIANGLE, _EDGE -> the linear cell of their corners
 _VTK_QUADRATIC = {24: 10, 22: 5, 21: 3}
+_VTK_QUADRATIC_TETRA = 24
 # the same for meshio's cell blocks: (linear type, its corners)
 _MESHIO_QUADRATIC = {"tetra10": ("tetra", 4), "triangle6": ("triangle", 3), "line3": ("line", 2)}
 
@@ -350,9 +351,13 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
 
 def _skip_vtk_mid_nodes(conn: np.ndarray, offsets: np.ndarray, quadratic: np.ndarray) -> None:
     """Note the mid-edge nodes of a grid's ``quadratic`` (mask) cells, whose corners come
-    first in VTK's order, for ``load`` to leave out (``quadratic_corners``)."""
+    first in VTK's order, for ``load`` to leave out (``quadratic_corners``), those of
+    10-node tets with their edges."""
     start, stop = offsets[:-1][quadratic], offsets[1:][quadratic]
-    corner_count = np.where(stop - start == 10, 4, np.where(stop - start == 6, 3, 2))
+    tet = stop - start == 10
+    quadratic_corners(conn[start[tet][:, None] + np.arange(10)], 4)
+    start, stop = start[~tet], stop[~tet]
+    corner_count = np.where(stop - start == 6, 3, 2)
     first = start + corner_count
     lengths = stop - first
     rows = np.repeat(first - np.cumsum(np.r_[0, lengths[:-1]]), lengths) + np.arange(lengths.sum())
@@ -400,23 +405,31 @@ def _check_cell_data(mesh: TetMesh, cell_data: dict | None) -> dict:
     return out
 
 
-def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
+def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None, quad=None):
     """A ``pyvista.UnstructuredGrid`` of ``mesh``: tetra cells, a ``region`` cell array,
     the arrays of ``cell_data`` (name -> (m, ...) array), and the protected faces, their
     labels, the protected edges and vertices (when any) as field data
     ``jtet:protected_faces``, ``jtet:protected_face_labels``, ``jtet:protected_edges``,
-    ``jtet:protected_vertices``."""
+    ``jtet:protected_vertices``. With ``quad`` (``_quadratic.quadratic_mesh(mesh)``):
+    quadratic tetra cells over its nodes, with its point data and node sets (the field
+    data name corners, whose ids are the same)."""
     import pyvista as pv
 
     extra = _check_cell_data(mesh, cell_data)
     m = mesh.n_tets
-    cells = np.concatenate([np.full((m, 1), 4, np.int64), mesh.tets], axis=1).ravel()
-    celltypes = np.full(m, _VTK_TETRA, np.uint8)
-    grid = pv.UnstructuredGrid(cells, celltypes, np.array(mesh.points, dtype=np.float64))
+    tets, points, kind = mesh.tets, mesh.points, _VTK_TETRA
+    point_data, node_sets = mesh.point_data, mesh.node_sets
+    if quad is not None:
+        tets, points, kind = quad.tets, quad.points, _VTK_QUADRATIC_TETRA
+        point_data, node_sets = quad.point_data, quad.node_sets
+    width = tets.shape[1]
+    cells = np.concatenate([np.full((m, 1), width, np.int64), tets], axis=1).ravel()
+    celltypes = np.full(m, kind, np.uint8)
+    grid = pv.UnstructuredGrid(cells, celltypes, np.array(points, dtype=np.float64))
     grid.cell_data["region"] = np.array(mesh.region, dtype=np.int64)
     for name, a in {**mesh.cell_data, **extra}.items():  # jtet's quality arrays win
         grid.cell_data[name] = np.array(a)
-    for name, a in mesh.point_data.items():
+    for name, a in point_data.items():
         grid.point_data[name] = np.array(a)
     if len(mesh.protected_faces):
         grid.field_data[PROTECTED_FACES_ARRAY] = np.array(mesh.protected_faces)
@@ -436,8 +449,8 @@ def mesh_to_grid(mesh: TetMesh, cell_data: dict | None = None):
             for p in mesh.periodic
         ]
         grid.field_data[PERIODIC_ARRAY] = _json_bytes(links)
-    if mesh.node_sets:
-        sets = [[ns.name, ns.ids.tolist(), ns.label] for ns in mesh.node_sets]
+    if node_sets:
+        sets = [[ns.name, ns.ids.tolist(), ns.label] for ns in node_sets]
         grid.field_data[NODE_SETS_ARRAY] = _json_bytes(sets)
     if len(mesh.protected_tets):
         grid.field_data[PROTECTED_TETS_ARRAY] = np.array(mesh.protected_tets)
@@ -1231,11 +1244,16 @@ def _tetgen_point_data(m, node: Path) -> dict:
     return joined_columns(dict(zip(names, attrs, strict=True)))
 
 
-def _meshio_mesh(mesh: TetMesh, fmt: str):
+def _meshio_mesh(mesh: TetMesh, fmt: str, quad=None):
+    """A ``meshio.Mesh`` of ``mesh`` for a Gmsh, Medit or TetGen file; with ``quad``
+    (``_quadratic.quadratic_mesh(mesh)``, Gmsh only) its cells are quadratic (meshio
+    puts a tet's nodes in Gmsh's order)."""
     import meshio
 
     region = np.array(mesh.region, dtype=np.int64)
     blocks = [meshio.CellBlock("tetra", np.array(mesh.tets, dtype=np.int64))]
+    if quad is not None:
+        blocks = [meshio.CellBlock("tetra10", quad.tets)]
     if fmt == "tetgen":
         return meshio.Mesh(
             np.array(mesh.points, np.float64),
@@ -1246,6 +1264,8 @@ def _meshio_mesh(mesh: TetMesh, fmt: str):
     data = {name: [region] for name in _TAG_ARRAYS[fmt]}
     extra = _lower_blocks(mesh, fmt)
     for kind, cells, tags in extra:
+        if quad is not None and kind in ("triangle", "line"):
+            kind, cells = {"triangle": "triangle6", "line": "line3"}[kind], quad.cells(cells)
         blocks.append(meshio.CellBlock(kind, np.array(cells, np.int64)))
         for arrays in data.values():
             arrays.append(np.array(tags, np.int64))
@@ -1260,7 +1280,7 @@ def _meshio_mesh(mesh: TetMesh, fmt: str):
             for p in mesh.periodic
         ]
     return meshio.Mesh(
-        np.array(mesh.points, dtype=np.float64),
+        np.array(mesh.points if quad is None else quad.points, dtype=np.float64),
         blocks,
         cell_data=data,
         field_data=field_data,
@@ -1268,7 +1288,9 @@ def _meshio_mesh(mesh: TetMesh, fmt: str):
     )
 
 
-def _append_gmsh_views(mesh: TetMesh, path: Path, cell_data: dict, tets_only: bool) -> None:
+def _append_gmsh_views(
+    mesh: TetMesh, path: Path, cell_data: dict, tets_only: bool, point_data: dict | None = None
+) -> None:
     """Append the point data and cell data of ``mesh`` and, for a file of tets only
     (``tets_only``: no protected entities written as elements), the arrays of
     ``cell_data`` (which win) to the Gmsh file ``path`` as views
@@ -1278,9 +1300,10 @@ def _append_gmsh_views(mesh: TetMesh, path: Path, cell_data: dict, tets_only: bo
     from ._gmsh_views import write_views
 
     cells = dict(mesh.cell_data) | (cell_data if tets_only else {})
-    if mesh.point_data or cells:
+    point_data = dict(mesh.point_data if point_data is None else point_data)
+    if point_data or cells:
         with open(path, "ab") as fh:
-            write_views(fh, dict(mesh.point_data), cells)
+            write_views(fh, point_data, cells)
 
 
 #: the cell arrays meshio writes as a Gmsh / Medit file's element tags
@@ -1413,18 +1436,49 @@ def reading_linear() -> bool:
     return _MID_NODES.get() is not None
 
 
-def quadratic_corners(cells: np.ndarray, k: int) -> np.ndarray:
+def quadratic_corners(cells: np.ndarray, k: int, *, carry: bool = True) -> np.ndarray:
     """The first ``k`` columns of quadratic ``cells`` (every format lists a quadratic
     cell's corners first, in the order of its linear cell), noting the other columns as
-    mid-edge nodes that ``load`` drops unless a cell uses them."""
+    mid-edge nodes that ``load`` drops unless a cell uses them. The mid-edge nodes of
+    10-node tets in VTK's order (``_quadratic.MID_EDGES``: VTK, meshio, Abaqus, Exodus,
+    MED) are noted with their edges (``carry``; False: a format of another order), so
+    the curved ones become ``TetMesh.curved_edges``."""
+    from ._quadratic import MID_EDGES
+
     cells = np.asarray(cells, np.int64)
-    note_mid_nodes(cells[:, k:])
+    ends = None
+    if carry and k == 4 and cells.shape[1] == 10:
+        ends = cells[:, MID_EDGES[4]]
+    note_mid_nodes(cells[:, k:], ends)
     return cells[:, :k]
 
 
-def note_mid_nodes(ids: np.ndarray) -> None:
-    """Note vertex ids of mid-edge nodes that a reader skipped, for ``load`` to leave out."""
-    _MID_NODES.get().append(np.asarray(ids, np.int64).reshape(-1))
+def note_mid_nodes(ids: np.ndarray, ends: np.ndarray | None = None) -> None:
+    """Note vertex ids of mid-edge nodes that a reader skipped, for ``load`` to leave out;
+    ``ends``: the two corners of each one's edge (ids' shape + (2,)), when known."""
+    ids = np.asarray(ids, np.int64).reshape(-1)
+    if ends is not None:
+        ends = np.asarray(ends, np.int64).reshape(-1, 2)
+    _MID_NODES.get().append((ids, ends))
+
+
+def _curved_edges(points: np.ndarray, found: list):
+    """(edges (k, 2) sorted, points (k, 3)) of the mid-edge nodes in ``found`` (see
+    ``note_mid_nodes``) that lie off their edge's midpoint by more than a millionth of
+    the edge's length (more than the rounding of a midpoint written as text with a few
+    digits: those are written back as midpoints), the first node of an edge kept."""
+    known = [(ids, ends) for ids, ends in found if ends is not None]
+    if not known:
+        return np.zeros((0, 2), np.int64), np.zeros((0, 3))
+    ids = np.concatenate([i for i, _ in known])
+    ends = np.sort(np.concatenate([e for _, e in known]), axis=1)
+    inside = (ids >= 0) & (ids < len(points)) & (ends >= 0).all(axis=1)
+    inside &= (ends < len(points)).all(axis=1)
+    ids, ends = ids[inside], ends[inside]
+    a, b = points[ends[:, 0]], points[ends[:, 1]]
+    off = np.linalg.norm(points[ids] - 0.5 * (a + b), axis=1)
+    bent = off > 1e-6 * np.linalg.norm(b - a, axis=1)
+    return ends[bent], points[ids[bent]]
 
 
 def _without_points(mesh: TetMesh, drop: np.ndarray) -> TetMesh:
@@ -1458,14 +1512,16 @@ def _without_points(mesh: TetMesh, drop: np.ndarray) -> TetMesh:
         node_sets=[(ns.name, ids(ns.ids[keep[ns.ids]]), ns.label) for ns in mesh.node_sets],
         point_data={k: v[keep] for k, v in mesh.point_data.items()},
         cell_data=dict(mesh.cell_data),
+        curved_edges=(ids(mesh.curved_edges.edges), mesh.curved_edges.points),
     )
 
 
 def _drop_mid_nodes(mesh: TetMesh, found: list, source: str) -> TetMesh:
     """``mesh`` read with quadratic cells as linear ones, without the mid-edge nodes in
-    ``found`` that no cell or protected entity uses (with a warning); periodic links
-    keep their pairs of corners."""
-    mid = np.unique(np.concatenate([np.zeros(0, np.int64), *found]))
+    ``found`` (``note_mid_nodes``) that no cell or protected entity uses (with a
+    warning), its curved edges (``TetMesh.curved_edges``) those of the nodes off their
+    edges' midpoints; periodic links keep their pairs of corners."""
+    mid = np.unique(np.concatenate([np.zeros(0, np.int64), *(ids for ids, _ in found)]))
     if not len(mid):
         return mesh
     used = np.zeros(mesh.n_points, bool)
@@ -1473,12 +1529,22 @@ def _drop_mid_nodes(mesh: TetMesh, found: list, source: str) -> TetMesh:
         used[np.asarray(a, np.int64).reshape(-1)] = True
     drop = mid[(mid >= 0) & (mid < mesh.n_points)]
     drop = drop[~used[drop]]
+    curved = _curved_edges(mesh.points, found)
     warnings.warn(
         f"{source}: quadratic cells read as linear ones (their corners); {len(drop)} "
-        "mid-edge node(s) left out. The output is a linear mesh: make it quadratic again "
-        "in your mesher or solver (Gmsh: SetOrder 2; code_aster: CREA_MAILLAGE LINE_QUAD)",
+        "mid-edge node(s) left out"
+        + (
+            f", the {len(curved[0])} off their edges' midpoints (a curved boundary) kept "
+            "for a quadratic output (jtet improve --quadratic)"
+            if len(curved[0])
+            else ""
+        )
+        + ". jtet improves linear tets: write the result with --quadratic (save(..., "
+        "quadratic=True)) to get 10-node tets back",
         stacklevel=3,
     )
+    if len(curved[0]):
+        mesh = mesh.replace(curved_edges=curved)
     return _without_points(mesh, drop) if len(drop) else mesh
 
 
@@ -1760,7 +1826,12 @@ def _medit_sections(mesh: TetMesh) -> dict[str, np.ndarray]:
     return {k: v for k, v in sections.items() if len(v)}
 
 
-def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str = "") -> None:
+def _write(
+    mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str = "", quad=None
+) -> None:
+    """Write ``mesh`` as a ``fmt`` file at ``tmp``; with ``quad``
+    (``_quadratic.quadratic_mesh(mesh)``; a format of ``QUADRATIC_FORMATS``) its cells
+    are quadratic."""
     if fmt == "netgen":
         from ._netgen import write_vol
 
@@ -1769,7 +1840,7 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str 
     if fmt == "abaqus":
         from ._abaqus import write_inp
 
-        write_inp(mesh, tmp)
+        write_inp(mesh, tmp, quad)
         return
     if fmt == "exodus":
         from ._exodus import write_exo
@@ -1779,7 +1850,7 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str 
     if fmt == "med":
         from ._med import write_med
 
-        write_med(mesh, tmp, cell_data, name_from=Path(heavy_name or tmp.name))
+        write_med(mesh, tmp, cell_data, name_from=Path(heavy_name or tmp.name), quad=quad)
         return
     if fmt == "xdmf":
         from ._xdmf import companion, write_xdmf
@@ -1787,7 +1858,7 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str 
         write_xdmf(mesh, tmp, companion(tmp), heavy_name, cell_data)
         return
     if fmt in ("vtu", "vtk"):
-        _write_vtk_file(mesh_to_grid(mesh, cell_data), tmp, fmt)
+        _write_vtk_file(mesh_to_grid(mesh, cell_data, quad), tmp, fmt)
         return
     if fmt == "medit" and mesh.point_data:
         from ._medit_sol import sol_path, write_sol
@@ -1801,12 +1872,13 @@ def _write(mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str 
         write_meshb(tmp, mesh.points, blocks, _medit_sections(mesh))
         return
     with _quiet_meshio():
-        m = _meshio_mesh(mesh, fmt)
+        m = _meshio_mesh(mesh, fmt, quad)
         if fmt == "gmsh":
             # Gmsh 2.2 binary: meshio 5.3's 4.1 writer drops physical tags (no $Entities)
             # and its ASCII writers print NumPy 2 scalars as "np.float64(...)".
             _meshio_module(fmt).write(str(tmp), m, fmt_version="2.2", binary=True)
-            _append_gmsh_views(mesh, tmp, cell_data, tets_only=len(m.cells) == 1)
+            point_data = None if quad is None else quad.point_data
+            _append_gmsh_views(mesh, tmp, cell_data, len(m.cells) == 1, point_data)
         else:
             _meshio_module(fmt).write(str(tmp), m)
     if fmt == "medit":
@@ -1949,12 +2021,47 @@ def move_into_place(tmp: Path, target: Path) -> None:
     os.replace(tmp, target)
 
 
+def require_quadratic_format(path) -> None:
+    """Refuse a quadratic output to ``path`` in a format jtet writes only linear.
+
+    Raises:
+        MeshFileError: the extension is unknown or not one of ``QUADRATIC_FORMATS``.
+    """
+    from ._quadratic import QUADRATIC_FORMATS
+
+    fmt = output_format(path)
+    if fmt not in QUADRATIC_FORMATS:
+        raise MeshFileError(
+            f"{path}: jtet writes quadratic (10-node) tets to .vtu, .vtk, .msh, .inp and "
+            f".med files only, not to {_FORMAT_NAMES[fmt]} files"
+        )
+
+
+def _quadratic_output(mesh: TetMesh, path: Path, fmt: str):
+    """``_quadratic.quadratic_mesh(mesh)`` for ``save(..., quadratic=True)``, with a
+    warning when curved tets fold (a non-positive Jacobian at a node)."""
+    from ._quadratic import folded_tets, quadratic_mesh
+
+    require_quadratic_format(path)
+    quad = quadratic_mesh(mesh)
+    n_folded, worst = folded_tets(quad)
+    if n_folded:
+        warnings.warn(
+            f"{path}: {n_folded} quadratic tet(s) have a non-positive Jacobian at a node "
+            f"(smallest ratio to the straight tet's {worst:.3g}): their curved edges bend "
+            "into them. A solver will refuse them; refine there, or write the mesh linear",
+            stacklevel=3,
+        )
+    return quad
+
+
 def save(
     mesh: TetMesh,
     path: str | os.PathLike,
     *,
     cell_data: dict | None = None,
     overwrite: bool = True,
+    quadratic: bool = False,
 ) -> Path:
     """Write ``mesh`` to ``path``, atomically; the format follows the extension.
 
@@ -1989,6 +2096,13 @@ def save(
     tets: a group per label, node groups, the point data and cell arrays as fields
     (``_med``). What a format cannot store is dropped with a warning.
 
+    ``quadratic=True`` writes 10-node tets (and 6-node protected faces, 3-node protected
+    edges) to ``.vtu``, ``.vtk``, ``.msh``, ``.inp`` (C3D10) and ``.med`` (T10) files:
+    a node on each edge, that of ``mesh.curved_edges`` (a curved boundary read with
+    ``load(path, linear=True)``) or the midpoint (``_quadratic``), numbered after the
+    mesh's points. A warning counts the curved tets whose Jacobian is not positive at
+    every node.
+
     The file is written to a temporary file in the same directory and moved into place, so
     ``path`` is either the complete new file or left untouched.
 
@@ -2002,6 +2116,7 @@ def save(
     p = Path(path)
     fmt = output_format(p)
     cell_data = _check_cell_data(mesh, cell_data)
+    quad = _quadratic_output(mesh, p, fmt) if quadratic else None
     if fmt in ("medit", "tetgen", "abaqus", "netgen", "exodus", "med"):
         dropped = list(cell_data) if fmt not in ("exodus", "med") else []
         if len(dropped) > 4:
@@ -2164,7 +2279,7 @@ def save(
             # ``write_sol`` the .sol beside the .mesh
             temps += [temps[0].with_suffix(s.suffix) for s in targets[1:]]
         try:
-            _write(mesh, temps[0], fmt, cell_data, heavy_name=targets[-1].name)
+            _write(mesh, temps[0], fmt, cell_data, targets[-1].name, quad)
             for tmp, target in zip(temps, targets, strict=True):
                 if not tmp.is_file():
                     raise MeshFileError(f"{target}: the writer produced no file")

@@ -51,6 +51,9 @@ _READ = {"TE4": ("tet", 4), "TR3": ("face", 3), "SE2": ("edge", 2), "PO1": ("ver
 _VERTICES_OF_ROLE = dict(_READ.values())
 # quadratic cells, read as their corners with ``jtet.load(path, linear=True)``
 # (role, corners, nodes), the corners listed first
+# a 10-node tet in VTK's order (``_quadratic``) as a MED T10: MED lists the corners the
+# other way round (``_SWAP``), then the nodes on its edges 01, 12, 20, 03, 13, 23
+_T10_FROM_VTK = [0, 2, 1, 3, 6, 5, 4, 7, 9, 8]
 _QUADRATIC = {"T10": ("tet", 4, 10), "TR6": ("face", 3, 6), "SE3": ("edge", 2, 3)}
 # solids jtet refuses, with the names its messages give them; T10 gets the quadratic hint
 _SOLIDS = {
@@ -420,14 +423,16 @@ def _mesh_name(path: Path) -> str:
 
 
 def write_med(
-    mesh, path: Path, cell_data: dict | None = None, name_from: Path | None = None
+    mesh, path: Path, cell_data: dict | None = None, name_from: Path | None = None, quad=None
 ) -> None:
     """Write ``mesh`` as a MED 3.0 file (what Salome, code_aster and Gmsh read): tets
     (TE4) with a family per region, protected faces (TR3), edges (SE2) and vertices (PO1)
     with a family per label, node families for ``mesh.node_sets``, and
     ``mesh.point_data`` and ``mesh.cell_data`` with ``cell_data`` (jtet's quality
     arrays, which win) as float64 fields at one step. The mesh is named after the stem of
-    ``name_from`` (default: ``path``), as Salome names a mesh after its file."""
+    ``name_from`` (default: ``path``), as Salome names a mesh after its file. With
+    ``quad`` (``_quadratic.quadratic_mesh(mesh)``) the cells are quadratic (T10, TR6,
+    SE3) over its nodes, with its point data and node sets."""
     import h5py
 
     source = str(path)
@@ -446,7 +451,16 @@ def write_med(
         ("SE2", 102, mesh.protected_edges, mesh.protected_edge_labels, 1),
         ("PO1", 1, mesh.protected_vertices.reshape(-1, 1), mesh.protected_vertex_labels, 0),
     ]
-    node_fam, node_families = _node_families(mesh.node_sets, mesh.n_points)
+    points, node_sets, point_data, tet_kind = mesh.points, mesh.node_sets, mesh.point_data, "TE4"
+    if quad is not None:
+        tet_kind = "T10"
+        blocks[:3] = [
+            ("T10", 310, quad.tets[:, _T10_FROM_VTK], mesh.region, 3),
+            ("TR6", 206, quad.cells(mesh.protected_faces), mesh.protected_face_labels, 2),
+            ("SE3", 103, quad.cells(mesh.protected_edges), mesh.protected_edge_labels, 1),
+        ]
+        points, node_sets, point_data = quad.points, quad.node_sets, quad.point_data
+    node_fam, node_families = _node_families(node_sets, len(points))
     with h5py.File(path, "w") as f:
         info = f.create_group("INFOS_GENERALES")
         for key, value in (("MAJ", 3), ("MIN", 0), ("REL", 0)):
@@ -472,8 +486,8 @@ def write_med(
         noe.attrs.create("CGT", 1, dtype=np.int64)
         noe.attrs.create("CGS", 1, dtype=np.int64)
         noe.attrs.create("PFL", np.bytes_(_NO_PROFILE))
-        dataset(noe, "COO", np.ascontiguousarray(mesh.points.T).reshape(-1), mesh.n_points)
-        dataset(noe, "FAM", node_fam, mesh.n_points)
+        dataset(noe, "COO", np.ascontiguousarray(points.T).reshape(-1), len(points))
+        dataset(noe, "FAM", node_fam, len(points))
         mai = step.create_group("MAI")
         mai.attrs.create("CGT", 1, dtype=np.int64)
         for kind, geo, ids, labels, dim in blocks:
@@ -501,8 +515,11 @@ def write_med(
                 _write_family(noeud, number, groups, source)
 
         fields = {
-            **{k: ("NOE", a) for k, a in mesh.point_data.items()},
-            **{k: ("MAI.TE4", a) for k, a in {**mesh.cell_data, **dict(cell_data or {})}.items()},
+            **{k: ("NOE", a) for k, a in point_data.items()},
+            **{
+                k: (f"MAI.{tet_kind}", a)
+                for k, a in {**mesh.cell_data, **dict(cell_data or {})}.items()
+            },
         }
         if fields:
             # creation order kept, so that the arrays come back in their order (HDF5 lists

@@ -178,6 +178,59 @@ def _checked_node_sets(sets, n_points: int) -> tuple[NodeSet, ...]:
     return tuple(out)
 
 
+class CurvedEdges(NamedTuple):
+    """Mid-edge nodes off their edge's midpoint: those of a quadratic mesh's curved
+    boundary, read with ``load(path, linear=True)``. ``edges`` (k, 2) int64 sorted
+    distinct vertex pairs, ``points`` (k, 3) float64 the node of each, both read-only.
+    A quadratic output (``save(..., quadratic=True)``) puts its node on each edge of
+    the mesh listed here and the midpoint on every other edge."""
+
+    edges: np.ndarray
+    points: np.ndarray
+
+
+def _checked_curved_edges(curved, n_points: int) -> CurvedEdges:
+    """``TetMesh.curved_edges`` as a ``CurvedEdges`` of sorted, distinct, in-range vertex
+    pairs (the first of duplicates kept) and finite float64 points."""
+    if curved is None:
+        return CurvedEdges(_readonly(np.zeros((0, 2), np.int64)), _readonly(np.zeros((0, 3))))
+    try:
+        edges, points = curved
+        edges, points = np.asarray(edges), np.asarray(points, np.float64)
+        if not np.issubdtype(edges.dtype, np.integer) and edges.size:
+            raise ValueError("edges must be integer vertex ids")
+        edges, points = edges.astype(np.int64).reshape(-1, 2), points.reshape(-1, 3)
+    except (TypeError, ValueError) as e:
+        raise MeshInputError(
+            f"curved_edges must be ((k, 2) vertex pairs, (k, 3) mid-edge points): {e}"
+        ) from None
+    if len(edges) != len(points):
+        raise MeshInputError(
+            f"curved_edges has {len(edges)} edges and {len(points)} mid-edge points"
+        )
+    if len(edges) and (edges.min() < 0 or edges.max() >= n_points):
+        raise MeshInputError(f"curved_edges holds vertex ids out of range [0, {n_points})")
+    if len(edges) and (edges[:, 0] == edges[:, 1]).any():
+        raise MeshInputError("curved_edges holds an edge from a vertex to itself")
+    if not np.isfinite(points).all():
+        raise MeshInputError("curved_edges holds NaN or infinite mid-edge points")
+    edges = np.sort(edges, axis=1)
+    _, first = np.unique(edges, axis=0, return_index=True)
+    first = np.sort(first)
+    return CurvedEdges(_readonly(edges[first]), _readonly(points[first]))
+
+
+def _unmoved_curved_edges(curved: CurvedEdges, old: np.ndarray, new: np.ndarray) -> CurvedEdges:
+    """The rows of ``curved`` whose two end vertices are at the same coordinates among
+    the ``new`` points (n', 3) as among the ``old`` ones (n, 3): a mid-edge node stays on
+    its curve only while the ends of its edge do."""
+    edges = curved.edges
+    keep = (edges < min(len(old), len(new))).all(axis=1)
+    ends = edges[keep]
+    keep[keep] = (new[ends] == old[ends]).all(axis=(1, 2))
+    return CurvedEdges(_readonly(edges[keep]), _readonly(curved.points[keep]))
+
+
 def _checked_periodic(links, n_points: int) -> tuple[Periodic, ...]:
     """``TetMesh.periodic`` as a tuple of ``Periodic`` with in-range vertex ids."""
     if links is None:
@@ -395,6 +448,11 @@ class TetMesh:
             region interfaces, so integer arrays come through exactly (but arrays of
             distinct ids, which become provenance). Read and written by the VTK, XDMF
             and Exodus (element variables) formats.
+        curved_edges: ``CurvedEdges``: the mid-edge nodes of a quadratic input that lie
+            off their edge's midpoint (a curved boundary), read with ``load(path,
+            linear=True)``, for a quadratic output (``save(..., quadratic=True)``).
+            ``improve`` keeps those whose edge and end vertices it leaves in place;
+            ``replace`` with new points drops those whose end vertices moved.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it
@@ -416,6 +474,7 @@ class TetMesh:
     node_sets: tuple = field(default=None)
     point_data: dict = field(default=None)
     cell_data: dict = field(default=None)
+    curved_edges: CurvedEdges = field(default=None)
 
     def __post_init__(self):
         points = _checked_points(self.points)
@@ -443,6 +502,8 @@ class TetMesh:
         object.__setattr__(self, "cell_data", _checked_arrays(self.cell_data, len(tets), CellData))
         pt = self._entity_array(self.protected_tets, 4, "protected_tets", len(points))
         object.__setattr__(self, "protected_tets", _readonly(pt))
+        curved = _checked_curved_edges(self.curved_edges, len(points))
+        object.__setattr__(self, "curved_edges", curved)
 
     def _derive(self, *, tets_checked: int = 0, **changes) -> TetMesh:
         """``replace(**changes)`` checking only what is new.
@@ -521,7 +582,13 @@ class TetMesh:
                 changes.get("protected_tets", pt), 4, "protected_tets", len(points)
             )
         object.__setattr__(out, "protected_tets", _readonly(pt))
-        if changes and set(changes) <= {"point_data", "cell_data"}:
+        curved = self.curved_edges
+        if "curved_edges" in changes:
+            curved = _checked_curved_edges(changes["curved_edges"], len(points))
+        elif "points" in changes and len(curved.edges):
+            curved = _unmoved_curved_edges(curved, self.points, points)
+        object.__setattr__(out, "curved_edges", curved)
+        if changes and set(changes) <= {"point_data", "cell_data", "curved_edges"}:
             # nothing the topology and the volumes depend on changed: keep what this
             # mesh computed of them (``improve`` strips a mesh's data arrays for its run;
             # not a bare copy: ``_with_feature_angle`` changes the topology's angle)
@@ -653,6 +720,7 @@ class TetMesh:
         node_sets=None,
         point_data=None,
         cell_data=None,
+        curved_edges=None,
         source: str = "input",
     ) -> TetMesh:
         """Build a mesh from user arrays, fixing a globally reversed orientation.
@@ -668,7 +736,7 @@ class TetMesh:
         mesh = cls(
             points, tets, region, protected_faces, protected_edges, protected_face_labels,
             protected_vertices, protected_edge_labels, protected_vertex_labels, label_names,
-            periodic, protected_tets, node_sets, point_data, cell_data,
+            periodic, protected_tets, node_sets, point_data, cell_data, curved_edges,
         )  # fmt: skip
         vol = _orient_volumes6(mesh.points, mesh.tets)
         neg, pos = int((vol < 0).sum()), int((vol > 0).sum())
@@ -737,6 +805,12 @@ class TetMesh:
         return self._derive(**changes)
 
     # ------------------------------------------------------------------ properties
+    @property
+    def has_curved_edges(self) -> bool:
+        """Whether the mesh holds mid-edge nodes off their edges' midpoints
+        (``curved_edges``)."""
+        return len(self.curved_edges.edges) > 0
+
     @property
     def n_points(self) -> int:
         return len(self.points)
@@ -895,5 +969,6 @@ class TetMesh:
             + (f", {len(self.node_sets)} node set(s)" if self.node_sets else "")
             + (f", point data {', '.join(self.point_data)}" if self.point_data else "")
             + (f", cell data {', '.join(self.cell_data)}" if self.cell_data else "")
+            + (f", {len(self.curved_edges.edges)} curved edges" if self.has_curved_edges else "")
             + ")"
         )

@@ -96,7 +96,8 @@ def read_meshb(path: Path, source: str):
             elif code == 30 and reading_linear():  # P2 tets as their corners
                 rows = reader.table(start, count, [reader.int] * 11).astype(np.int64)
                 end = start + count * 11 * reader.int.itemsize
-                blocks.append(("tetra", quadratic_corners(rows[:, :10] - 1, 4), rows[:, -1]))
+                corners = quadratic_corners(rows[:, :10] - 1, 4, carry=False)
+                blocks.append(("tetra", corners, rows[:, -1]))
             elif code in OTHER_VOLUMES:
                 name, k = OTHER_VOLUMES[code]
                 others[name] = others.get(name, 0) + count

@@ -225,7 +225,7 @@ def _volume_elements(rows: list[str], source: str) -> tuple[np.ndarray, np.ndarr
         except MeshFileError:
             table = None
         if table is not None and (table[:, 1] == 10).all():
-            corners = quadratic_corners(table[:, 2:] - 1, 4)
+            corners = quadratic_corners(table[:, 2:] - 1, 4, carry=False)
             return corners[:, _SWAP], table[:, 0]
         table = None
     if len(counts) and counts[0] == "4":

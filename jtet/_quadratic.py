@@ -1,0 +1,171 @@
+"""Quadratic output of a linear mesh: a node on every edge (``save(..., quadratic=True)``).
+
+A 10-node tet is the 4 corners of a linear tet and a node on each of its 6 edges; a
+6-node triangle and a 3-node line likewise. Each edge of the mesh gets one node, shared
+by every cell around it: the node ``TetMesh.curved_edges`` gives it (a curved
+boundary's, read with ``load(path, linear=True)``), or else its midpoint. The mid-edge
+nodes are numbered after the mesh's points, so every vertex id (protected entities,
+node sets, periodic pairs) keeps its meaning.
+
+Orders (every format lists the corners first, in the order of its linear cell): VTK,
+meshio, Abaqus and Exodus put the mid-edge nodes of a tet on the edges ``TET10_EDGES``
+(01, 12, 02, 03, 13, 23), of a triangle on ``TRI6_EDGES`` (01, 12, 02); Gmsh swaps the
+last two of a tet (meshio does it for us) and MED lists its corners the other way
+round (``_med``).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from jaxtyping import Float, Int
+
+from ._errors import MeshInputError
+from ._mesh import NodeSet, TetMesh
+from ._topology import match_rows, row_keys
+
+# corner pairs of the mid-edge nodes of a 10-node tet, a 6-node triangle and a 3-node
+# line, in VTK's order (keyed by the number of corners)
+MID_EDGES = {
+    4: np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]]),
+    3: np.array([[0, 1], [1, 2], [0, 2]]),
+    2: np.array([[0, 1]]),
+}
+# the formats ``save(..., quadratic=True)`` writes
+QUADRATIC_FORMATS = ("vtu", "vtk", "gmsh", "abaqus", "med")
+
+
+class QuadraticMesh(NamedTuple):
+    """A mesh's quadratic cells. ``points`` (n + e, 3): the mesh's points, then one node
+    per edge (node ``n + i`` on ``edges[i]``); ``tets`` (m, 10) in VTK's order;
+    ``point_data`` and ``node_sets`` over all n + e nodes."""
+
+    points: Float[np.ndarray, "N 3"]
+    tets: Int[np.ndarray, "m 10"]
+    edges: Int[np.ndarray, "e 2"]  # sorted vertex pairs
+    n_corners: int
+    n_curved: int  # edges whose node is a curved edge's, not the midpoint
+    point_data: dict
+    node_sets: tuple
+
+    def cells(self, rows: np.ndarray) -> np.ndarray:
+        """Quadratic cells (k, 6) or (k, 3) in VTK's order of linear triangles or lines
+        ``rows`` (k, 3) / (k, 2), edges of the mesh."""
+        rows = np.asarray(rows, np.int64)
+        corners = rows.shape[1]
+        pairs = rows[:, MID_EDGES[corners]].reshape(-1, 2)
+        at = match_rows(self.edges, pairs, self.n_corners)
+        if (at < 0).any():
+            raise MeshInputError(
+                f"{int((at < 0).sum())} protected face or edge side(s) are no edge of the "
+                "tets: no quadratic cell for them"
+            )
+        mids = (at + self.n_corners).reshape(len(rows), len(MID_EDGES[corners]))
+        return np.concatenate([rows, mids], axis=1)
+
+
+def quadratic_mesh(mesh: TetMesh) -> QuadraticMesh:
+    """The quadratic cells of ``mesh``: a node on each edge, its ``curved_edges`` node
+    or its midpoint. Point data on the mid-edge nodes: the mean of the two ends (integer
+    arrays: the smaller end value); node sets take the mid-edge nodes of their edges
+    (both ends in the set)."""
+    n = mesh.n_points
+    pairs = np.sort(mesh.tets[:, MID_EDGES[4]].reshape(-1, 2), axis=1)
+    keys, first, inverse = np.unique(row_keys(pairs, n), return_index=True, return_inverse=True)
+    edges = pairs[first]
+    mids = 0.5 * (mesh.points[edges[:, 0]] + mesh.points[edges[:, 1]])
+    curved = mesh.curved_edges
+    n_curved = 0
+    if len(curved.edges):
+        at = match_rows(edges, curved.edges, n)
+        found = at >= 0
+        mids[at[found]] = curved.points[found]
+        n_curved = int(found.sum())
+    tets = np.concatenate([mesh.tets, n + inverse.reshape(-1, 6)], axis=1)
+    point_data = {}
+    for name, a in mesh.point_data.items():
+        ends = a[edges]  # (e, 2, ...)
+        if np.issubdtype(a.dtype, np.integer):
+            on_edge = ends.min(axis=1)
+        else:
+            on_edge = ends.mean(axis=1, dtype=np.float64).astype(a.dtype)
+        point_data[name] = np.concatenate([a, on_edge])
+    sets = []
+    for ns in mesh.node_sets:
+        inside = np.zeros(n, bool)
+        inside[ns.ids] = True
+        on = np.flatnonzero(inside[edges].all(axis=1)) + n
+        sets.append(NodeSet(ns.name, np.concatenate([ns.ids, on]), ns.label))
+    return QuadraticMesh(
+        np.concatenate([mesh.points, mids]), tets, edges, n, n_curved, point_data, tuple(sets)
+    )
+
+
+# shape-function derivative coefficients of a 10-node tet (VTK order), at its 10 nodes:
+# x(L) = sum_i x_i L_i (2 L_i - 1) + sum_(i,j) 4 x_ij L_i L_j over barycentrics L, so
+# dx/dL_k = x_k (4 L_k - 1) + 4 sum_j x_kj L_j; row [s, k] holds the weights of the 10
+# nodes in dx/dL_k at node s
+def _derivative_weights() -> np.ndarray:
+    bary = np.zeros((10, 4))
+    bary[np.arange(4), np.arange(4)] = 1.0
+    for e, (i, j) in enumerate(MID_EDGES[4]):
+        bary[4 + e, [i, j]] = 0.5
+    w = np.zeros((10, 4, 10))
+    for s in range(10):
+        for k in range(4):
+            w[s, k, k] = 4 * bary[s, k] - 1
+            for e, (i, j) in enumerate(MID_EDGES[4]):
+                if k in (i, j):
+                    w[s, k, 4 + e] = 4 * bary[s, j if k == i else i]
+    return w
+
+
+_DERIVATIVE_WEIGHTS = _derivative_weights()
+
+
+def jacobian_ratios(points: np.ndarray, tets10: np.ndarray) -> np.ndarray:
+    """(m,) the smallest Jacobian determinant of each 10-node tet ``tets10`` (m, 10) at
+    its 10 nodes, over that of its straight-sided tet (1 when its mid-edge nodes are the
+    midpoints; <= 0: the curved tet folds over itself there). A tet whose straight-sided
+    tet has no volume gets -inf."""
+    x = points[tets10]  # (m, 10, 3)
+    d = np.einsum("skn,mnc->mskc", _DERIVATIVE_WEIGHTS, x)  # dx/dL_k at node s
+    jac = d[:, :, 1:, :] - d[:, :, :1, :]  # (m, 10, 3 directions, 3 coordinates)
+    det = np.linalg.det(jac)  # (m, 10)
+    c = x[:, :4]
+    straight = np.linalg.det(c[:, 1:] - c[:, :1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = det.min(axis=1) / straight
+    return np.where(straight > 0, ratio, -np.inf)
+
+
+def folded_tets(quad: QuadraticMesh) -> tuple[int, float]:
+    """(count, smallest ratio) of the quadratic tets with a non-positive Jacobian at a
+    node (``jacobian_ratios``); only tets with a curved edge's node can fold (the others
+    are straight-sided: their Jacobian is their linear tet's)."""
+    curved = quad.tets[:, 4:] - quad.n_corners
+    bent = np.zeros(len(quad.edges), bool)
+    if quad.n_curved:
+        ends = quad.points[quad.edges]
+        mid = 0.5 * (ends[:, 0] + ends[:, 1])
+        bent = (quad.points[quad.n_corners :] != mid).any(axis=1)
+    rows = np.flatnonzero(bent[curved].any(axis=1))
+    if not len(rows):
+        return 0, 1.0
+    ratios = jacobian_ratios(quad.points, quad.tets[rows])
+    return int((ratios <= 0).sum()), float(ratios.min())
+
+
+def curved_edges_kept(before: TetMesh, after: TetMesh) -> np.ndarray:
+    """(k,) bool over ``before.curved_edges``: the edge is an edge of ``after``'s tets
+    and its two ends are where they were (a mid-edge node stays on its curve only then)."""
+    edges = before.curved_edges.edges
+    keep = (edges < after.n_points).all(axis=1)
+    keep[keep] = (after.points[edges[keep]] == before.points[edges[keep]]).all(axis=(1, 2))
+    on = np.zeros(after.n_points, bool)
+    on[edges[keep].reshape(-1)] = True
+    near = after.tets[on[after.tets].sum(axis=1) >= 2]  # the tets that can hold one
+    pairs = near[:, MID_EDGES[4]].reshape(-1, 2)
+    keep[keep] = match_rows(pairs, edges[keep], after.n_points) >= 0
+    return keep
