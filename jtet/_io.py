@@ -1478,7 +1478,10 @@ def _curved_edges(points: np.ndarray, found: list):
     a, b = points[ends[:, 0]], points[ends[:, 1]]
     off = np.linalg.norm(points[ids] - 0.5 * (a + b), axis=1)
     bent = off > 1e-6 * np.linalg.norm(b - a, axis=1)
-    return ends[bent], points[ids[bent]]
+    ends, ids = ends[bent], ids[bent]
+    _, first = np.unique(ends, axis=0, return_index=True)  # an edge of several tets: once
+    first = np.sort(first)
+    return ends[first], points[ids[first]]
 
 
 def _without_points(mesh: TetMesh, drop: np.ndarray) -> TetMesh:
@@ -2048,8 +2051,10 @@ def _quadratic_output(mesh: TetMesh, path: Path, fmt: str):
     if n_folded:
         warnings.warn(
             f"{path}: {n_folded} quadratic tet(s) have a non-positive Jacobian at a node "
-            f"(smallest ratio to the straight tet's {worst:.3g}): their curved edges bend "
-            "into them. A solver will refuse them; refine there, or write the mesh linear",
+            f"(smallest ratio to the straight tet's {worst:.3g}): a curved edge bends into "
+            "a tet too thin for it (Gmsh's SetOrder 2 leaves such tets too). A solver that "
+            "checks the Jacobian at the nodes refuses them: refine there, or write the "
+            "mesh linear",
             stacklevel=3,
         )
     return quad

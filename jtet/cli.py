@@ -258,7 +258,8 @@ def _improve_and_save(mesh, out: Path, args, prefix: str = ""):
     if result.status.startswith("invariant violation"):
         print(f"jtet: error: {result.status}; {out} not written", file=sys.stderr)
         return result, 3
-    save(result.mesh, out, cell_data=quality_cell_data(result.mesh))
+    quadratic = getattr(args, "quadratic", False)
+    save(result.mesh, out, cell_data=quality_cell_data(result.mesh), quadratic=quadratic)
     if result.status == "interrupted":
         print(f"jtet: interrupted; wrote the best mesh so far to {out}", file=sys.stderr)
         return result, 130
@@ -329,6 +330,7 @@ def cmd_improve(args) -> int:
             f"({len(args.paths)} path(s) given)"
         )
     src, out = (Path(p) for p in args.paths)
+    _check_output(out, args)
     _refuse_input_as_output(src, out, args.overwrite)
     mesh = _read_input(src, args)
     return _run_improve(mesh, out, args, str(src))
@@ -345,7 +347,7 @@ def _batch_outputs(args) -> list[tuple[Path, Path]]:
     """(input, output) of every file of ``jtet improve IN... --out-dir DIR``, checked
     before any run: a known output format, no two inputs to one output (nor to one
     figure, with --plot), no input overwritten without --overwrite."""
-    from ._io import output_format, read_files, written_files
+    from ._io import read_files, written_files
 
     if args.plot and not Path(args.plot).parent.is_dir():
         raise JtetError(f"--plot {args.plot}: {Path(args.plot).parent} is no existing directory")
@@ -359,7 +361,7 @@ def _batch_outputs(args) -> list[tuple[Path, Path]]:
     for path in args.paths:
         src = Path(path)
         out = outdir / (src.stem + (ext or src.suffix))
-        output_format(out)
+        _check_output(out, args)
         _refuse_input_as_output(src, out, args.overwrite)
         pairs.append((src, out))
     seen, plots = {}, {}
@@ -572,15 +574,15 @@ def cmd_convert(args) -> int:
     """``jtet convert IN OUT``: the mesh of IN in the format of OUT's extension, with what
     jtet reads and writes of every format (regions, labelled protected faces, edges and
     vertices: Gmsh physical groups, Medit references, TetGen markers, VTK arrays)."""
-    from ._io import output_format, save
+    from ._io import save
     from ._report import quality_cell_data
 
     src, out = Path(args.input), Path(args.output)
-    output_format(out)  # an unknown extension fails before the input is read
+    _check_output(out, args)  # an unknown extension fails before the input is read
     _refuse_input_as_output(src, out, args.overwrite)
     mesh = _read_input(src, args)
     cell_data = quality_cell_data(mesh) if args.quality_arrays else None
-    save(mesh, out, cell_data=cell_data)
+    save(mesh, out, cell_data=cell_data, quadratic=args.quadratic)
     if not args.quiet:
         print(f"jtet: {src} -> {out}  ({mesh})")
     return 0
@@ -752,12 +754,33 @@ def _add_drop(p) -> None:
     )
 
 
+def _check_output(out: Path, args) -> None:
+    """Refuse, before any work, an output ``out`` of an unknown extension, or of a
+    format jtet writes only linear when ``--quadratic`` asks for 10-node tets."""
+    from ._io import output_format, require_quadratic_format
+
+    output_format(out)
+    if getattr(args, "quadratic", False):
+        require_quadratic_format(out)
+
+
+def _add_quadratic(p) -> None:
+    p.add_argument(
+        "--quadratic",
+        action="store_true",
+        help="write 10-node tets (6-node protected faces, 3-node protected edges; .vtu "
+        ".vtk .msh .inp .med): a node on each edge, on the input's curved boundary where "
+        "--linear read one, else at the edge's midpoint",
+    )
+
+
 def _add_linear(p) -> None:
     p.add_argument(
         "--linear",
         action="store_true",
         help="read quadratic cells (10-node tets, 6-node triangles, 3-node lines) as their "
-        "corners and leave out their mid-edge nodes; the output is linear",
+        "corners and leave out their mid-edge nodes; the output is linear (but with "
+        "--quadratic)",
     )
 
 
@@ -830,6 +853,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_relabel(pi)
     _add_drop(pi)
     _add_linear(pi)
+    _add_quadratic(pi)
     pi.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
     pi.add_argument("-q", "--quiet", action="store_true")
     pi.set_defaults(func=cmd_improve)
@@ -889,6 +913,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_relabel(pc)
     _add_drop(pc)
     _add_linear(pc)
+    _add_quadratic(pc)
     pc.add_argument("--overwrite", action="store_true", help="allow OUTPUT to be the input file")
     pc.add_argument("-q", "--quiet", action="store_true")
     pc.set_defaults(func=cmd_convert)
