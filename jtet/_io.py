@@ -1479,9 +1479,8 @@ def _curved_edges(points: np.ndarray, found: list):
     off = np.linalg.norm(points[ids] - 0.5 * (a + b), axis=1)
     bent = off > 1e-6 * np.linalg.norm(b - a, axis=1)
     ends, ids = ends[bent], ids[bent]
-    _, first = np.unique(ends, axis=0, return_index=True)  # an edge of several tets: once
-    first = np.sort(first)
-    return ends[first], points[ids[first]]
+    ends, first = np.unique(ends, axis=0, return_index=True)  # an edge of several tets: once
+    return ends, points[ids[first]]
 
 
 def _without_points(mesh: TetMesh, drop: np.ndarray) -> TetMesh:

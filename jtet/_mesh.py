@@ -181,7 +181,7 @@ def _checked_node_sets(sets, n_points: int) -> tuple[NodeSet, ...]:
 class CurvedEdges(NamedTuple):
     """Mid-edge nodes off their edge's midpoint: those of a quadratic mesh's curved
     boundary, read with ``load(path, linear=True)``. ``edges`` (k, 2) int64 sorted
-    distinct vertex pairs, ``points`` (k, 3) float64 the node of each, both read-only.
+    distinct vertex pairs in lexicographic order, ``points`` (k, 3) float64 the node of each, both read-only.
     A quadratic output (``save(..., quadratic=True)``) puts its node on each edge of
     the mesh listed here and the midpoint on every other edge."""
 
@@ -191,7 +191,8 @@ class CurvedEdges(NamedTuple):
 
 def _checked_curved_edges(curved, n_points: int) -> CurvedEdges:
     """``TetMesh.curved_edges`` as a ``CurvedEdges`` of sorted, distinct, in-range vertex
-    pairs (the first of duplicates kept) and finite float64 points."""
+    pairs in lexicographic order (the first of duplicates kept) and finite float64
+    points."""
     if curved is None:
         return CurvedEdges(_readonly(np.zeros((0, 2), np.int64)), _readonly(np.zeros((0, 3))))
     try:
@@ -214,10 +215,8 @@ def _checked_curved_edges(curved, n_points: int) -> CurvedEdges:
         raise MeshInputError("curved_edges holds an edge from a vertex to itself")
     if not np.isfinite(points).all():
         raise MeshInputError("curved_edges holds NaN or infinite mid-edge points")
-    edges = np.sort(edges, axis=1)
-    _, first = np.unique(edges, axis=0, return_index=True)
-    first = np.sort(first)
-    return CurvedEdges(_readonly(edges[first]), _readonly(points[first]))
+    edges, first = np.unique(np.sort(edges, axis=1), axis=0, return_index=True)
+    return CurvedEdges(_readonly(edges), _readonly(points[first]))
 
 
 def _unmoved_curved_edges(curved: CurvedEdges, old: np.ndarray, new: np.ndarray) -> CurvedEdges:

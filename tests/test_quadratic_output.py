@@ -1,0 +1,277 @@
+"""Quadratic output (``save(..., quadratic=True)``, ``--quadratic``) and the curved
+edges a quadratic input keeps (``TetMesh.curved_edges``): the nodes against Gmsh's own
+second-order mesh (read by meshio and by Gmsh), volumes by Gmsh's Jacobians, the
+Jacobian check against a brute-force isoparametric map, the field through improve."""
+
+import warnings
+
+import numpy as np
+import pytest
+from helpers import delaunay_mesh, named_ball_in_box
+
+import jtet
+from jtet._errors import MeshFileError, MeshInputError
+from jtet._quadratic import MID_EDGES, folded_tets, jacobian_ratios, quadratic_mesh
+from jtet.cli import main
+
+FORMATS = ["vtu", "vtk", "msh", "inp", "med"]
+
+
+@pytest.fixture(scope="module")
+def gmsh_files(tmp_path_factory):
+    """Gmsh's ball in a box (``named_ball_in_box``), linear and at order 2 (.msh 4.1)."""
+    out = tmp_path_factory.mktemp("quadratic_output")
+    named_ball_in_box(out / "linear.msh", second_order=[out / "quadratic.msh"])
+    return out
+
+
+def _load_linear(path):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return jtet.load(path, linear=True)
+
+
+def _edge_nodes(points, tets10) -> dict:
+    """{(sorted rounded corner coordinates of an edge): rounded node coordinates} of 10-node
+    tets in VTK's order (meshio's), independent of the node numbering."""
+    p = np.round(points, 12)
+    out = {}
+    for (i, j), col in zip(MID_EDGES[4], range(4, 10), strict=True):
+        for a, b, m in zip(p[tets10[:, i]], p[tets10[:, j]], p[tets10[:, col]], strict=True):
+            out[tuple(sorted([tuple(a), tuple(b)]))] = tuple(m)
+    return out
+
+
+def _gmsh_region_volumes(path) -> dict:
+    """{physical volume name: volume} of a mesh file, by Gmsh: the sum over its elements
+    of Gmsh's Jacobian determinants times its Gauss weights (exact for a 10-node tet's
+    cubic determinant with the 4th-order rule), and the element types."""
+    gmsh = pytest.importorskip("gmsh")
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Verbosity", 1)
+        gmsh.open(str(path))
+        volumes, types = {}, set()
+        for _, tag in gmsh.model.getPhysicalGroups(3):
+            name = gmsh.model.getPhysicalName(3, tag)
+            total = 0.0
+            for entity in gmsh.model.getEntitiesForPhysicalGroup(3, tag):
+                kinds, elements, _ = gmsh.model.mesh.getElements(3, entity)
+                for kind, ids in zip(kinds, elements, strict=True):
+                    types.add(int(kind))
+                    uvw, weights = gmsh.model.mesh.getIntegrationPoints(int(kind), "Gauss4")
+                    _, det, _ = gmsh.model.mesh.getJacobians(int(kind), uvw, entity)
+                    total += (det.reshape(len(ids), -1) * weights).sum()
+            volumes[name] = total
+        return volumes, types
+    finally:
+        gmsh.finalize()
+
+
+@pytest.mark.parametrize("ext", FORMATS)
+def test_written_nodes_are_gmsh_second_order_nodes(gmsh_files, tmp_path, ext):
+    """Gmsh's order-2 mesh read with --linear and written with quadratic=True has
+    Gmsh's nodes on every edge (its curved ones on the ball among them), read back in
+    VTK's order by VTK or meshio from jtet's file and by meshio from Gmsh's (MED: by
+    Gmsh, in the next test)."""
+    meshio = pytest.importorskip("meshio")
+    mesh = _load_linear(gmsh_files / "quadratic.msh")
+    assert len(mesh.curved_edges.edges) > 50  # the ball's curved edges
+    out = tmp_path / f"out.{ext}"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the 2 tets Gmsh's own mesh folds (folded_tets)
+        jtet.save(mesh, out, quadratic=True)
+    reference = meshio.read(gmsh_files / "quadratic.msh")
+    expected = _edge_nodes(reference.points, reference.get_cells_type("tetra10"))
+    if ext in ("vtu", "vtk"):  # VTK's own reader (meshio 5.3 reads no int64 legacy arrays)
+        pv = pytest.importorskip("pyvista")
+        grid = pv.read(out)
+        assert set(grid.celltypes.tolist()) == {24}  # VTK_QUADRATIC_TETRA
+        assert _edge_nodes(np.asarray(grid.points), grid.cells_dict[24]) == expected
+    elif ext != "med":
+        written = meshio.read(out)
+        assert _edge_nodes(written.points, written.get_cells_type("tetra10")) == expected
+    again = _load_linear(out)  # and the way back: the same corners and curved edges
+    np.testing.assert_array_equal(again.points, mesh.points)
+    np.testing.assert_array_equal(again.tets, mesh.tets)
+    np.testing.assert_array_equal(again.curved_edges.edges, mesh.curved_edges.edges)
+    np.testing.assert_array_equal(again.curved_edges.points, mesh.curved_edges.points)
+
+
+@pytest.mark.parametrize("ext", ["msh", "med"])
+def test_gmsh_measures_the_curved_ball_after_improve(gmsh_files, tmp_path, ext):
+    """improve keeps the ball's surface (a region interface), so the quadratic output's
+    ball has, by Gmsh's own Jacobians, the volume of Gmsh's second-order ball (closer to
+    the sphere's than the linear mesh's), and the box the volume of Gmsh's box."""
+    mesh = _load_linear(gmsh_files / "quadratic.msh")
+    result = jtet.improve(mesh, seed=0, max_passes=3, perturb=0)
+    assert result.mesh.n_tets != mesh.n_tets or (result.mesh.tets != mesh.tets).any()
+    np.testing.assert_array_equal(result.mesh.curved_edges.edges, mesh.curved_edges.edges)
+    assert any("curved edges" in note for note in result.notes)
+    out = tmp_path / f"improved.{ext}"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a folded tet or two, as in Gmsh's own mesh
+        jtet.save(result.mesh, out, quadratic=True)
+    got, types = _gmsh_region_volumes(out)
+    reference, _ = _gmsh_region_volumes(gmsh_files / "quadratic.msh")
+    assert types == {11}  # Gmsh's 10-node tet
+    assert got["ball"] == pytest.approx(reference["ball"], rel=1e-12)
+    # the unit cube, to Gmsh's own sum for its mesh (which misses 1 by 3.4e-12)
+    assert got["box"] == pytest.approx(reference["box"], rel=1e-12)
+    assert got["ball"] + got["box"] == pytest.approx(1.0, rel=1e-11)
+    sphere = 4 / 3 * np.pi * 0.25**3
+    linear = mesh.volumes[mesh.region == 1].sum()
+    assert abs(got["ball"] - sphere) < 0.5 * abs(linear - sphere)
+
+
+def test_quadratic_mesh_against_brute_force():
+    """On a random mesh: one node per edge, shared by the tets around it, at the midpoint
+    of the edge VTK's order names; point data averaged (integers: the smaller), node
+    sets with the nodes of their edges."""
+    mesh = delaunay_mesh(60, seed=3)
+    n = mesh.n_points
+    temperature = mesh.points @ [1.0, -2.0, 0.5]
+    marker = (mesh.points[:, 0] > 0.5).astype(np.int64)
+    chosen = np.flatnonzero(mesh.points[:, 2] < 0.4)
+    mesh = mesh.replace(point_data={"T": temperature, "m": marker}, node_sets=[("low", chosen)])
+    quad = quadratic_mesh(mesh)
+    edges = {tuple(sorted(e)) for t in mesh.tets.tolist() for e in
+             [(t[i], t[j]) for i, j in MID_EDGES[4]]}  # fmt: skip
+    assert len(quad.points) == n + len(edges)
+    node_of = {}
+    for t, row in zip(mesh.tets, quad.tets, strict=True):
+        np.testing.assert_array_equal(row[:4], t)
+        for (i, j), node in zip(MID_EDGES[4], row[4:], strict=True):
+            key = tuple(sorted((int(t[i]), int(t[j]))))
+            assert node_of.setdefault(key, int(node)) == node  # one node per edge
+            np.testing.assert_allclose(quad.points[node], mesh.points[list(key)].mean(axis=0))
+            assert quad.point_data["T"][node] == pytest.approx(
+                quad.points[node] @ [1.0, -2.0, 0.5], rel=1e-12, abs=1e-12
+            )
+            assert quad.point_data["m"][node] == marker[list(key)].min()
+    low = set(quad.node_sets[0].ids.tolist())
+    inside = set(chosen.tolist())
+    assert low == inside | {node_of[e] for e in node_of if set(e) <= inside}
+    assert quad.n_curved == 0 and folded_tets(quad) == (0, 1.0)
+
+
+def _jacobian_dets_brute_force(x: np.ndarray) -> np.ndarray:
+    """det J of one 10-node tet ``x`` (10, 3) at its 10 nodes, from the explicit shape
+    functions in (u, v, w) and central differences (exact for their quadratics)."""
+
+    def position(u, v, w):
+        lam = [1 - u - v - w, u, v, w]
+        shape = [lam[i] * (2 * lam[i] - 1) for i in range(4)]
+        shape += [4 * lam[i] * lam[j] for i, j in MID_EDGES[4]]
+        return np.array(shape) @ x
+
+    nodes = [(0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1)]
+    nodes += [tuple((np.array(nodes[i]) + nodes[j]) / 2) for i, j in MID_EDGES[4]]
+    h = 1e-3
+    out = []
+    for u in nodes:
+        cols = []
+        for d in np.eye(3):
+            cols.append(
+                (position(*(np.add(u, h * d))) - position(*(np.subtract(u, h * d)))) / (2 * h)
+            )
+        out.append(np.linalg.det(np.array(cols).T))
+    return np.array(out)
+
+
+def test_jacobian_ratios_against_brute_force():
+    """Random 10-node tets (a random tet, its mid-edge nodes moved by up to 30 % of its
+    size): the smallest det J at the nodes over the straight tet's, as the explicit
+    shape functions give it (to 1e-9: central differences of quadratics are exact up
+    to rounding)."""
+    rng = np.random.default_rng(7)
+    for _ in range(40):
+        corners = rng.random((4, 3))
+        if np.linalg.det(corners[1:] - corners[0]) < 0:
+            corners = corners[[1, 0, 2, 3]]
+        mids = np.array([(corners[i] + corners[j]) / 2 for i, j in MID_EDGES[4]])
+        x = np.vstack([corners, mids + 0.3 * (rng.random((6, 3)) - 0.5)])
+        got = jacobian_ratios(x, np.arange(10)[None])[0]
+        straight = np.linalg.det(corners[1:] - corners[0])
+        expected = _jacobian_dets_brute_force(x).min() / straight
+        assert got == pytest.approx(expected, rel=1e-9, abs=1e-9)
+
+
+def test_folded_tet_warns(tmp_path):
+    """A curved edge bent into its tet (the node of edge 12 of the unit tet pulled to
+    (0.1, 0.1, 0)): det J at corner 1 is 1 - 1.6 = -0.6 times the straight tet's (by
+    hand: dx/dL2 - dx/dL0 gains 4 x (-0.4, -0.4, 0))."""
+    points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    mesh = jtet.TetMesh(points, [[0, 1, 2, 3]], curved_edges=([[2, 1]], [[0.1, 0.1, 0]]))
+    assert folded_tets(quadratic_mesh(mesh)) == (1, pytest.approx(-0.6))
+    with pytest.warns(UserWarning, match=r"1 quadratic tet\(s\) have a non-positive Jacobian"):
+        jtet.save(mesh, tmp_path / "folded.vtu", quadratic=True)
+    outward = mesh.replace(curved_edges=([[1, 2]], [[0.6, 0.6, 0]]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        jtet.save(outward, tmp_path / "bulging.vtu", quadratic=True)
+
+
+def test_curved_edges_field_checks_and_moves():
+    points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    mesh = jtet.TetMesh(
+        points, [[0, 1, 2, 3]], curved_edges=([[3, 0], [0, 3]], [[0, 0, 0.6], [9, 9, 9]])
+    )
+    np.testing.assert_array_equal(mesh.curved_edges.edges, [[0, 3]])  # sorted, first kept
+    np.testing.assert_array_equal(mesh.curved_edges.points, [[0, 0, 0.6]])
+    assert "1 curved edges" in repr(mesh)
+    for bad, what in [
+        (([[0, 4]], [[0, 0, 0]]), "out of range"),
+        (([[1, 1]], [[0, 0, 0]]), "to itself"),
+        (([[0, 1]], [[np.nan, 0, 0]]), "NaN"),
+        (([[0, 1], [0, 2]], [[0, 0, 0]]), "2 edges and 1"),
+        ("x", "curved_edges must be"),
+    ]:
+        with pytest.raises(MeshInputError, match=what):
+            mesh.replace(curved_edges=bad)
+    assert mesh.replace(points=points.copy()).has_curved_edges  # nothing moved
+    moved = points.copy()
+    moved[3, 2] = 1.2
+    assert not mesh.replace(points=moved).has_curved_edges  # an end moved: straight again
+    moved = points.copy()
+    moved[1, 0] = 1.2
+    assert mesh.replace(points=moved).has_curved_edges  # another vertex moved
+
+
+def test_refused_formats_and_cli(gmsh_files, tmp_path, capsys):
+    """--quadratic to a format written linear only fails before the input is read; the
+    CLI's improve and convert write 10-node tets that Gmsh reads."""
+    mesh = _load_linear(gmsh_files / "quadratic.msh")
+    for ext in ("mesh", "xdmf", "exo", "vol", "node"):
+        with pytest.raises(MeshFileError, match="quadratic"):
+            jtet.save(mesh, tmp_path / f"out.{ext}", quadratic=True)
+        assert not (tmp_path / f"out.{ext}").exists()
+    missing = tmp_path / "missing.msh"
+    assert main(["improve", str(missing), str(tmp_path / "o.mesh"), "--quadratic"]) == 2
+    assert "quadratic" in capsys.readouterr().err
+    src = gmsh_files / "quadratic.msh"
+    out = tmp_path / "improved.msh"
+    args = ["improve", str(src), str(out), "-q", "--linear", "--quadratic", "--perturb", "0"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main(args) == 0
+        assert main(["convert", str(src), str(tmp_path / "c.inp"), "-q", "--linear",
+                     "--quadratic"]) == 0  # fmt: skip
+    _, types = _gmsh_region_volumes(out)
+    assert types == {11}
+    text = (tmp_path / "c.inp").read_text()
+    assert "TYPE=C3D10" in text and "TYPE=C3D4" not in text
+
+
+def test_abaqus_sets_come_back_as_they_were(tmp_path):
+    """An .inp written quadratic has region and surface node sets with their mid-edge
+    nodes (as Gmsh's SaveGroupsOfNodes writes them); read back with --linear they are
+    the region's and surface's again, not node sets of their own; a node set of the
+    mesh keeps its corners and gains the nodes of its edges."""
+    mesh = delaunay_mesh(40, seed=5)
+    chosen = np.flatnonzero(mesh.points[:, 0] < 0.5)
+    mesh = mesh.replace(node_sets=[("LEFT", chosen)])
+    jtet.save(mesh, tmp_path / "q.inp", quadratic=True)
+    again = _load_linear(tmp_path / "q.inp")
+    assert [ns.name for ns in again.node_sets] == ["LEFT"]
+    np.testing.assert_array_equal(again.node_sets[0].ids, chosen)
