@@ -195,8 +195,8 @@ def test_cli_keyboard_interrupt_writes_the_best_mesh_and_exits_130(
 def test_cli_interrupt_while_saving_leaves_no_partial_file(infile, tmp_path, monkeypatch):
     real = _io._write
 
-    def write_then_interrupt(mesh, tmp, fmt, cell_data, heavy_name=""):
-        real(mesh, tmp, fmt, cell_data, heavy_name)  # the temporary file is complete ...
+    def write_then_interrupt(mesh, tmp, fmt, cell_data, heavy_name="", quad=None):
+        real(mesh, tmp, fmt, cell_data, heavy_name, quad)  # the temporary file is complete ...
         raise KeyboardInterrupt  # ... but Ctrl-C comes before the rename
 
     monkeypatch.setattr(_io, "_write", write_then_interrupt)

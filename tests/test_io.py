@@ -1201,7 +1201,7 @@ def test_failed_write_leaves_no_temp_and_keeps_the_old_file(tmp_path, labelled, 
     _quiet_save(labelled, path)
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
 
-    def half_written(mesh, tmp, fmt, cell_data, heavy_name=""):
+    def half_written(mesh, tmp, fmt, cell_data, heavy_name="", quad=None):
         tmp.write_bytes(b"partial")
         if fmt in ("tetgen", "xdmf"):
             tmp.with_suffix(".ele" if fmt == "tetgen" else ".h5").write_bytes(b"partial")
