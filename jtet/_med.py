@@ -193,7 +193,10 @@ def _read(f, source: str):
         labelled[role] = (ids, labels)
     tets = labelled["tet"][0][:, _SWAP]
     node_sets = _node_sets(node_families, _family_groups(fas, "NOEUD"))
-    point_data, cell_data = _fields(f, mesh_name, n, len(tets), source)
+    # cell fields of a quadratic mesh read as linear (``--linear``) lie on its T10 cells
+    kinds = set(step.get("MAI", {}))
+    tet_support = "MAI.T10" if linear and "T10" in kinds and "TE4" not in kinds else "MAI.TE4"
+    point_data, cell_data = _fields(f, mesh_name, n, len(tets), source, tet_support)
     vertices, vertex_labels = labelled["vertex"]
     return (
         points,
@@ -287,11 +290,14 @@ def _node_sets(families: np.ndarray | None, groups: dict) -> list:
     return [(name, np.flatnonzero(np.isin(families, nums))) for name, nums in members.items()]
 
 
-def _fields(f, mesh_name: str, n_points: int, n_tets: int, source: str):
+def _fields(
+    f, mesh_name: str, n_points: int, n_tets: int, source: str, tet_support: str = "MAI.TE4"
+):
     """(point_data, cell_data): the file's fields on every node (``NOE``) and on every
-    tet (``MAI.TE4``, one value per tet) at their last step; others left out with a
-    warning. jtet's own per-tet arrays (region, quality) are not read: every output gets
-    fresh ones."""
+    tet (``tet_support``: ``MAI.TE4``, or ``MAI.T10`` for a file of 10-node tets read as
+    linear; one value per tet) at their last step; others left out with a warning.
+    jtet's own per-tet arrays (region, quality) are not read: every output gets fresh
+    ones."""
     from ._io import _carried_array_name
 
     point_data: dict = {}
@@ -309,7 +315,7 @@ def _fields(f, mesh_name: str, n_points: int, n_tets: int, source: str):
         for support, values in step.items():
             profile = _text(values.attrs.get("PFL", _NO_PROFILE))
             data = values.get(profile)
-            target, count = {"NOE": (point_data, n_points), "MAI.TE4": (cell_data, n_tets)}.get(
+            target, count = {"NOE": (point_data, n_points), tet_support: (cell_data, n_tets)}.get(
                 support, (None, 0)
             )
             gauss = int(data.attrs.get("NGA", 1)) if data is not None else 0

@@ -275,3 +275,43 @@ def test_abaqus_sets_come_back_as_they_were(tmp_path):
     again = _load_linear(tmp_path / "q.inp")
     assert [ns.name for ns in again.node_sets] == ["LEFT"]
     np.testing.assert_array_equal(again.node_sets[0].ids, chosen)
+
+
+def test_medcoupling_reads_t10_cells(gmsh_files, tmp_path):
+    """MEDCoupling (Salome's MED library) reads the T10 output: 10-node tets of positive
+    volume, each node on its edge in MED's order (N5 on N1-N2, N6 on N2-N3, N7 on N3-N1,
+    N8 on N1-N4, N9 on N2-N4, N10 on N3-N4): at its midpoint, or on the sphere with
+    both ends; the groups, and the point and cell fields on the nodes and the T10 cells,
+    which jtet reads back."""
+    mc = pytest.importorskip("medcoupling")
+    mesh = _load_linear(gmsh_files / "quadratic.msh")
+    mesh = mesh.replace(
+        point_data={"T": 2.0 * mesh.points[:, 0]}, cell_data={"mat": np.arange(mesh.n_tets) % 3}
+    )
+    out = tmp_path / "q.med"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        jtet.save(mesh, out, quadratic=True)
+    mm = mc.MEDFileUMesh.New(str(out))
+    volume = mm.getMeshAtLevel(0)
+    assert volume.getAllGeoTypes() == [mc.NORM_TETRA10]
+    assert (volume.getMeasureField(False).getArray().toNumPyArray() > 0).all()
+    coords = mm.getCoords().toNumPyArray()
+    conn = volume.getNodalConnectivity().toNumPyArray().reshape(-1, 11)[:, 1:]
+    med_edges = [(0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3)]
+
+    def on_sphere(x):
+        return abs(np.linalg.norm(x - 0.5, axis=1) - 0.25) < 1e-9
+
+    n_curved = 0
+    for column, (i, j) in enumerate(med_edges, start=4):
+        a, b, node = coords[conn[:, i]], coords[conn[:, j]], coords[conn[:, column]]
+        straight = np.linalg.norm(node - (a + b) / 2, axis=1) < 1e-12
+        curved = on_sphere(node) & on_sphere(a) & on_sphere(b) & ~straight
+        assert (straight | curved).all()
+        n_curved += int(curved.sum())
+    assert n_curved >= len(mesh.curved_edges.edges)  # each curved edge in a tet or more
+    assert set(mm.getGroupsOnSpecifiedLev(0)) == {"ball", "box"}
+    again = _load_linear(out)
+    np.testing.assert_array_equal(again.cell_data["mat"], mesh.cell_data["mat"])
+    np.testing.assert_array_equal(again.point_data["T"], mesh.point_data["T"])
