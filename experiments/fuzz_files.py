@@ -4,6 +4,10 @@ or a crash.
 
     python experiments/fuzz_files.py --tries 300 --seed 0
     python experiments/fuzz_files.py --formats vtk,vtu --tries 2000
+    python experiments/fuzz_files.py --quadratic --formats vtu,vtk,msh,inp,med
+
+``--quadratic`` saves the mesh with 10-node tets (``save(..., quadratic=True)``, a
+curved edge among them) and loads each try with ``linear=True``.
 
 A small labelled mesh (regions, protected faces with labels, edges and vertices, node sets) is saved
 in every format (its boundary as a surface in the surface formats); each try mutates one of its files (flips 1-3 bytes, truncates it,
@@ -118,8 +122,9 @@ def _mutate(data: bytes, rng) -> bytes:
     return bytes(data)
 
 
-def run_format(fmt: str, tries: int, seed: int, keep: Path) -> dict:
-    """Mutate and load one format's file ``tries`` times in this process."""
+def run_format(fmt: str, tries: int, seed: int, keep: Path, quadratic: bool = False) -> dict:
+    """Mutate and load one format's file ``tries`` times in this process (``quadratic``:
+    a file of 10-node tets, loaded with ``linear=True``)."""
     import numpy as np
 
     import jtet
@@ -132,10 +137,15 @@ def run_format(fmt: str, tries: int, seed: int, keep: Path) -> dict:
         _save_surface(_mesh(), src)
         load = _read_surface
     else:
-        jtet.save(_mesh(), src)
+        mesh = _mesh()
+        if quadratic:  # one edge's node off its midpoint
+            a, b = mesh.tets[0, :2]
+            bent = (mesh.points[a] + mesh.points[b]) / 2 + 0.01
+            mesh = mesh.replace(curved_edges=([[a, b]], [bent]))
+        jtet.save(mesh, src, quadratic=quadratic)
 
         def load(path):
-            jtet.load(path).is_valid()
+            jtet.load(path, linear=quadratic).is_valid()
 
     # TetGen: the .node, the .ele and the .face of the protected faces; XDMF: the .xdmf
     # and its heavy data, the .h5 it names (renamed: the mutated copy's); Medit: the mesh
@@ -181,6 +191,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--formats", default=",".join(FORMATS), help="comma-separated")
     ap.add_argument("--keep", default="fuzz-files-last", help="directory for the last try")
+    ap.add_argument(
+        "--quadratic", action="store_true", help="10-node tets, loaded with linear=True"
+    )
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     keep = Path(args.keep)
@@ -188,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.child:
         import json
 
-        print(json.dumps(run_format(args.child, args.tries, args.seed, keep)))
+        print(json.dumps(run_format(args.child, args.tries, args.seed, keep, args.quadratic)))
         return 0
 
     import json
@@ -198,6 +211,7 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.perf_counter()
         cmd = [sys.executable, __file__, "--child", fmt, "--tries", str(args.tries)]
         cmd += ["--seed", str(args.seed), "--keep", str(keep)]
+        cmd += ["--quadratic"] if args.quadratic else []
         proc = subprocess.run(cmd, capture_output=True, text=True)
         seconds = time.perf_counter() - t0
         if proc.returncode == 0:

@@ -307,7 +307,17 @@ def grid_to_arrays(grid, source: str = "pyvista grid"):
     conn = np.asarray(grid.cell_connectivity, dtype=np.int64)
     sizes = np.diff(offsets)[is_tet]
     if quadratic is not None and quadratic.any():
-        sizes = np.where(quadratic[is_tet] & (sizes == 10), 4, sizes)
+        # a quadratic cell of another size than its type's (a damaged file) names no
+        # corners and mid-edge nodes
+        expected = np.where(is_tet, 10, np.where(celltypes == 5, 6, 3))
+        wrong = np.flatnonzero(quadratic & (np.diff(offsets) != expected))
+        if len(wrong):
+            c = int(wrong[0])
+            raise MeshInputError(
+                f"{source}: cell {c} is a quadratic cell of {int(np.diff(offsets)[c])} "
+                f"vertices ({len(wrong)} such cell(s)); its type has {int(expected[c])}"
+            )
+        sizes = np.where(quadratic[is_tet], 4, sizes)
         _skip_vtk_mid_nodes(conn, offsets, quadratic)
     if (sizes != 4).any():
         c = int(np.flatnonzero(is_tet)[np.flatnonzero(sizes != 4)[0]])

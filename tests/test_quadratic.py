@@ -121,3 +121,16 @@ def test_xdmf_written_by_meshio(tmp_path):
     path = tmp_path / "q.xdmf"
     meshio.write(path, meshio.Mesh(points, [("tetra10", np.arange(10)[None])]))
     read_as_unit_tet(path)
+
+
+def test_quadratic_vtk_cell_of_the_wrong_size_is_refused(tmp_path):
+    """A damaged VTK file: a quadratic triangle of 1 vertex names no corners and
+    mid-edge nodes; refused with its cell id (fuzz_files.py --quadratic found it as a
+    NumPy error)."""
+    pv = pytest.importorskip("pyvista")
+    _, points = unit_tet10()
+    cells = np.array([10, *range(10), 1, 0])
+    grid = pv.UnstructuredGrid(cells, np.array([24, 22], np.uint8), points)
+    grid.save(tmp_path / "bad.vtu")
+    with pytest.raises(MeshInputError, match=r"cell 1 is a quadratic cell of 1 vertices"):
+        jtet.load(tmp_path / "bad.vtu", linear=True)
