@@ -1587,7 +1587,10 @@ def load(path: str | os.PathLike, *, linear: bool = False) -> TetMesh:
     ``linear=True`` reads quadratic cells (10-node tets, 6-node triangles, 3-node lines;
     ``jtet improve --linear``) as their corners, and leaves out the mid-edge nodes no
     other cell uses (node sets and point data follow), with a warning: jtet improves
-    linear tets, and the output is linear. Without it such a file is refused.
+    linear tets. The nodes of 10-node tets off their edges' midpoints (a curved
+    boundary; not of Netgen and Medit P2 files) are kept as ``TetMesh.curved_edges``
+    for a quadratic output (``save(..., quadratic=True)``). Without it such a file is
+    refused.
 
     Raises:
         MeshFileError: the file is missing, a directory, of unknown extension, or unreadable.
