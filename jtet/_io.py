@@ -2063,7 +2063,7 @@ def _quadratic_output(mesh: TetMesh, path: Path, fmt: str):
     if n_folded:
         warnings.warn(
             f"{path}: {n_folded} quadratic tet(s) have a non-positive Jacobian at a node "
-            f"(smallest ratio to the straight tet's {worst:.3g}): a curved edge bends into "
+            f"(smallest scaled Jacobian, Gmsh's minSJ: {worst:.3g}): a curved edge bends into "
             "a tet too thin for it (Gmsh's SetOrder 2 leaves such tets too). A solver that "
             "checks the Jacobian at the nodes refuses them: refine there, or write the "
             "mesh linear",

@@ -125,10 +125,11 @@ _DERIVATIVE_WEIGHTS = _derivative_weights()
 
 
 def jacobian_ratios(points: np.ndarray, tets10: np.ndarray) -> np.ndarray:
-    """(m,) the smallest Jacobian determinant of each 10-node tet ``tets10`` (m, 10) at
-    its 10 nodes, over that of its straight-sided tet (1 when its mid-edge nodes are the
-    midpoints; <= 0: the curved tet folds over itself there). A tet whose straight-sided
-    tet has no volume gets -inf."""
+    """(m,) the scaled Jacobian of each 10-node tet ``tets10`` (m, 10): its smallest
+    Jacobian determinant at its 10 nodes over that of its straight-sided tet (1 when its
+    mid-edge nodes are the midpoints; <= 0: the curved tet folds over itself there).
+    Gmsh's ``minSJ`` element quality, tet for tet (``tests/test_quadratic_output.py``).
+    A tet whose straight-sided tet has no volume gets -inf."""
     x = points[tets10]  # (m, 10, 3)
     d = np.einsum("skn,mnc->mskc", _DERIVATIVE_WEIGHTS, x)  # dx/dL_k at node s
     jac = d[:, :, 1:, :] - d[:, :, :1, :]  # (m, 10, 3 directions, 3 coordinates)
@@ -141,9 +142,9 @@ def jacobian_ratios(points: np.ndarray, tets10: np.ndarray) -> np.ndarray:
 
 
 def folded_tets(quad: QuadraticMesh) -> tuple[int, float]:
-    """(count, smallest ratio) of the quadratic tets with a non-positive Jacobian at a
-    node (``jacobian_ratios``); only tets with a curved edge's node can fold (the others
-    are straight-sided: their Jacobian is their linear tet's)."""
+    """(count, smallest scaled Jacobian) of the quadratic tets with a non-positive
+    Jacobian at a node (``jacobian_ratios``); only tets with a curved edge's node can
+    fold (the others are straight-sided, of scaled Jacobian 1: 1.0 without curved ones)."""
     curved = quad.tets[:, 4:] - quad.n_corners
     bent = np.zeros(len(quad.edges), bool)
     if quad.n_curved:

@@ -492,6 +492,7 @@ def cmd_stats(args) -> int:
                 else {}
             )
             | ({"groups": f["groups"]} if args.groups else {})
+            | ({"curved": f["curved"]} if f["curved"] else {})
             for path, f in zip(args.mesh, files, strict=True)
         ]
         if len(files) == 1:  # one mesh: its statistics, as before there were several
@@ -510,6 +511,13 @@ def cmd_stats(args) -> int:
             print("\n".join([f"{name}valid", *(f"{name}note: {n}" for n in report.notes())]))
         else:
             print(f"{name}problems:\n{report}")
+        if f["curved"]:
+            c = f["curved"]
+            print(
+                f"{name}quadratic: {c['edges']} curved edges; {c['folded_tets']} tet(s) "
+                "folded (a non-positive Jacobian at a node); smallest scaled Jacobian "
+                f"(Gmsh's minSJ) {c['min_scaled_jacobian']:.3f}"
+            )
     if args.groups:
         from ._stats import format_groups
 
@@ -546,8 +554,19 @@ def _mesh_summary(
         regions = region_stats(mesh, per_tet=per_tet) if by_region else {}
     except JtetError as e:
         raise JtetError(f"{path}: {e}") from None
+    curved = None
+    if mesh.has_curved_edges:  # a quadratic file read with --linear: its tets as written
+        from ._quadratic import folded_tets, quadratic_mesh
+
+        n_folded, smallest = folded_tets(quadratic_mesh(mesh))
+        curved = {
+            "edges": len(mesh.curved_edges.edges),
+            "folded_tets": n_folded,
+            "min_scaled_jacobian": smallest,
+        }
     return {
         "mesh": repr(mesh),
+        "curved": curved,
         "stats": mesh_stats(mesh, per_tet=per_tet),
         "regions": regions,
         "names": dict(mesh.label_names),

@@ -315,3 +315,42 @@ def test_medcoupling_reads_t10_cells(gmsh_files, tmp_path):
     again = _load_linear(out)
     np.testing.assert_array_equal(again.cell_data["mat"], mesh.cell_data["mat"])
     np.testing.assert_array_equal(again.point_data["T"], mesh.point_data["T"])
+
+
+def test_jacobian_ratios_are_gmsh_scaled_jacobians(gmsh_files):
+    """jtet's smallest det J at the nodes over the straight tet's is, tet for tet, Gmsh's
+    own minSJ quality of its 10-node tets (sorted: Gmsh lists them by entity), to 1e-12,
+    the two folded ones of Gmsh's ball in a box included."""
+    gmsh = pytest.importorskip("gmsh")
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Verbosity", 1)
+        gmsh.open(str(gmsh_files / "quadratic.msh"))
+        _, tags, _ = gmsh.model.mesh.getElements(3)
+        expected = np.sort(gmsh.model.mesh.getElementQualities(np.concatenate(tags), "minSJ"))
+    finally:
+        gmsh.finalize()
+    quad = quadratic_mesh(_load_linear(gmsh_files / "quadratic.msh"))
+    got = np.sort(jacobian_ratios(quad.points, quad.tets))
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
+    assert (got <= 0).sum() == folded_tets(quad)[0] == 2
+
+
+def test_stats_reports_the_curved_tets(gmsh_files, capsys):
+    """jtet stats --linear of a quadratic file: its curved edges, the tets that fold and
+    the smallest scaled Jacobian (text and JSON); nothing of the kind for a linear file."""
+    import json
+
+    src = str(gmsh_files / "quadratic.msh")
+    n_curved = len(_load_linear(gmsh_files / "quadratic.msh").curved_edges.edges)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main(["stats", src, "--linear"]) == 0
+        text = capsys.readouterr().out
+        assert f"quadratic: {n_curved} curved edges; 2 tet(s) folded" in text
+        assert main(["stats", src, "--linear", "--json"]) == 0
+        curved = json.loads(capsys.readouterr().out)["curved"]
+        assert curved["edges"] == n_curved and curved["folded_tets"] == 2
+        assert curved["min_scaled_jacobian"] == pytest.approx(-0.1155, abs=1e-4)
+        assert main(["stats", str(gmsh_files / "linear.msh"), "--json"]) == 0
+        assert "curved" not in json.loads(capsys.readouterr().out)
