@@ -378,7 +378,11 @@ def _node_sets(r: _Reader, n: int, side_nodes: dict, names, source):
     """(protected vertices, their labels, ``TetMesh.node_sets``) of the file's node
     sets: those jtet wrote for protected vertices (the ids its ``jtet_point_sets``
     attribute lists) are protected vertices again; a side set's own (its id, its nodes)
-    is written again from the side set; every other one is a node set, kept as it is."""
+    is written again from the side set (its faces' mid-edge nodes aside, for a
+    quadratic file read as linear); every other one is a node set, kept as it is."""
+    from ._io import noted_mid_nodes
+
+    mid = noted_mid_nodes()
     count = r.count("ns_prop1", "node_ns")
     ids = r.ints("ns_prop1", np.arange(1, count + 1))[:count]
     set_names = r.names("ns_names", count)
@@ -400,7 +404,7 @@ def _node_sets(r: _Reader, n: int, side_nodes: dict, names, source):
                 names.setdefault((0, label), set_names[s])
             pins.append(nodes)
             labels.append(np.full(len(nodes), label, np.int64))
-        elif side_nodes.get(label) != nodes.tobytes():
+        elif side_nodes.get(label) != nodes[~np.isin(nodes, mid)].tobytes():
             kept.append((set_names[s], nodes, label))
     return np.concatenate(pins), np.concatenate(labels), kept
 
@@ -411,17 +415,25 @@ def _chars(names: list[str], width: int) -> np.ndarray:
     return np.frombuffer(raw, "S1").reshape(len(names), width)
 
 
-def write_exo(mesh, path: Path, cell_data: dict | None = None) -> None:
+def write_exo(mesh, path: Path, cell_data: dict | None = None, quad=None) -> None:
     """Write ``mesh`` as a classic (64-bit offset) Exodus II file: one TETRA4 block per
     region (id = label, name from ``label_names``), one side set per protected face
     label with a node set of the same id and name, one node set per protected vertex
     label (listed in the ``jtet_point_sets`` attribute) and per ``node_sets`` entry
     (each keeps its id unless one before took it: the next free id), and ``cell_data`` (name -> (m,)
     per-tet values) as element variables at one time step (0.0), which ParaView colours
-    by."""
+    by. With ``quad`` (``_quadratic.quadratic_mesh(mesh)``) the blocks are TETRA10 (in
+    VTK's node order, Exodus's too) over its nodes, with its node sets and point data,
+    and a side set's node set has the nodes of its faces' edges."""
     from scipy.io import netcdf_file
 
     from ._abaqus import _face_owners
+
+    nodes, tets, kind, own_sets = mesh.points, mesh.tets, "TETRA4", mesh.node_sets
+    face_nodes, point_data = mesh.protected_faces, mesh.point_data
+    if quad is not None:
+        nodes, tets, kind, own_sets = quad.points, quad.tets, "TETRA10", quad.node_sets
+        face_nodes, point_data = quad.cells(mesh.protected_faces), quad.point_data
 
     names = mesh.label_names
     regions = np.unique(mesh.region)
@@ -431,14 +443,14 @@ def write_exo(mesh, path: Path, cell_data: dict | None = None) -> None:
     all_names = [names.get((3, int(r)), "") for r in regions]
     all_names += [names.get((2, int(k)), "") for k in face_labels]
     all_names += [names.get((0, int(k)), "") for k in vertex_labels]
-    all_names += [ns.name for ns in mesh.node_sets]
+    all_names += [ns.name for ns in own_sets]
     from ._point_data import scalar_columns
 
     # the mesh's cell data and jtet's quality arrays (which win), as scalar columns
     cell_data = scalar_columns({**mesh.cell_data, **dict(cell_data or {})})
     all_names += list(cell_data)
 
-    nodal = scalar_columns(mesh.point_data)  # an (n, k) array: k variables name[i]
+    nodal = scalar_columns(point_data)  # an (n, k) array: k variables name[i]
     all_names += list(nodal)
     width = min(max([33] + [len(s.encode()) + 1 for s in all_names]), 256)
 
@@ -457,12 +469,12 @@ def write_exo(mesh, path: Path, cell_data: dict | None = None) -> None:
         f.createDimension("four", 4)
         f.createDimension("len_name", width)
         f.createDimension("num_dim", 3)
-        f.createDimension("num_nodes", mesh.n_points)
+        f.createDimension("num_nodes", len(nodes))
         f.createDimension("num_elem", mesh.n_tets)
         f.createDimension("num_el_blk", len(regions))
         f.createVariable("time_whole", "f8", ("time_step",))
         for c, axis in enumerate("xyz"):
-            f.createVariable(f"coord{axis}", "f8", ("num_nodes",))[:] = mesh.points[:, c]
+            f.createVariable(f"coord{axis}", "f8", ("num_nodes",))[:] = nodes[:, c]
         f.createVariable("coor_names", "c", ("num_dim", "len_name"))[:] = _chars(
             ["x", "y", "z"], width
         )
@@ -483,14 +495,14 @@ def write_exo(mesh, path: Path, cell_data: dict | None = None) -> None:
         counts = np.bincount(np.searchsorted(regions, mesh.region), minlength=len(regions))
         for b, k in enumerate(counts.tolist()):
             f.createDimension(f"num_el_in_blk{b + 1}", k)
-            f.createDimension(f"num_nod_per_el{b + 1}", 4)
+            f.createDimension(f"num_nod_per_el{b + 1}", tets.shape[1])
         start = np.concatenate([[0], np.cumsum(counts)])
         for b in range(len(regions)):
             var = f.createVariable(
                 f"connect{b + 1}", "i4", (f"num_el_in_blk{b + 1}", f"num_nod_per_el{b + 1}")
             )
-            var[:] = (mesh.tets[order[start[b] : start[b + 1]]] + 1).astype(np.int32)
-            var.elem_type = "TETRA4"
+            var[:] = (tets[order[start[b] : start[b + 1]]] + 1).astype(np.int32)
+            var.elem_type = kind
 
         side_sets = []
         if len(mesh.protected_faces):
@@ -502,12 +514,12 @@ def write_exo(mesh, path: Path, cell_data: dict | None = None) -> None:
                 mine = mesh.protected_face_labels == k
                 side_sets.append((k, element[tet[mine]], side[mine]))
         node_sets = [
-            (k, np.unique(mesh.protected_faces[mesh.protected_face_labels == k]) + 1,
+            (k, np.unique(face_nodes[mesh.protected_face_labels == k]) + 1,
              names.get((2, k), ""))
             for k, _, _ in side_sets
         ]  # fmt: skip
         used = {k for k, _, _ in side_sets}
-        own = [ns.label for ns in mesh.node_sets if ns.label is not None]
+        own = [ns.label for ns in own_sets if ns.label is not None]
         spare = max([0, *used, *vertex_labels.tolist(), *own]) + 1
         point_sets = []
 
@@ -522,7 +534,7 @@ def write_exo(mesh, path: Path, cell_data: dict | None = None) -> None:
             mine = mesh.protected_vertices[mesh.protected_vertex_labels == k] + 1
             point_sets.append(free(k))
             node_sets.append((point_sets[-1], mine, names.get((0, k), "")))
-        node_sets += [(free(ns.label), ns.ids + 1, ns.name) for ns in mesh.node_sets]
+        node_sets += [(free(ns.label), ns.ids + 1, ns.name) for ns in own_sets]
         if point_sets:
             setattr(f, POINT_SETS_ATTR, np.array(point_sets, np.int32))
         if side_sets:

@@ -1472,6 +1472,13 @@ def note_mid_nodes(ids: np.ndarray, ends: np.ndarray | None = None) -> None:
     _MID_NODES.get().append((ids, ends))
 
 
+def noted_mid_nodes() -> np.ndarray:
+    """The ids of the mid-edge nodes noted so far in this ``load`` (``note_mid_nodes``);
+    empty when the file is not read as linear."""
+    found = _MID_NODES.get() or []
+    return np.unique(np.concatenate([np.zeros(0, np.int64), *(ids for ids, _ in found)]))
+
+
 def _curved_edges(points: np.ndarray, found: list):
     """(edges (k, 2) sorted, points (k, 3)) of the mid-edge nodes in ``found`` (see
     ``note_mid_nodes``) that lie off their edge's midpoint by more than a millionth of
@@ -1860,7 +1867,7 @@ def _write(
     if fmt == "exodus":
         from ._exodus import write_exo
 
-        write_exo(mesh, tmp, cell_data)
+        write_exo(mesh, tmp, cell_data, quad)
         return
     if fmt == "med":
         from ._med import write_med
@@ -2047,8 +2054,8 @@ def require_quadratic_format(path) -> None:
     fmt = output_format(path)
     if fmt not in QUADRATIC_FORMATS:
         raise MeshFileError(
-            f"{path}: jtet writes quadratic (10-node) tets to .vtu, .vtk, .msh, .inp and "
-            f".med files only, not to {_FORMAT_NAMES[fmt]} files"
+            f"{path}: jtet writes quadratic (10-node) tets to .vtu, .vtk, .msh, .inp, .med "
+            f"and .exo files only, not to {_FORMAT_NAMES[fmt]} files"
         )
 
 
@@ -2114,7 +2121,8 @@ def save(
     (``_med``). What a format cannot store is dropped with a warning.
 
     ``quadratic=True`` writes 10-node tets (and 6-node protected faces, 3-node protected
-    edges) to ``.vtu``, ``.vtk``, ``.msh``, ``.inp`` (C3D10) and ``.med`` (T10) files:
+    edges) to ``.vtu``, ``.vtk``, ``.msh``, ``.inp`` (C3D10), ``.med`` (T10) and
+    ``.exo`` (TETRA10) files:
     a node on each edge, that of ``mesh.curved_edges`` (a curved boundary read with
     ``load(path, linear=True)``) or the midpoint (``_quadratic``), numbered after the
     mesh's points. A warning counts the curved tets whose Jacobian is not positive at

@@ -33,7 +33,7 @@ MID_EDGES = {
     2: np.array([[0, 1]]),
 }
 # the formats ``save(..., quadratic=True)`` writes
-QUADRATIC_FORMATS = ("vtu", "vtk", "gmsh", "abaqus", "med")
+QUADRATIC_FORMATS = ("vtu", "vtk", "gmsh", "abaqus", "med", "exodus")
 
 
 class QuadraticMesh(NamedTuple):

@@ -14,7 +14,7 @@ from jtet._errors import MeshFileError, MeshInputError
 from jtet._quadratic import MID_EDGES, folded_tets, jacobian_ratios, quadratic_mesh
 from jtet.cli import main
 
-FORMATS = ["vtu", "vtk", "msh", "inp", "med"]
+FORMATS = ["vtu", "vtk", "msh", "inp", "med", "exo"]
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +34,7 @@ def _load_linear(path):
 def _edge_nodes(points, tets10) -> dict:
     """{(sorted rounded corner coordinates of an edge): rounded node coordinates} of 10-node
     tets in VTK's order (meshio's), independent of the node numbering."""
-    p = np.round(points, 12)
+    p = np.round(np.asarray(points, np.float64), 12)
     out = {}
     for (i, j), col in zip(MID_EDGES[4], range(4, 10), strict=True):
         for a, b, m in zip(p[tets10[:, i]], p[tets10[:, j]], p[tets10[:, col]], strict=True):
@@ -72,8 +72,8 @@ def _gmsh_region_volumes(path) -> dict:
 def test_written_nodes_are_gmsh_second_order_nodes(gmsh_files, tmp_path, ext):
     """Gmsh's order-2 mesh read with --linear and written with quadratic=True has
     Gmsh's nodes on every edge (its curved ones on the ball among them), read back in
-    VTK's order by VTK or meshio from jtet's file and by meshio from Gmsh's (MED: by
-    Gmsh, in the next test)."""
+    VTK's order by VTK (.vtu, .vtk, .exo) or meshio from jtet's file and by meshio from
+    Gmsh's (MED: by Gmsh and MEDCoupling, below)."""
     meshio = pytest.importorskip("meshio")
     mesh = _load_linear(gmsh_files / "quadratic.msh")
     assert len(mesh.curved_edges.edges) > 50  # the ball's curved edges
@@ -82,12 +82,19 @@ def test_written_nodes_are_gmsh_second_order_nodes(gmsh_files, tmp_path, ext):
         warnings.simplefilter("ignore")  # the 2 tets Gmsh's own mesh folds (folded_tets)
         jtet.save(mesh, out, quadratic=True)
     reference = meshio.read(gmsh_files / "quadratic.msh")
-    expected = _edge_nodes(reference.points, reference.get_cells_type("tetra10"))
-    if ext in ("vtu", "vtk"):  # VTK's own reader (meshio 5.3 reads no int64 legacy arrays)
+    tets10 = reference.get_cells_type("tetra10")
+    expected = _edge_nodes(reference.points, tets10)
+    if ext in ("vtu", "vtk", "exo"):  # VTK's readers (meshio 5.3: no int64 legacy arrays)
         pv = pytest.importorskip("pyvista")
         grid = pv.read(out)
-        assert set(grid.celltypes.tolist()) == {24}  # VTK_QUADRATIC_TETRA
-        assert _edge_nodes(np.asarray(grid.points), grid.cells_dict[24]) == expected
+        if ext == "exo":  # VTK's Exodus reader: a block per region
+            grid = grid.combine()
+        # VTK_QUADRATIC_TETRA (and the Exodus side sets' faces, VTK_QUADRATIC_TRIANGLE)
+        assert set(grid.celltypes.tolist()) == ({22, 24} if ext == "exo" else {24})
+        got = _edge_nodes(grid.points, grid.cells_dict[24])
+        if ext == "exo":  # VTK's Exodus reader rounds the points to float32
+            expected = _edge_nodes(reference.points.astype(np.float32), tets10)
+        assert got == expected
     elif ext != "med":
         written = meshio.read(out)
         assert _edge_nodes(written.points, written.get_cells_type("tetra10")) == expected
@@ -242,7 +249,7 @@ def test_refused_formats_and_cli(gmsh_files, tmp_path, capsys):
     """--quadratic to a format written linear only fails before the input is read; the
     CLI's improve and convert write 10-node tets that Gmsh reads."""
     mesh = _load_linear(gmsh_files / "quadratic.msh")
-    for ext in ("mesh", "xdmf", "exo", "vol", "node"):
+    for ext in ("mesh", "xdmf", "vol", "node"):
         with pytest.raises(MeshFileError, match="quadratic"):
             jtet.save(mesh, tmp_path / f"out.{ext}", quadratic=True)
         assert not (tmp_path / f"out.{ext}").exists()
