@@ -1472,10 +1472,11 @@ def note_mid_nodes(ids: np.ndarray, ends: np.ndarray | None = None) -> None:
     _MID_NODES.get().append((ids, ends))
 
 
-def noted_mid_nodes() -> np.ndarray:
-    """The ids of the mid-edge nodes noted so far in this ``load`` (``note_mid_nodes``);
-    empty when the file is not read as linear."""
-    found = _MID_NODES.get() or []
+def noted_mid_nodes(found: list | None = None) -> np.ndarray:
+    """The sorted distinct ids of the mid-edge nodes in ``found`` (default: those noted
+    so far in this ``load``, ``note_mid_nodes``); empty when the file is not read as
+    linear."""
+    found = (_MID_NODES.get() or []) if found is None else found
     return np.unique(np.concatenate([np.zeros(0, np.int64), *(ids for ids, _ in found)]))
 
 
@@ -1540,7 +1541,7 @@ def _drop_mid_nodes(mesh: TetMesh, found: list, source: str) -> TetMesh:
     ``found`` (``note_mid_nodes``) that no cell or protected entity uses (with a
     warning), its curved edges (``TetMesh.curved_edges``) those of the nodes off their
     edges' midpoints; periodic links keep their pairs of corners."""
-    mid = np.unique(np.concatenate([np.zeros(0, np.int64), *(ids for ids, _ in found)]))
+    mid = noted_mid_nodes(found)
     if not len(mid):
         return mesh
     used = np.zeros(mesh.n_points, bool)
@@ -2059,7 +2060,7 @@ def require_quadratic_format(path) -> None:
         )
 
 
-def _quadratic_output(mesh: TetMesh, path: Path, fmt: str):
+def _quadratic_output(mesh: TetMesh, path: Path):
     """``_quadratic.quadratic_mesh(mesh)`` for ``save(..., quadratic=True)``, with a
     warning when curved tets fold (a non-positive Jacobian at a node)."""
     from ._quadratic import folded_tets, quadratic_mesh
@@ -2122,11 +2123,10 @@ def save(
 
     ``quadratic=True`` writes 10-node tets (and 6-node protected faces, 3-node protected
     edges) to ``.vtu``, ``.vtk``, ``.msh``, ``.inp`` (C3D10), ``.med`` (T10) and
-    ``.exo`` (TETRA10) files:
-    a node on each edge, that of ``mesh.curved_edges`` (a curved boundary read with
-    ``load(path, linear=True)``) or the midpoint (``_quadratic``), numbered after the
-    mesh's points. A warning counts the curved tets whose Jacobian is not positive at
-    every node.
+    ``.exo`` (TETRA10) files: a node on each edge, that of ``mesh.curved_edges`` (a
+    curved boundary read with ``load(path, linear=True)``) or the midpoint
+    (``_quadratic``), numbered after the mesh's points. A warning counts the curved tets
+    whose Jacobian is not positive at every node.
 
     The file is written to a temporary file in the same directory and moved into place, so
     ``path`` is either the complete new file or left untouched.
@@ -2134,14 +2134,15 @@ def save(
     Returns the path written (for TetGen, the ``.node`` file).
 
     Raises:
-        MeshFileError: unknown extension, missing directory, existing file with
-            ``overwrite=False``, or any failure while writing.
+        MeshFileError: unknown extension (with ``quadratic=True``: one written linear
+            only), missing directory, existing file with ``overwrite=False``, or any
+            failure while writing.
         MeshInputError: ``cell_data`` does not have one value per tet.
     """
     p = Path(path)
     fmt = output_format(p)
     cell_data = _check_cell_data(mesh, cell_data)
-    quad = _quadratic_output(mesh, p, fmt) if quadratic else None
+    quad = _quadratic_output(mesh, p) if quadratic else None
     if fmt in ("medit", "tetgen", "abaqus", "netgen", "exodus", "med"):
         dropped = list(cell_data) if fmt not in ("exodus", "med") else []
         if len(dropped) > 4:
