@@ -72,7 +72,7 @@ def quadratic_mesh(mesh: TetMesh) -> QuadraticMesh:
     (both ends in the set)."""
     n = mesh.n_points
     pairs = np.sort(mesh.tets[:, MID_EDGES[4]].reshape(-1, 2), axis=1)
-    keys, first, inverse = np.unique(row_keys(pairs, n), return_index=True, return_inverse=True)
+    _, first, inverse = np.unique(row_keys(pairs, n), return_index=True, return_inverse=True)
     edges = pairs[first]
     mids = 0.5 * (mesh.points[edges[:, 0]] + mesh.points[edges[:, 1]])
     curved = mesh.curved_edges
