@@ -665,6 +665,7 @@ def _seam_to_pin(mesh: TetMesh) -> _Seam | None:
     the other side, is a boundary face too), their vertices (a crack's front, which both
     sides share, among them) and edges. None without a seam, or when the mesh protects
     all of those already (the run on the mesh the pins make, among others)."""
+    from ._topology import match_rows
     from ._validity import coincident_points, seam_triangles
 
     pairs = coincident_points(mesh.points, mesh.tets)
@@ -688,11 +689,9 @@ def _seam_to_pin(mesh: TetMesh) -> _Seam | None:
             axis=0,
         ),
     )
-    key = np.int64(n)
-    pe = mesh.protected_edges
     held = (
         np.isin(seam.verts, mesh.protected_vertices).all()
-        and np.isin(seam.edges[:, 0] * key + seam.edges[:, 1], pe[:, 0] * key + pe[:, 1]).all()
+        and (match_rows(mesh.protected_edges, seam.edges, n) >= 0).all()
     )
     return None if held else seam
 
