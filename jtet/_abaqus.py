@@ -277,7 +277,7 @@ def read_inp(path: Path, source: str):
     """The arrays of ``TetMesh.from_arrays`` (and label names) of the Abaqus input file
     ``path``: (points, tets, region, faces, face labels, edges, edge labels, names)
     with faces / edges as candidate rows for ``_mesh_cells``."""
-    from ._io import _non_tet_message, note_mid_nodes, reading_linear
+    from ._io import _non_tet_message, note_mid_nodes, noted_mid_nodes, reading_linear
     from ._quadratic import MID_EDGES
 
     try:
@@ -398,12 +398,11 @@ def read_inp(path: Path, source: str):
         dup = int(tet_rows[np.flatnonzero(np.diff(tet_rows[:, 0]) == 0)[0], 0])
         raise MeshInputError(f"{source}: element {dup} is defined twice")
     tets = index_of(tet_rows[:, 1:], "a C3D4 element")
-    is_mid = np.zeros(len(nodes), bool)  # a node set's mid-edge nodes are no corners
     for ids, ends in mid_nodes:  # their indices, for ``load`` to leave out
         ends = None if ends is None else index_of(ends.reshape(-1), "a quadratic element")
-        ids = index_of(ids.reshape(-1), "a quadratic element")
-        note_mid_nodes(ids, ends)
-        is_mid[ids] = True
+        note_mid_nodes(index_of(ids.reshape(-1), "a quadratic element"), ends)
+    is_mid = np.zeros(len(nodes), bool)  # a node set's mid-edge nodes are no corners
+    is_mid[noted_mid_nodes()] = True
     region, names = _regions(tet_rows[:, 0], sets, comments, source)
     faces, face_labels = _surfaces(tet_rows, tets, surfaces, sets, comments, names, source)
     start = int(face_labels.max(initial=0))

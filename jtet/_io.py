@@ -1481,10 +1481,11 @@ def noted_mid_nodes(found: list | None = None) -> np.ndarray:
 
 
 def _curved_edges(points: np.ndarray, found: list):
-    """(edges (k, 2) sorted, points (k, 3)) of the mid-edge nodes in ``found`` (see
+    """(edges (k, 2), points (k, 3)) of the mid-edge nodes in ``found`` (see
     ``note_mid_nodes``) that lie off their edge's midpoint by more than a millionth of
     the edge's length (more than the rounding of a midpoint written as text with a few
-    digits: those are written back as midpoints), the first node of an edge kept."""
+    digits: those are written back as midpoints); an edge of several tets comes once
+    for each (``TetMesh.curved_edges`` keeps the first)."""
     known = [(ids, ends) for ids, ends in found if ends is not None]
     if not known:
         return np.zeros((0, 2), np.int64), np.zeros((0, 3))
@@ -1496,9 +1497,7 @@ def _curved_edges(points: np.ndarray, found: list):
     a, b = points[ends[:, 0]], points[ends[:, 1]]
     off = np.linalg.norm(points[ids] - 0.5 * (a + b), axis=1)
     bent = off > 1e-6 * np.linalg.norm(b - a, axis=1)
-    ends, ids = ends[bent], ids[bent]
-    ends, first = np.unique(ends, axis=0, return_index=True)  # an edge of several tets: once
-    return ends, points[ids[first]]
+    return ends[bent], points[ids[bent]]
 
 
 def _without_points(mesh: TetMesh, drop: np.ndarray) -> TetMesh:
@@ -1549,22 +1548,21 @@ def _drop_mid_nodes(mesh: TetMesh, found: list, source: str) -> TetMesh:
         used[np.asarray(a, np.int64).reshape(-1)] = True
     drop = mid[(mid >= 0) & (mid < mesh.n_points)]
     drop = drop[~used[drop]]
-    curved = _curved_edges(mesh.points, found)
+    mesh = mesh.replace(curved_edges=_curved_edges(mesh.points, found))
+    n_curved = len(mesh.curved_edges.edges)
     warnings.warn(
         f"{source}: quadratic cells read as linear ones (their corners); {len(drop)} "
         "mid-edge node(s) left out"
         + (
-            f", the {len(curved[0])} off their edges' midpoints (a curved boundary) kept "
+            f", the {n_curved} off their edges' midpoints (a curved boundary) kept "
             "for a quadratic output (jtet improve --quadratic)"
-            if len(curved[0])
+            if n_curved
             else ""
         )
         + ". jtet improves linear tets: write the result with --quadratic (save(..., "
         "quadratic=True)) to get 10-node tets back",
         stacklevel=3,
     )
-    if len(curved[0]):
-        mesh = mesh.replace(curved_edges=curved)
     return _without_points(mesh, drop) if len(drop) else mesh
 
 

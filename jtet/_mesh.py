@@ -181,8 +181,8 @@ def _checked_node_sets(sets, n_points: int) -> tuple[NodeSet, ...]:
 class CurvedEdges(NamedTuple):
     """Mid-edge nodes off their edge's midpoint: those of a quadratic mesh's curved
     boundary, read with ``load(path, linear=True)``. ``edges`` (k, 2) int64 sorted
-    distinct vertex pairs in lexicographic order, ``points`` (k, 3) float64 the node of each, both read-only.
-    A quadratic output (``save(..., quadratic=True)``) puts its node on each edge of
+    distinct vertex pairs in lexicographic order, ``points`` (k, 3) float64 the node of
+    each, both read-only. A quadratic output (``save(..., quadratic=True)``) puts its node on each edge of
     the mesh listed here and the midpoint on every other edge."""
 
     edges: np.ndarray
@@ -219,15 +219,14 @@ def _checked_curved_edges(curved, n_points: int) -> CurvedEdges:
     return CurvedEdges(_readonly(edges), _readonly(points[first]))
 
 
-def _unmoved_curved_edges(curved: CurvedEdges, old: np.ndarray, new: np.ndarray) -> CurvedEdges:
-    """The rows of ``curved`` whose two end vertices are at the same coordinates among
-    the ``new`` points (n', 3) as among the ``old`` ones (n, 3): a mid-edge node stays on
-    its curve only while the ends of its edge do."""
-    edges = curved.edges
+def unmoved_edges(edges: np.ndarray, old: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """(k,) bool: the rows of ``edges`` (k, 2) whose two end vertices are at the same
+    coordinates among the ``new`` points (n', 3) as among the ``old`` ones (n, 3): a
+    curved edge's node stays on its curve only while the ends of its edge do."""
     keep = (edges < min(len(old), len(new))).all(axis=1)
     ends = edges[keep]
     keep[keep] = (new[ends] == old[ends]).all(axis=(1, 2))
-    return CurvedEdges(_readonly(edges[keep]), _readonly(curved.points[keep]))
+    return keep
 
 
 def _checked_periodic(links, n_points: int) -> tuple[Periodic, ...]:
@@ -585,7 +584,8 @@ class TetMesh:
         if "curved_edges" in changes:
             curved = _checked_curved_edges(changes["curved_edges"], len(points))
         elif "points" in changes and len(curved.edges):
-            curved = _unmoved_curved_edges(curved, self.points, points)
+            keep = unmoved_edges(curved.edges, self.points, points)
+            curved = CurvedEdges(_readonly(curved.edges[keep]), _readonly(curved.points[keep]))
         object.__setattr__(out, "curved_edges", curved)
         if changes and set(changes) <= {"point_data", "cell_data", "curved_edges"}:
             # nothing the topology and the volumes depend on changed: keep what this

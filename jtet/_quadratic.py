@@ -22,7 +22,7 @@ import numpy as np
 from jaxtyping import Float, Int
 
 from ._errors import MeshInputError
-from ._mesh import NodeSet, TetMesh
+from ._mesh import NodeSet, TetMesh, unmoved_edges
 from ._topology import match_rows, row_keys
 
 # corner pairs of the mid-edge nodes of a 10-node tet, a 6-node triangle and a 3-node
@@ -45,7 +45,7 @@ class QuadraticMesh(NamedTuple):
     tets: Int[np.ndarray, "m 10"]
     edges: Int[np.ndarray, "e 2"]  # sorted vertex pairs
     n_corners: int
-    n_curved: int  # edges whose node is a curved edge's, not the midpoint
+    curved: np.ndarray  # (e,) bool: the edges whose node is a curved edge's, not the midpoint
     point_data: dict
     node_sets: tuple
 
@@ -75,13 +75,12 @@ def quadratic_mesh(mesh: TetMesh) -> QuadraticMesh:
     _, first, inverse = np.unique(row_keys(pairs, n), return_index=True, return_inverse=True)
     edges = pairs[first]
     mids = 0.5 * (mesh.points[edges[:, 0]] + mesh.points[edges[:, 1]])
-    curved = mesh.curved_edges
-    n_curved = 0
-    if len(curved.edges):
-        at = match_rows(edges, curved.edges, n)
+    curved = np.zeros(len(edges), bool)
+    if mesh.has_curved_edges:
+        at = match_rows(edges, mesh.curved_edges.edges, n)
         found = at >= 0
-        mids[at[found]] = curved.points[found]
-        n_curved = int(found.sum())
+        mids[at[found]] = mesh.curved_edges.points[found]
+        curved[at[found]] = True
     tets = np.concatenate([mesh.tets, n + inverse.reshape(-1, 6)], axis=1)
     point_data = {}
     for name, a in mesh.point_data.items():
@@ -98,7 +97,7 @@ def quadratic_mesh(mesh: TetMesh) -> QuadraticMesh:
         on = np.flatnonzero(inside[edges].all(axis=1)) + n
         sets.append(NodeSet(ns.name, np.concatenate([ns.ids, on]), ns.label))
     return QuadraticMesh(
-        np.concatenate([mesh.points, mids]), tets, edges, n, n_curved, point_data, tuple(sets)
+        np.concatenate([mesh.points, mids]), tets, edges, n, curved, point_data, tuple(sets)
     )
 
 
@@ -145,13 +144,7 @@ def folded_tets(quad: QuadraticMesh) -> tuple[int, float]:
     """(count, smallest scaled Jacobian) of the quadratic tets with a non-positive
     Jacobian at a node (``jacobian_ratios``); only tets with a curved edge's node can
     fold (the others are straight-sided, of scaled Jacobian 1: 1.0 without curved ones)."""
-    curved = quad.tets[:, 4:] - quad.n_corners
-    bent = np.zeros(len(quad.edges), bool)
-    if quad.n_curved:
-        ends = quad.points[quad.edges]
-        mid = 0.5 * (ends[:, 0] + ends[:, 1])
-        bent = (quad.points[quad.n_corners :] != mid).any(axis=1)
-    rows = np.flatnonzero(bent[curved].any(axis=1))
+    rows = np.flatnonzero(quad.curved[quad.tets[:, 4:] - quad.n_corners].any(axis=1))
     if not len(rows):
         return 0, 1.0
     ratios = jacobian_ratios(quad.points, quad.tets[rows])
@@ -162,8 +155,7 @@ def curved_edges_kept(before: TetMesh, after: TetMesh) -> np.ndarray:
     """(k,) bool over ``before.curved_edges``: the edge is an edge of ``after``'s tets
     and its two ends are where they were (a mid-edge node stays on its curve only then)."""
     edges = before.curved_edges.edges
-    keep = (edges < after.n_points).all(axis=1)
-    keep[keep] = (after.points[edges[keep]] == before.points[edges[keep]]).all(axis=(1, 2))
+    keep = unmoved_edges(edges, before.points, after.points)
     on = np.zeros(after.n_points, bool)
     on[edges[keep].reshape(-1)] = True
     near = after.tets[on[after.tets].sum(axis=1) >= 2]  # the tets that can hold one
