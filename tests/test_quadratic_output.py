@@ -99,6 +99,9 @@ def test_written_nodes_are_gmsh_second_order_nodes(gmsh_files, tmp_path, ext):
         written = meshio.read(out)
         assert _edge_nodes(written.points, written.get_cells_type("tetra10")) == expected
     again = _load_linear(out)  # and the way back: the same corners and curved edges
+    # the node sets written for regions, surfaces and side sets (with their edges'
+    # nodes) are theirs again, not node sets of their own
+    assert again.node_sets == mesh.node_sets == ()
     np.testing.assert_array_equal(again.points, mesh.points)
     np.testing.assert_array_equal(again.tets, mesh.tets)
     np.testing.assert_array_equal(again.curved_edges.edges, mesh.curved_edges.edges)
@@ -361,3 +364,26 @@ def test_stats_reports_the_curved_tets(gmsh_files, capsys):
         assert curved["min_scaled_jacobian"] == pytest.approx(-0.1155, abs=1e-4)
         assert main(["stats", str(gmsh_files / "linear.msh"), "--json"]) == 0
         assert "curved" not in json.loads(capsys.readouterr().out)
+
+
+def test_improve_drops_curved_edges_it_flips_or_moves():
+    """Every edge of a random mesh given a node off its midpoint: improve with the
+    boundary sliding flips some edges away and moves some ends; the result keeps exactly
+    the curved edges that are still edges of its tets with both ends in place (a
+    brute-force set of the result's edges), and its note counts the dropped ones."""
+    mesh = delaunay_mesh(80, seed=2)
+    edges = np.unique(np.sort(mesh.tets[:, MID_EDGES[4]].reshape(-1, 2), axis=1), axis=0)
+    bent = mesh.points[edges].mean(axis=1) + 1e-3
+    mesh = mesh.replace(curved_edges=(edges, bent))
+    result = jtet.improve(mesh, seed=0, boundary="slide", max_passes=3, perturb=0)
+    out = result.mesh
+    have = {tuple(sorted(e)) for t in out.tets.tolist() for e in
+            [(t[i], t[j]) for i, j in MID_EDGES[4]]}  # fmt: skip
+    expected = [
+        i for i, (a, b) in enumerate(edges.tolist())
+        if (a, b) in have and (out.points[[a, b]] == mesh.points[[a, b]]).all()
+    ]  # fmt: skip
+    assert 0 < len(expected) < len(edges)
+    np.testing.assert_array_equal(out.curved_edges.edges, edges[expected])
+    np.testing.assert_array_equal(out.curved_edges.points, bent[expected])
+    assert any(f"; {len(edges) - len(expected)} dropped" in note for note in result.notes)
