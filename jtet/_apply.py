@@ -164,7 +164,9 @@ def nonconforming_owners(mesh, remove, new_tets, new_owner, n_cand) -> np.ndarra
     return reject
 
 
-def split_tets(mesh: TetMesh, which: np.ndarray) -> tuple[TetMesh, np.ndarray]:
+def split_tets(
+    mesh: TetMesh, which: np.ndarray, min_scaled_jacobian: float | None = None
+) -> tuple[TetMesh, np.ndarray]:
     """1-4 split: a new vertex at the centroid of every tet where ``which`` (m,) bool,
     joined to the tet's four faces.
 
@@ -172,7 +174,9 @@ def split_tets(mesh: TetMesh, which: np.ndarray) -> tuple[TetMesh, np.ndarray]:
     flat tet's rounded centroid can fail) are left alone. Returns (new mesh, keep (m,)):
     the kept tets first, in order, then four new tets per split tet; the new vertices
     are appended to the points, in the order of the split tets. Faces and edges of the
-    old tets all stay, so subfacets and subsegments are untouched.
+    old tets all stay, so subfacets and subsegments are untouched. With
+    ``min_scaled_jacobian``, tets whose split the guard on curved tets rejects
+    (``_curved_guard``) are left alone too.
     """
     from ._predicates import orient3d_tets
 
@@ -185,6 +189,17 @@ def split_tets(mesh: TetMesh, which: np.ndarray) -> tuple[TetMesh, np.ndarray]:
     new[:, np.arange(4), np.arange(4)] = ids[:, None]
     points = np.concatenate([mesh.points, centroids])
     positive = (orient3d_tets(points, new.reshape(-1, 4)) > 0).reshape(-1, 4).all(axis=1)
+    if min_scaled_jacobian is not None and mesh.has_curved_edges:
+        from ._curved_guard import worse_owners
+
+        own = np.arange(len(split))
+        positive &= ~worse_owners(
+            mesh,
+            min_scaled_jacobian,
+            (mesh.points, old, own),
+            (points, new.reshape(-1, 4), np.repeat(own, 4)),
+            len(split),
+        )
     split, new, centroids = split[positive], new[positive], centroids[positive]
     if not len(split):
         return mesh, np.ones(mesh.n_tets, bool)

@@ -50,6 +50,7 @@ def _edge_step(
         prune=prune,
         sites=sites,
         forbidden=forbidden,
+        min_scaled_jacobian=opts.min_scaled_jacobian,
     )
     return _replaced(mesh, out, stats, keep)
 
@@ -68,6 +69,7 @@ def _face_step(
         min_improvement=opts.min_improvement,
         sites=sites,
         forbidden=forbidden,
+        min_scaled_jacobian=opts.min_scaled_jacobian,
     )
     return _replaced(mesh, out, stats, keep)
 
@@ -97,6 +99,7 @@ def _smooth_step(mesh: TetMesh, opts: Options, quality, dirty) -> StepResult:
         threshold=opts.smooth_threshold,
         candidates=candidates,
         seed=opts.seed,
+        min_scaled_jacobian=opts.min_scaled_jacobian,
     )
     return StepResult(out, stats, None, stats.moved_tets, stats.moved_measures)
 
@@ -406,13 +409,19 @@ def improve(
             it, or its extent is outside [1e-30, 1e30] (float64 quality would overflow).
             Inverted and degenerate tets and a non-manifold boundary are fine.
     """
+    opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
+    if mesh.has_curved_edges:
+        return _improve_keeping_curved_edges(mesh, opts, callback)
+    return _improve(mesh, opts, callback)
+
+
+def _improve(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
+    """``improve`` once its options are resolved (a mesh with curved edges keeps them:
+    the run's operations read them, ``_curved_guard``)."""
     from ._aot import prefetch_in_background
     from ._quality import prefetch_kernels, tet_all_measures, warm_start_kernels
     from ._stats import mesh_stats
 
-    opts = (options or Options()).replace(**overrides) if overrides else (options or Options())
-    if mesh.has_curved_edges:
-        return _improve_keeping_curved_edges(mesh, opts, callback)
     if mesh.point_data:
         return _improve_carrying_point_data(mesh, opts, callback)
     if mesh.cell_data:
@@ -517,17 +526,23 @@ def improve(
 
 
 def _improve_keeping_curved_edges(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
-    """``improve`` of a mesh with curved edges (``TetMesh.curved_edges``): the run works
-    on the mesh without them, and the result keeps those whose edge it still has, with
-    both ends in place (``_quadratic.curved_edges_kept``)."""
+    """``improve`` of a mesh with curved edges (``TetMesh.curved_edges``): the run's
+    operations keep its curved tets from folding (``_curved_guard``), and the result
+    keeps the curved edges whose edge it still has, with both ends in place
+    (``_quadratic.curved_edges_kept``)."""
     import dataclasses
 
+    from ._curved_guard import scaled_jacobians
     from ._quadratic import curved_edges_kept
 
-    result = improve(mesh.replace(curved_edges=None), opts, callback=callback)
+    result = _improve(mesh, opts, callback)
     keep = curved_edges_kept(mesh, result.mesh)
     curved = mesh.curved_edges
+    out = result.mesh.replace(curved_edges=(curved.edges[keep], curved.points[keep]))
     n_kept, n_lost = int(keep.sum()), int((~keep).sum())
+    before = scaled_jacobians(mesh, mesh.points, mesh.tets).min()
+    after = scaled_jacobians(out, out.points, out.tets).min()
+    floor = opts.min_scaled_jacobian
     notes = [
         *result.notes,
         f"curved edges: {n_kept} of the input's {len(keep)} mid-edge nodes off their edge's "
@@ -538,12 +553,14 @@ def _improve_keeping_curved_edges(mesh: TetMesh, opts: Options, callback) -> Imp
             if n_lost
             else ""
         ),
+        f"smallest scaled Jacobian of the curved tets: {before:.3f} -> {after:.3f} "
+        + (
+            "(no guard: min_scaled_jacobian is None)"
+            if floor is None
+            else f"(no change could take a tet below min({floor:g}, the tets it replaced))"
+        ),
     ]
-    return dataclasses.replace(
-        result,
-        mesh=result.mesh.replace(curved_edges=(curved.edges[keep], curved.points[keep])),
-        notes=notes,
-    )
+    return dataclasses.replace(result, mesh=out, notes=notes)
 
 
 def _improve_carrying_point_data(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
@@ -554,7 +571,7 @@ def _improve_carrying_point_data(mesh: TetMesh, opts: Options, callback) -> Impr
 
     from ._point_data import carried_point_data, moved_vertices
 
-    result = improve(mesh.replace(point_data=None), opts, callback=callback)
+    result = _improve(mesh.replace(point_data=None), opts, callback)
     t0 = time.perf_counter()
     data, n_outside = carried_point_data(mesh, result.mesh)
     n_moved = int(moved_vertices(mesh, result.mesh).sum())
@@ -600,7 +617,7 @@ def _improve_carrying_cell_data(mesh: TetMesh, opts: Options, callback) -> Impro
                 [mesh.protected_face_labels, np.full(len(faces), label)]
             ),
         )
-    result = improve(run_mesh, opts, callback=callback)
+    result = _improve(run_mesh, opts, callback)
     t0 = time.perf_counter()
     out = result.mesh
     if len(faces):
@@ -718,7 +735,7 @@ def _improve_pinned(mesh: TetMesh, opts: Options, callback, seam: _Seam | None =
     sets = [s.ids for s in mesh.node_sets if len(s.ids) < mesh.n_points]
     verts = np.unique(np.concatenate([verts, *sets]))
     pinned = mesh._with_pinned(edges, verts, periodic=(), node_sets=())
-    result = improve(pinned, opts, callback=callback)
+    result = _improve(pinned, opts, callback)
     out = result.mesh.replace(
         protected_edges=mesh.protected_edges,
         protected_edge_labels=mesh.protected_edge_labels,
@@ -809,7 +826,7 @@ def _improve_part(mesh: TetMesh, sel, opts: Options, callback, t0: float) -> Imp
         )
     part = Submesh(mesh, sel)
     # the cut faces' edges and vertices protected: no flip or move can change them
-    result = improve(part.pinned_cut(), opts.replace(regions=None), callback=callback)
+    result = _improve(part.pinned_cut(), opts.replace(regions=None), callback)
     spliced = part.splice(mesh, result.mesh)
     if spliced is None:  # the pinned cut and valid tets make this impossible
         raise InvariantError(

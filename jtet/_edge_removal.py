@@ -24,6 +24,7 @@ from ._apply import (
     replace_tets,
     worse_orientation_owners,
 )
+from ._curved_guard import worse_owners
 from ._kernels.klincsek import prefetch as prefetch_rings
 from ._kernels.klincsek import solve_rings
 from ._mesh import TetMesh
@@ -152,6 +153,68 @@ def _build_chains(mesh: TetMesh, edges: np.ndarray) -> _Chains:
     )
 
 
+class _Flips:
+    """The new tets of the candidates' flips, from the rings' optimal triangulations
+    (``tris_of``: ring size -> (chain rows, ring vertex ids, triangles))."""
+
+    def __init__(self, tris_of, ch, a_all, b_all, edges, e_open):
+        self.tris_of, self.ch, self.a_all, self.b_all = tris_of, ch, a_all, b_all
+        self.edges, self.e_open = edges, e_open
+
+    def tets(self, chosen: np.ndarray):
+        """(new tets (N, 4), their regions (N,), owners (N,), hinges) of the candidates
+        ``chosen`` (len(edges),) bool. ``hinges``: [(owner, a, b, x, y, apex) rows] of
+        every open chain (boundary and surface flips; ``_changes_surface``)."""
+        tris_of, ch, a_all, b_all = self.tris_of, self.ch, self.a_all, self.b_all
+        edges, e_open = self.edges, self.e_open
+        new_tets, new_region, new_owner = [], [], []
+        hinge = []
+        for k, (sel, ring_ids, tris) in tris_of.items():
+            w = chosen[ch.cand[sel]]
+            if not w.any():
+                continue
+            rid = ring_ids[w]  # (W, k)
+            tri = np.take_along_axis(rid[:, None, :], tris[w].reshape(w.sum(), -1)[:, None, :], 2)
+            tri = tri.reshape(-1, 3)  # (W*(k-2), 3) global (v_i, v_k, v_j)
+            nper = tris.shape[1]
+            a = np.repeat(a_all[sel][w], nper)
+            b = np.repeat(b_all[sel][w], nper)
+            top = np.column_stack([tri[:, 0], tri[:, 1], tri[:, 2], a])
+            bot = np.column_stack([tri[:, 0], tri[:, 2], tri[:, 1], b])
+            new_tets += [top, bot]
+            reg = np.repeat(ch.region[sel][w], nper)
+            new_region += [reg, reg]
+            owner = np.repeat(ch.cand[sel][w], nper)
+            new_owner += [owner, owner]
+            # the surface triangles (a, x, y), (b, x, y) replacing (a, b, x), (a, b, y) are
+            # those of the triangle on the chain's closing side (v_0, v_{k-1})
+            op = e_open[edges[ch.cand[sel][w]]]
+            if op.any():
+                root = (tris[w][op][:, :, 0] == 0) & (tris[w][op][:, :, 2] == k - 1)  # (W', k-2)
+                apex = rid[op][np.arange(op.sum()), tris[w][op][:, :, 1][root]]
+                hinge.append(
+                    np.column_stack(
+                        [
+                            ch.cand[sel][w][op],
+                            a_all[sel][w][op],
+                            b_all[sel][w][op],
+                            rid[op][:, 0],
+                            rid[op][:, -1],
+                            apex,
+                        ]
+                    )  # fmt: skip
+                )
+        if not new_tets:
+            empty = np.zeros(0, np.int64)
+            return np.zeros((0, 4), np.int64), empty, empty, hinge
+        return (
+            np.concatenate(new_tets),
+            np.concatenate(new_region),
+            np.concatenate(new_owner),
+            hinge,
+        )
+
+
 def edge_removal_pass(
     mesh: TetMesh,
     *,
@@ -163,6 +226,7 @@ def edge_removal_pass(
     prune: bool = True,
     sites: np.ndarray | None = None,
     forbidden: np.ndarray | None = None,
+    min_scaled_jacobian: float | None = None,
 ) -> tuple[TetMesh, PassStats, np.ndarray | None]:
     """One pass: try every candidate edge at once, apply a conflict-free set of winners.
 
@@ -178,6 +242,8 @@ def edge_removal_pass(
         sites: (k,) edge ids from ``edge_candidates`` to try instead (``dirty`` unused).
         forbidden: (f, 4) tets no winner may create again (as vertex sets): the tets a
             perturbation kick removed, so that the climb after it does not undo it.
+        min_scaled_jacobian: floor of the guard on curved tets (``_curved_guard``;
+            None: no guard; a mesh without curved edges has none to guard).
 
     Returns:
         (new mesh, stats, keep): ``keep`` (m,) marks the old tets that survive, in order,
@@ -233,6 +299,22 @@ def edge_removal_pass(
             tris_of[k] = (solve[of_k], ring_all[of_k, :k], tris_all[of_k, : k - 2])
     q_new[~valid] = -np.inf
     improves = q_new > q_old + min_improvement
+    e_open = T.edge_boundary | ((T.edge_n_subfacets == 2) & ~T.edge_boundary)
+    flips = _Flips(tris_of, ch, a_all, b_all, edges, e_open)
+    if min_scaled_jacobian is not None and mesh.has_curved_edges:
+        # before the conflict-free selection: a candidate the guard rejects leaves its
+        # tets to the others (rejected after it, it would keep them from its losers,
+        # which are not tried again while nothing around them changes)
+        cand = np.flatnonzero(improves)
+        own, off = _segments(tp, edges[cand])
+        new_tets, _, new_owner, _ = flips.tets(improves)
+        improves &= ~worse_owners(
+            mesh,
+            min_scaled_jacobian,
+            (mesh.points, mesh.tets[T.edge_tets[tp[edges[cand]][own] + off]], cand[own]),
+            (mesh.points, new_tets, new_owner),
+            len(edges),
+        )
     cand = np.flatnonzero(improves)
     ce = edges[cand]
     claim_ptr = np.concatenate([[0], np.cumsum(tp[ce + 1] - tp[ce])])
@@ -245,47 +327,7 @@ def edge_removal_pass(
         return mesh, stats, None
     remove = np.zeros(mesh.n_tets, bool)
     remove[claims[win_local[own]]] = True
-    new_tets, new_region, new_owner = [], [], []
-    hinge = []  # (owner, a, b, x, y, apex) of every open chain (boundary / surface flips)
-    e_open = T.edge_boundary | ((T.edge_n_subfacets == 2) & ~T.edge_boundary)
-    for k, (sel, ring_ids, tris) in tris_of.items():
-        w = winners[ch.cand[sel]]
-        if not w.any():
-            continue
-        rid = ring_ids[w]  # (W, k)
-        tri = np.take_along_axis(rid[:, None, :], tris[w].reshape(w.sum(), -1)[:, None, :], 2)
-        tri = tri.reshape(-1, 3)  # (W*(k-2), 3) global (v_i, v_k, v_j)
-        nper = tris.shape[1]
-        a = np.repeat(a_all[sel][w], nper)
-        b = np.repeat(b_all[sel][w], nper)
-        top = np.column_stack([tri[:, 0], tri[:, 1], tri[:, 2], a])
-        bot = np.column_stack([tri[:, 0], tri[:, 2], tri[:, 1], b])
-        new_tets += [top, bot]
-        reg = np.repeat(ch.region[sel][w], nper)
-        new_region += [reg, reg]
-        owner = np.repeat(ch.cand[sel][w], nper)
-        new_owner += [owner, owner]
-        # the surface triangles (a, x, y), (b, x, y) replacing (a, b, x), (a, b, y) are
-        # those of the triangle on the chain's closing side (v_0, v_{k-1})
-        op = e_open[edges[ch.cand[sel][w]]]
-        if op.any():
-            root = (tris[w][op][:, :, 0] == 0) & (tris[w][op][:, :, 2] == k - 1)  # (W', k-2)
-            apex = rid[op][np.arange(op.sum()), tris[w][op][:, :, 1][root]]
-            hinge.append(
-                np.column_stack(
-                    [
-                        ch.cand[sel][w][op],
-                        a_all[sel][w][op],
-                        b_all[sel][w][op],
-                        rid[op][:, 0],
-                        rid[op][:, -1],
-                        apex,
-                    ]
-                )  # fmt: skip
-            )
-    new_tets = np.concatenate(new_tets)
-    new_region = np.concatenate(new_region)
-    new_owner = np.concatenate(new_owner)
+    new_tets, new_region, new_owner, hinge = flips.tets(winners)
     # Guard for inverted / degenerate input: there a cavity need not be star-shaped, and
     # an "improving" flip can still raise the number of non-positive tets or create a
     # face that already exists elsewhere (a non-conforming mesh). Reject such winners.
@@ -293,6 +335,15 @@ def edge_removal_pass(
     # (new tets are built for the winners only: a winner that would undo a perturbation
     # kick is dropped here, and its tets wait for the next pass)
     reject |= recreating_owners(new_tets, new_owner, forbidden, len(edges))
+    if min_scaled_jacobian is not None and mesh.has_curved_edges:
+        pts = mesh.points
+        reject |= worse_owners(
+            mesh,
+            min_scaled_jacobian,
+            (pts, mesh.tets[claims], cand[own]),
+            (pts, new_tets, new_owner),
+            len(edges),
+        )
     if hinge:
         reject |= _changes_surface(mesh, np.concatenate(hinge), len(edges))
     while True:

@@ -848,7 +848,7 @@ class TetMesh:
     def _part(self, sel: np.ndarray) -> tuple[TetMesh, np.ndarray, np.ndarray]:
         """The tets where ``sel`` (m,) is True as a mesh of their own (same feature
         angle), with the protected faces, edges and vertices that are faces, edges and
-        vertices of those tets. Returns (submesh, verts, faces_in): ``verts`` (v,) maps
+        vertices of those tets, and the curved edges between their vertices. Returns (submesh, verts, faces_in): ``verts`` (v,) maps
         the submesh's vertex ids to this mesh's (sorted), ``faces_in`` (k,) marks the
         protected faces taken."""
         from ._topology import TET_EDGES, TET_FACES, match_rows
@@ -865,6 +865,8 @@ class TetMesh:
         pv_local = local[self.protected_vertices]
         pv_in = pv_local >= 0
         protected = tets[self.protected_tet_mask()[sel]] if len(self.protected_tets) else tets[:0]
+        curved = self.curved_edges
+        curved_in = (local[curved.edges] >= 0).all(axis=1)
         sub = TetMesh(
             self.points[verts],
             local[tets],
@@ -877,6 +879,7 @@ class TetMesh:
             protected_vertex_labels=self.protected_vertex_labels[pv_in],
             label_names=self.label_names,
             protected_tets=local[protected],
+            curved_edges=(local[curved.edges[curved_in]], curved.points[curved_in]),
         )
         return sub._with_feature_angle(self._feature_angle), verts, faces_in
 

@@ -30,6 +30,7 @@ import numpy as np
 from . import _config
 from ._aot import cached_call, prefetch
 from ._apply import nonconforming_owners, recreating_owners, replace_tets
+from ._curved_guard import worse_owners
 from ._edge_removal import PassStats, _segments
 from ._kernels.multiface import solve_trees
 from ._mesh import TetMesh
@@ -491,6 +492,14 @@ def new_tets_of(forest: Forest, chosen: np.ndarray, trees: np.ndarray):
     return trees[w], out
 
 
+def _claims(forest: Forest, chosen: np.ndarray, cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(claims, k): the two tets of every face the candidates ``cand`` (c,) remove, one
+    candidate after the other, and how many faces each removes (c,)."""
+    ci, ni = np.nonzero(chosen[cand])
+    claims = np.stack([forest.ta[cand[ci], ni], forest.tb[cand[ci], ni]], axis=1).reshape(-1)
+    return claims, chosen[cand].sum(axis=1)
+
+
 def multiface_removal_pass(
     mesh: TetMesh,
     *,
@@ -501,6 +510,7 @@ def multiface_removal_pass(
     min_improvement: float = 1e-9,
     sites: np.ndarray | None = None,
     forbidden: np.ndarray | None = None,
+    min_scaled_jacobian: float | None = None,
 ) -> tuple[TetMesh, PassStats, np.ndarray | None]:
     """One pass: try every candidate face at once, apply a conflict-free set of winners.
 
@@ -516,6 +526,7 @@ def multiface_removal_pass(
         min_improvement: a winner must raise its worst tet by more than this.
         sites: (k,) face ids from ``candidate_faces`` to try instead (``dirty`` unused).
         forbidden: (f, 4) tets no winner may create again (see ``edge_removal_pass``).
+        min_scaled_jacobian: floor of the guard on curved tets (``_curved_guard``).
 
     Returns:
         (new mesh, stats, keep): ``keep`` (m,) marks the old tets that survive, in order,
@@ -546,11 +557,17 @@ def multiface_removal_pass(
     # before the conflict-free selection: a candidate that would undo a kick leaves its
     # tets to the others
     dead |= recreating_owners(new, owner, forbidden, len(forest.a))
+    if min_scaled_jacobian is not None and mesh.has_curved_edges:
+        claims, k = _claims(forest, chosen, cand)
+        dead |= worse_owners(
+            mesh,
+            min_scaled_jacobian,
+            (mesh.points, mesh.tets[claims], np.repeat(cand, 2 * k)),
+            (mesh.points, new, owner),
+            len(forest.a),
+        )
     cand = cand[~dead[cand]]
-    # claims: the two tets of every chosen face
-    ci, ni = np.nonzero(chosen[cand])
-    claims = np.stack([forest.ta[cand[ci], ni], forest.tb[cand[ci], ni]], axis=1).reshape(-1)
-    k = chosen[cand].sum(axis=1)
+    claims, k = _claims(forest, chosen, cand)
     claim_ptr = np.concatenate([[0], np.cumsum(2 * k)])
     # worst removed tet first (as edge removal); among equals, the best created worst tet
     rank = np.empty(len(cand), np.int64)

@@ -21,6 +21,7 @@ _FLOATS = (
     "smooth_threshold",
     "goal_min_dihedral",
     "goal_max_dihedral",
+    "min_scaled_jacobian",
 )
 _OPTIONAL = (
     "time_limit",
@@ -28,6 +29,7 @@ _OPTIONAL = (
     "smooth_threshold",
     "goal_min_dihedral",
     "goal_max_dihedral",
+    "min_scaled_jacobian",
 )
 BOUNDARY_MODES = ("fixed", "slide")
 
@@ -123,6 +125,14 @@ class Options:
             degrees (``experiments/results/defaults.md``).
         smooth_threshold: vertices whose worst tet has quality below this are smoothed
             (None: ``good_quality`` alone decides).
+        min_scaled_jacobian: the floor of the guard on curved tets, or None (no guard).
+            Only a mesh with curved edges (``TetMesh.curved_edges``: a quadratic file
+            read with ``load(path, linear=True)``) has curved tets. No flip, split or
+            vertex move may leave a new tet with a curved edge whose scaled Jacobian
+            (Gmsh's ``minSJ`` of the 10-node tet, 1 for a straight one) is below both
+            this and the smallest of the tets it replaces, so the output written with
+            ``save(..., quadratic=True)`` has no curved tet folded or bent worse than
+            min(this, the input's worst).
         check: verify the invariants after every operation (slower; on in tests).
         seed: seed of every random choice (independent sets); runs are reproducible.
         progress: show a progress bar / per-pass log on stderr.
@@ -146,6 +156,7 @@ class Options:
     min_progress: float = 1e-3
     good_quality: float | None = 0.6
     smooth_threshold: float | None = None
+    min_scaled_jacobian: float | None = 0.3
     check: bool = False
     seed: int = 0
     progress: bool = False
@@ -205,6 +216,10 @@ class Options:
             raise JtetError(f"good_quality must be in (0, 1] or None, got {self.good_quality}")
         if self.time_limit is not None and float(self.time_limit) <= 0:
             raise JtetError(f"time_limit must be positive seconds, got {self.time_limit}")
+        if self.min_scaled_jacobian is not None and not -1.0 <= self.min_scaled_jacobian <= 1.0:
+            raise JtetError(
+                f"min_scaled_jacobian must be in [-1, 1] or None, got {self.min_scaled_jacobian}"
+            )
         for name in ("goal_min_dihedral", "goal_max_dihedral"):
             value = getattr(self, name)
             if value is not None and not 0.0 < value < 180.0:

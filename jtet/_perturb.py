@@ -121,7 +121,7 @@ def insert_step(mesh, opts, quality, workable):
     from ._driver import _replaced
     from ._edge_removal import PassStats
 
-    out, keep = split_tets(mesh, workable)
+    out, keep = split_tets(mesh, workable, opts.min_scaled_jacobian)
     n = int((~keep).sum())
     return _replaced(mesh, out, PassStats("insert", n, n), keep if n else None)
 
@@ -141,6 +141,7 @@ def jiggle_step(draw: int):
     move that leaves one of its tets not positive (exact orient3d) is undone."""
 
     def run(mesh, opts, quality, workable):
+        from ._curved_guard import below, scaled_jacobians
         from ._driver import StepResult
         from ._edge_removal import PassStats
         from ._predicates import orient3d_tets
@@ -169,6 +170,17 @@ def jiggle_step(draw: int):
             stars = star_tets(topo, ids, mesh.n_tets)
             tets = mesh.tets[stars]
             bad = orient3d_tets(pts, tets) <= 0
+            if opts.min_scaled_jacobian is not None and mesh.has_curved_edges:
+                # the guard on curved tets, tet by tet (``_curved_guard``)
+                own = np.arange(len(tets))
+                bad |= below(
+                    opts.min_scaled_jacobian,
+                    scaled_jacobians(mesh, pts0, tets),
+                    own,
+                    scaled_jacobians(mesh, pts, tets),
+                    own,
+                    len(tets),
+                )
             if not bad.any():
                 break
             back = np.unique(tets[bad])
@@ -303,20 +315,33 @@ class Outcome:
         """This outcome with the submesh as plain arrays (``submesh`` rebuilds it)."""
         mesh = self.mesh
         if mesh is not None:
-            mesh = (mesh.points, mesh.tets, mesh.region, mesh.protected_faces,
-                    mesh.protected_edges, mesh.protected_face_labels,
-                    mesh.protected_vertices, mesh.protected_edge_labels,
-                    mesh.protected_vertex_labels, mesh._feature_angle)  # fmt: skip
+            mesh = (_arrays(mesh), mesh._feature_angle)
         return Outcome(self.key, mesh, self.q, self.stats, self.seconds, self.stop, self.gave_up)
 
     def submesh(self):
         """The submesh after the climb, as a ``TetMesh``."""
         if not isinstance(self.mesh, tuple):
             return self.mesh
-        from ._mesh import TetMesh
 
-        *arrays, angle = self.mesh
-        return TetMesh(*arrays)._with_feature_angle(angle)
+        arrays, angle = self.mesh
+        return _from_arrays(arrays)._with_feature_angle(angle)
+
+
+def _arrays(mesh) -> tuple:
+    """A round's submesh as plain arrays for a pipe to a helper process
+    (``_from_arrays`` rebuilds it); its curved edges go with it (``_curved_guard``)."""
+    return (mesh.points, mesh.tets, mesh.region, mesh.protected_faces,
+            mesh.protected_edges, mesh.protected_face_labels, mesh.protected_vertices,
+            mesh.protected_edge_labels, mesh.protected_vertex_labels,
+            mesh.curved_edges.edges, mesh.curved_edges.points)  # fmt: skip
+
+
+def _from_arrays(arrays: tuple):
+    """The ``TetMesh`` of ``_arrays``."""
+    from ._mesh import TetMesh
+
+    *fields, curved_edges, curved_points = arrays
+    return TetMesh(*fields, curved_edges=(curved_edges, curved_points))
 
 
 class RoundState:
@@ -343,9 +368,7 @@ class RoundState:
         """The round's start, for ``start`` in another process (from the snapshot: an
         attempt may be changing ``sub`` on another thread meanwhile)."""
         m, q, lo, hi, _ = self.start_state
-        mesh = (m.points, m.tets, m.region, m.protected_faces, m.protected_edges,
-                m.protected_face_labels, m.protected_vertices, m.protected_edge_labels,
-                m.protected_vertex_labels)  # fmt: skip
+        mesh = _arrays(m)
         elapsed = time.perf_counter() - self.t0
         return (mesh, m._feature_angle, q, lo, hi, self.sub.opts, self.worst, self.good,
                 elapsed, self.kickable)  # fmt: skip
@@ -354,10 +377,9 @@ class RoundState:
     def start(cls, piped: tuple) -> RoundState:
         """The state ``for_pipe`` sent (the helper's run clock starts where the
         optimizer's was)."""
-        from ._mesh import TetMesh
 
         mesh, angle, q, lo, hi, opts, worst, good, elapsed, kickable = piped
-        sub = TetMesh(*mesh)._with_feature_angle(angle)
+        sub = _from_arrays(mesh)._with_feature_angle(angle)
         return cls(sub, q, lo, hi, opts, worst, good, time.perf_counter() - elapsed, kickable)
 
     def attempt(self, attempt: tuple, tried=frozenset()) -> Outcome:

@@ -129,7 +129,12 @@ def jacobian_ratios(points: np.ndarray, tets10: np.ndarray) -> np.ndarray:
     mid-edge nodes are the midpoints; <= 0: the curved tet folds over itself there).
     Gmsh's ``minSJ`` element quality, tet for tet (``tests/test_quadratic_output.py``).
     A tet whose straight-sided tet has no volume gets -inf."""
-    x = points[tets10]  # (m, 10, 3)
+    return jacobian_ratios_at(points[tets10])
+
+
+def jacobian_ratios_at(x: Float[np.ndarray, "m 10 3"]) -> Float[np.ndarray, " m"]:
+    """``jacobian_ratios`` of 10-node tets given by their node coordinates ``x``
+    (m, 10, 3), VTK's order."""
     d = np.einsum("skn,mnc->mskc", _DERIVATIVE_WEIGHTS, x)  # dx/dL_k at node s
     jac = d[:, :, 1:, :] - d[:, :, :1, :]  # (m, 10, 3 directions, 3 coordinates)
     det = np.linalg.det(jac)  # (m, 10)

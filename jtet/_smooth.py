@@ -717,6 +717,7 @@ def smooth_pass(
     batch_sizes: tuple[int, int] = (32, 128),
     levels: int = 4,
     seed: int = 0,
+    min_scaled_jacobian: float | None = None,
 ):
     """One smoothing pass over the mesh: every candidate vertex is tried once.
 
@@ -753,6 +754,9 @@ def smooth_pass(
         levels: the worst-star quality is cut into this many quantile levels; worse levels
             are smoothed first, random order within a level (see ``independent_sets``).
         seed: seed of the random tie-breaking.
+        min_scaled_jacobian: floor of the guard on curved tets (``_curved_guard``): a
+            move that bends a tet with a curved edge below it and below the star's worst
+            is undone (None: no guard).
 
     Returns:
         (new TetMesh, SmoothStats). The new mesh has the same tets, regions and protected
@@ -821,6 +825,7 @@ def smooth_pass(
     shapes = sorted({(K, batch) for tasks in plan for K, batch, _ in tasks})
     prefetch_calls(kernel, [_kernel_structs(K, b) for K, b in shapes])
     moved_all = []
+    guard = min_scaled_jacobian is not None and mesh.has_curved_edges
     for tasks in plan:
         # one colour's vertices share no tet: its batches are independent, solved in
         # parallel, and every batch reads only points no other batch of it writes
@@ -828,6 +833,9 @@ def smooth_pass(
             lambda task: _solve_batch(kernel, *task, pts, basis, ptr, opp_ids), tasks
         )
         for ids, positions in results:
+            if guard:
+                keep = ~_bends_curved_tets(mesh, topo, pts, ids, positions, min_scaled_jacobian)
+                ids, positions = ids[keep], positions[keep]
             pts[ids] = positions
             moved_all.append(ids)
     moved = np.concatenate(moved_all) if moved_all else np.zeros(0, np.int64)
@@ -855,6 +863,27 @@ def smooth_pass(
         moved_measures=(q_moved, lo_moved, hi_moved),
     )
     return new, stats
+
+
+def _bends_curved_tets(mesh, topo, pts, ids, positions, floor: float) -> np.ndarray:
+    """(v,) bool: the moves of vertices ``ids`` (v,) (no two in one tet) to
+    ``positions`` (v, 3) that the guard on curved tets rejects (``_curved_guard``):
+    their star's worst scaled Jacobian falls below both ``floor`` and its worst before
+    (vertices at ``pts``; curved edges as ``mesh`` has them)."""
+    from ._curved_guard import below, scaled_jacobians
+
+    pos, starts = csr_rows(topo.vert_tets_ptr, ids)
+    owner = np.repeat(np.arange(len(ids)), np.diff(np.append(starts, len(pos))))
+    star = mesh.tets[topo.vert_tets[pos]]
+    # the old stars at ``pts``, not ``mesh.points``: earlier colours of the pass moved
+    # some of their vertices (their curved edges are straight from then on). The moves
+    # are tried in ``pts`` itself and taken back (a copy per batch: O(n) each)
+    before = scaled_jacobians(mesh, pts, star)
+    saved = pts[ids].copy()
+    pts[ids] = positions
+    after = scaled_jacobians(mesh, pts, star)
+    pts[ids] = saved
+    return below(floor, before, owner, after, owner, len(ids))
 
 
 def _pass_kernel(measure, solver, max_iters, min_gain, sharpness, n_trials):

@@ -1,0 +1,102 @@
+"""The optimizer's guard on curved tets: no change folds or flattens a curved tet.
+
+A quadratic mesh read with ``load(path, linear=True)`` keeps the mid-edge nodes of its
+curved boundary (``TetMesh.curved_edges``), and ``save(..., quadratic=True)`` puts them
+back on every tet around those edges. The optimizer flips, splits and smooths the
+straight tets; a tet with a curved edge can then bend more than its straight tet shows,
+down to folding over itself (a scaled Jacobian <= 0: a finite-element solver refuses it).
+
+The guard rejects each flip, split or vertex move whose new tets have a smallest scaled
+Jacobian (``_quadratic.jacobian_ratios``, Gmsh's ``minSJ``) below both the floor
+``Options.min_scaled_jacobian`` and the smallest of the tets it replaces. Tets without
+a curved edge count as 1 (straight-sided), so changes away from curved edges are never
+rejected. The mesh's smallest scaled Jacobian thus never falls below the smaller of the
+floor and the input's (``tests/test_curved_guard.py`` checks it after whole runs).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from jaxtyping import Bool, Float, Int
+
+from ._quadratic import MID_EDGES, jacobian_ratios_at
+from ._topology import corner_counts, match_rows
+
+
+def scaled_jacobians(
+    mesh, points: Float[np.ndarray, "N 3"], tets: Int[np.ndarray, "k 4"]
+) -> Float[np.ndarray, " k"]:
+    """(k,) scaled Jacobian of the quadratic tets over ``tets`` (k, 4), with the
+    vertices at ``points`` (N >= mesh.n_points; vertex ids of ``mesh`` and beyond).
+
+    An edge has the node of ``mesh.curved_edges`` while both its ends are where they are
+    in ``mesh.points`` (the node stays on its curve only then), else its midpoint. A tet
+    without such an edge is straight-sided: 1.0, whatever its orientation (the
+    operations' own exact orientation checks judge those)."""
+    out = np.ones(len(tets))
+    curved = mesh.curved_edges
+    if not len(curved.edges) or not len(tets):
+        return out
+    n = len(points)
+    ends = np.zeros(n, bool)
+    ends[curved.edges.reshape(-1)] = True
+    # a tet can hold a curved edge only with two corners on curved edges (cheap filter:
+    # most tets of a pass have none)
+    near = np.flatnonzero(corner_counts(ends, tets) >= 2)
+    if not len(near):
+        return out
+    rows = tets[near]
+    at = match_rows(curved.edges, rows[:, MID_EDGES[4]].reshape(-1, 2), n).reshape(-1, 6)
+    if points is not mesh.points:
+        still = curved.edges.reshape(-1)
+        moved = np.zeros(n, bool)
+        moved[still] = (points[still] != mesh.points[still]).any(axis=1)
+        hit = at >= 0
+        at[hit] = np.where(moved[curved.edges[at[hit]]].any(axis=1), -1, at[hit])
+    has = (at >= 0).any(axis=1)
+    if not has.any():
+        return out
+    rows, at = rows[has], at[has]
+    corners = points[rows]  # (r, 4, 3)
+    mids = 0.5 * (corners[:, MID_EDGES[4][:, 0]] + corners[:, MID_EDGES[4][:, 1]])
+    hit = at >= 0
+    mids[hit] = curved.points[at[hit]]
+    out[near[has]] = jacobian_ratios_at(np.concatenate([corners, mids], axis=1))
+    return out
+
+
+def worse_owners(
+    mesh,
+    floor: float | None,
+    old: tuple[Float[np.ndarray, "N 3"], Int[np.ndarray, "c 4"], Int[np.ndarray, " c"]],
+    new: tuple[Float[np.ndarray, "N 3"], Int[np.ndarray, "k 4"], Int[np.ndarray, " k"]],
+    n_cand: int,
+) -> Bool[np.ndarray, " n_cand"]:
+    """(n_cand,) bool: the candidates whose new tets have a smallest scaled Jacobian
+    below both ``floor`` and the smallest of the old tets they replace. ``old`` and
+    ``new`` are (points, tets, owner candidate of each tet); ``scaled_jacobians`` says
+    which edges are curved. All False when ``floor`` is None (no guard) or ``mesh`` has
+    no curved edges."""
+    if floor is None or not mesh.has_curved_edges or not len(new[1]):
+        return np.zeros(n_cand, bool)
+    (p0, t0, o0), (p1, t1, o1) = old, new
+    return below(
+        floor, scaled_jacobians(mesh, p0, t0), o0, scaled_jacobians(mesh, p1, t1), o1, n_cand
+    )
+
+
+def below(
+    floor: float,
+    old_ratios: Float[np.ndarray, " c"],
+    old_owner: Int[np.ndarray, " c"],
+    new_ratios: Float[np.ndarray, " k"],
+    new_owner: Int[np.ndarray, " k"],
+    n_cand: int,
+) -> Bool[np.ndarray, " n_cand"]:
+    """(n_cand,) bool: the candidates whose smallest new scaled Jacobian is below both
+    ``floor`` and their smallest old one (each tet's ratio with its owner candidate)."""
+    worst_old = np.full(n_cand, np.inf)
+    np.minimum.at(worst_old, old_owner, old_ratios)
+    worst_new = np.full(n_cand, np.inf)
+    np.minimum.at(worst_new, new_owner, new_ratios)
+    return worst_new < np.minimum(worst_old, floor)
