@@ -187,6 +187,15 @@ def _add_options(p: argparse.ArgumentParser) -> None:
         help="smooth only vertices of tets below this quality ('none', the default: every "
         "vertex of a tet below --good-quality)",
     )
+    p.add_argument(
+        "--min-scaled-jacobian",
+        type=_optional_float,
+        default=DEFAULTS.min_scaled_jacobian,
+        metavar="J",
+        help="curved tets (a quadratic input read with --linear): no change may bend one "
+        "below this scaled Jacobian (Gmsh's minSJ) unless the tets it replaces were "
+        f"worse already (default {DEFAULTS.min_scaled_jacobian}; 'none': no guard)",
+    )
     p.add_argument("--seed", type=int, default=DEFAULTS.seed)
     p.add_argument("--check", action="store_true", help="verify invariants after every operation")
 
