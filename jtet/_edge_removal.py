@@ -335,15 +335,6 @@ def edge_removal_pass(
     # (new tets are built for the winners only: a winner that would undo a perturbation
     # kick is dropped here, and its tets wait for the next pass)
     reject |= recreating_owners(new_tets, new_owner, forbidden, len(edges))
-    if min_scaled_jacobian is not None and mesh.has_curved_edges:
-        pts = mesh.points
-        reject |= worse_owners(
-            mesh,
-            min_scaled_jacobian,
-            (pts, mesh.tets[claims], cand[own]),
-            (pts, new_tets, new_owner),
-            len(edges),
-        )
     if hinge:
         reject |= _changes_surface(mesh, np.concatenate(hinge), len(edges))
     while True:

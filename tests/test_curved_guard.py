@@ -202,3 +202,32 @@ def test_guard_option_and_cli(tmp_path):
             after = worst_ratio(jtet.load(out, linear=True))
         if floor is not None:
             assert after >= min(floor, before) - TOL
+
+
+def test_perturbation_rounds_see_the_curved_edges():
+    """A round works on a submesh, maybe in a helper process: the submesh has the curved
+    edges between its vertices (renumbered), and so has its piped copy."""
+    from jtet._perturb import Outcome, RoundState
+    from jtet._submesh import Submesh
+
+    mesh = bent_mesh(1)
+    sel = np.random.default_rng(0).random(mesh.n_tets) < 0.4
+    part = Submesh(mesh, sel)
+    sub = part.mesh
+    local = {int(v): i for i, v in enumerate(part.verts)}
+    expected = sorted(
+        (tuple(sorted((local[a], local[b]))), tuple(p))
+        for (a, b), p in zip(mesh.curved_edges.edges.tolist(), mesh.curved_edges.points.tolist())
+        if a in local and b in local
+    )
+    assert 0 < len(expected) < len(mesh.curved_edges.edges)
+
+    def pairs(m):
+        c = m.curved_edges
+        return sorted((tuple(e), tuple(p)) for e, p in zip(c.edges.tolist(), c.points.tolist()))
+
+    assert pairs(sub) == expected
+    assert pairs(Outcome(mesh=sub).for_pipe().submesh()) == expected
+    q = sub.quality("biased_min_sine")
+    state = RoundState(sub, q, q, q, jtet.Options(), 0.0, 0.6, 0.0, q < 0.3)
+    assert pairs(RoundState.start(state.for_pipe()).sub.current) == expected
