@@ -9,11 +9,13 @@ Gmsh meshes a ball (radius 0.25) inside the unit cube, makes the mesh quadratic
 determinants over the 10-node tets (4th-order Gauss rule, exact for their cubic
 determinants): the volume of the ball against the sphere's 4/3 pi r^3; and Gmsh's
 smallest scaled Jacobian (``minSJ``, <= 0 for a folded tet). jtet's nodal check counts
-the tets whose determinant is not positive at one of their 10 nodes. The second table times ``save`` of the improved
-mesh, linear and quadratic, in each format that writes both.
+the tets whose determinant is not positive at one of their 10 nodes. Each h is improved
+without the guard on curved tets and with it (``--floors``: ``min_scaled_jacobian``).
+The second table times ``save`` of the improved mesh, linear and quadratic, in each
+format that writes both.
 
     python experiments/quadratic_ball.py                 # h = 0.08 and 0.04
-    python experiments/quadratic_ball.py --h 0.05 --timing-h 0.02
+    python experiments/quadratic_ball.py --h 0.2 0.12 --timing-h 0 --floors none 0 0.3 0.5
 """
 
 from __future__ import annotations
@@ -88,40 +90,50 @@ def quiet(fn, *args, **kwargs):
         return fn(*args, **kwargs)
 
 
-def geometry_rows(h: float, seed: int, work: Path) -> list[str]:
+def _floor_text(floor: float | None) -> str:
+    return "none" if floor is None else f"{floor:g}"
+
+
+def geometry_rows(h: float, seed: int, floors: list[float | None], work: Path) -> list[str]:
+    """Rows of the geometry table: the linear read, Gmsh's order-2 input, and jtet's
+    improved mesh written quadratic for each guard floor (``min_scaled_jacobian``)."""
     src = work / f"gmsh_order2_{h}.msh"
     write_second_order(src, h)
     mesh = quiet(jtet.load, src, linear=True)
-    t = time.perf_counter()
-    result = jtet.improve(mesh, seed=seed)
-    seconds = time.perf_counter() - t
     sphere = 4 / 3 * np.pi * RADIUS**3
-    s0, s1 = result.stats_before, result.stats_after
-    print(
-        f"h = {h}: {mesh.n_tets} -> {result.mesh.n_tets} tets, min / max dihedral "
-        f"{s0.min_dihedral:.2f} / {s0.max_dihedral:.2f} -> {s1.min_dihedral:.2f} / "
-        f"{s1.max_dihedral:.2f} in {seconds:.1f} s; curved edges "
-        f"{len(mesh.curved_edges.edges)} -> {len(result.mesh.curved_edges.edges)}"
-    )
     ball_label = next(k for (d, k), v in mesh.label_names.items() if d == 3 and v == "ball")
-    rows = []
+    s0 = jtet.stats(mesh)
+    angles = f"{s0.min_dihedral:.2f} / {s0.max_dihedral:.2f}"
     linear_ball = mesh.volumes[mesh.region == ball_label].sum()
-    rows.append(
-        f"| {h} | jtet's linear read (corners) | {mesh.n_tets} | {linear_ball:.12f} | "
-        f"{(linear_ball - sphere) / sphere:+.2e} | | |"
-    )
-    files = [("Gmsh's order 2 (input)", src, mesh)]
-    for ext in ("msh", "med"):
-        out = work / f"improved_{h}.{ext}"
-        quiet(jtet.save, result.mesh, out, quadratic=True)
-        files.append((f"jtet improve --quadratic (.{ext})", out, result.mesh))
-    for what, path, linear in files:
+    rows = [
+        f"| {h} | jtet's linear read (corners) | {mesh.n_tets} | {angles} | "
+        f"{(linear_ball - sphere) / sphere:+.2e} | | | |"
+    ]
+    files = [("Gmsh's order 2 (input)", src, mesh, angles, "")]
+    for floor in floors:
+        t = time.perf_counter()
+        result = jtet.improve(mesh, seed=seed, min_scaled_jacobian=floor)
+        seconds = time.perf_counter() - t
+        s1 = result.stats_after
+        angles = f"{s1.min_dihedral:.2f} / {s1.max_dihedral:.2f}"
+        print(
+            f"h = {h}, guard floor {_floor_text(floor)}: {mesh.n_tets} -> "
+            f"{result.mesh.n_tets} tets, min / max dihedral {angles} in {seconds:.1f} s; "
+            f"curved edges {len(mesh.curved_edges.edges)} -> "
+            f"{len(result.mesh.curved_edges.edges)}"
+        )
+        for ext in ("msh", "med"):
+            out = work / f"improved_{h}_{_floor_text(floor)}.{ext}"
+            quiet(jtet.save, result.mesh, out, quadratic=True)
+            what = f"jtet improve --quadratic, floor {_floor_text(floor)} (.{ext})"
+            files.append((what, out, result.mesh, angles, f"{seconds:.1f}"))
+    for what, path, linear, angles, seconds in files:
         measures = gmsh_measures(path)
         ball, sj_ball = measures["ball"]
         folded, _ = folded_tets(quadratic_mesh(linear))
         rows.append(
-            f"| {h} | {what} | {linear.n_tets} | {ball:.12f} | {(ball - sphere) / sphere:+.2e} "
-            f"| {min(sj_ball, measures['box'][1]):.3f} | {folded} |"
+            f"| {h} | {what} | {linear.n_tets} | {angles} | {(ball - sphere) / sphere:+.2e} "
+            f"| {min(sj_ball, measures['box'][1]):.3f} | {folded} | {seconds} |"
         )
     return rows
 
@@ -132,8 +144,7 @@ def timing_rows(h: float, seed: int, work: Path) -> list[str]:
     t = time.perf_counter()
     mesh = quiet(jtet.load, src, linear=True)
     load_s = time.perf_counter() - t
-    result = jtet.improve(mesh, seed=seed)
-    out = result.mesh
+    out = jtet.improve(mesh, seed=seed).mesh
     t = time.perf_counter()
     quad = quadratic_mesh(out)
     build_s = time.perf_counter() - t
@@ -160,16 +171,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--h", type=float, nargs="+", default=[0.08, 0.04])
     ap.add_argument("--timing-h", type=float, default=0.02, help="0: no timing table")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--floors",
+        nargs="+",
+        default=["none", "0.3"],
+        help="min_scaled_jacobian of the improve runs ('none': no guard; 0.3: the default)",
+    )
     args = ap.parse_args(argv)
+    floors = [None if f == "none" else float(f) for f in args.floors]
     work = Path(tempfile.mkdtemp(prefix="jtet-quadratic-"))
     rows = []
     for h in args.h:
-        rows += geometry_rows(h, args.seed, work)
+        rows += geometry_rows(h, args.seed, floors, work)
     print(
-        "\n| h | mesh | tets | ball volume | vs sphere | smallest scaled Jacobian (Gmsh "
-        "minSJ) | tets folded at a node (jtet) |"
+        "\n| h | mesh | tets | min / max dihedral | ball volume vs sphere | smallest scaled "
+        "Jacobian (Gmsh minSJ) | tets folded at a node (jtet) | improve (s) |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     print("\n".join(rows))
     if args.timing_h:
         timing = timing_rows(args.timing_h, args.seed, work)
