@@ -23,6 +23,27 @@ from ._quadratic import MID_EDGES, jacobian_ratios_at
 from ._topology import corner_counts, match_rows
 
 
+def _curved_slots(mesh, points, tets) -> tuple[np.ndarray, np.ndarray]:
+    """(rows (r,), at (r, 6)): the tets of ``tets`` with a curved edge (whose ends are
+    where they are in ``mesh.points``) and, for each of their 6 edges in VTK's order,
+    its row of ``mesh.curved_edges`` (-1: straight)."""
+    curved = mesh.curved_edges
+    n = len(points)
+    ends = np.zeros(n, bool)
+    ends[curved.edges.reshape(-1)] = True
+    # a tet can hold a curved edge only with two corners on curved edges (cheap filter:
+    # most tets of a pass have none)
+    near = np.flatnonzero(corner_counts(ends, tets) >= 2)
+    at = match_rows(curved.edges, tets[near][:, MID_EDGES[4]].reshape(-1, 2), n).reshape(-1, 6)
+    if points is not mesh.points:
+        hit = at >= 0
+        pair = curved.edges[at[hit]]  # (h, 2): only the edges found are compared
+        moved = (points[pair] != mesh.points[pair]).any(axis=(1, 2))
+        at[hit] = np.where(moved, -1, at[hit])
+    has = (at >= 0).any(axis=1)
+    return near[has], at[has]
+
+
 def scaled_jacobians(
     mesh, points: Float[np.ndarray, "N 3"], tets: Int[np.ndarray, "k 4"]
 ) -> Float[np.ndarray, " k"]:
@@ -34,34 +55,25 @@ def scaled_jacobians(
     without such an edge is straight-sided: 1.0, whatever its orientation (the
     operations' own exact orientation checks judge those)."""
     out = np.ones(len(tets))
-    curved = mesh.curved_edges
-    if not len(curved.edges) or not len(tets):
+    if not mesh.has_curved_edges or not len(tets):
         return out
-    n = len(points)
-    ends = np.zeros(n, bool)
-    ends[curved.edges.reshape(-1)] = True
-    # a tet can hold a curved edge only with two corners on curved edges (cheap filter:
-    # most tets of a pass have none)
-    near = np.flatnonzero(corner_counts(ends, tets) >= 2)
-    if not len(near):
+    rows, at = _curved_slots(mesh, points, tets)
+    if not len(rows):
         return out
-    rows = tets[near]
-    at = match_rows(curved.edges, rows[:, MID_EDGES[4]].reshape(-1, 2), n).reshape(-1, 6)
-    if points is not mesh.points:
-        still = curved.edges.reshape(-1)
-        moved = np.zeros(n, bool)
-        moved[still] = (points[still] != mesh.points[still]).any(axis=1)
-        hit = at >= 0
-        at[hit] = np.where(moved[curved.edges[at[hit]]].any(axis=1), -1, at[hit])
-    has = (at >= 0).any(axis=1)
-    if not has.any():
-        return out
-    rows, at = rows[has], at[has]
-    corners = points[rows]  # (r, 4, 3)
+    corners = points[tets[rows]]  # (r, 4, 3)
     mids = 0.5 * (corners[:, MID_EDGES[4][:, 0]] + corners[:, MID_EDGES[4][:, 1]])
     hit = at >= 0
-    mids[hit] = curved.points[at[hit]]
-    out[near[has]] = jacobian_ratios_at(np.concatenate([corners, mids], axis=1))
+    mids[hit] = mesh.curved_edges.points[at[hit]]
+    out[rows] = jacobian_ratios_at(np.concatenate([corners, mids], axis=1))
+    return out
+
+
+def curved_corners(mesh) -> Bool[np.ndarray, " n"]:
+    """(n,) bool: the vertices of the tets of ``mesh`` with a curved edge (a change
+    elsewhere leaves every curved tet as it is)."""
+    out = np.zeros(mesh.n_points, bool)
+    if mesh.has_curved_edges:
+        out[mesh.tets[_curved_slots(mesh, mesh.points, mesh.tets)[0]]] = True
     return out
 
 

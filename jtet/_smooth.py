@@ -826,6 +826,10 @@ def smooth_pass(
     prefetch_calls(kernel, [_kernel_structs(K, b) for K, b in shapes])
     moved_all = []
     guard = min_scaled_jacobian is not None and mesh.has_curved_edges
+    if guard:
+        from ._curved_guard import curved_corners
+
+        near_curved = curved_corners(mesh)  # only their moves can bend a curved tet
     for tasks in plan:
         # one colour's vertices share no tet: its batches are independent, solved in
         # parallel, and every batch reads only points no other batch of it writes
@@ -834,7 +838,12 @@ def smooth_pass(
         )
         for ids, positions in results:
             if guard:
-                keep = ~_bends_curved_tets(mesh, topo, pts, ids, positions, min_scaled_jacobian)
+                check = np.flatnonzero(near_curved[ids])
+                bends = _bends_curved_tets(
+                    mesh, topo, pts, ids[check], positions[check], min_scaled_jacobian
+                )
+                keep = np.ones(len(ids), bool)
+                keep[check[bends]] = False
                 ids, positions = ids[keep], positions[keep]
             pts[ids] = positions
             moved_all.append(ids)
