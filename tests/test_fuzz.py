@@ -28,6 +28,7 @@ import jtet
 from jtet._edge_removal import edge_removal_pass
 from jtet._invariants import InvariantChecker
 from jtet._point_data import moved_vertices
+from jtet._quadratic import MID_EDGES, jacobian_ratios, quadratic_mesh
 
 PROFILE = os.environ.get("JTET_FUZZ_PROFILE", "ci")
 TOTAL = int(os.environ.get("JTET_FUZZ_CASES", 100_000 if PROFILE == "long" else 1600))
@@ -42,6 +43,7 @@ WEIGHTS = {
     "improve_damaged": 0.10,
     "improve_regions": 0.05,
     "improve_periodic": 0.05,
+    "improve_curved": 0.05,
 }
 
 settings.register_profile(
@@ -308,3 +310,35 @@ def test_improve_keeps_periodic_vertices_and_boundary_edges(spec, opts, data):
     assert len(out.periodic) == 1 and np.array_equal(out.periodic[0].pairs, chosen.reshape(-1, 2))
     np.testing.assert_array_equal(out.protected_vertices, mesh.protected_vertices)
     np.testing.assert_array_equal(out.protected_edges, mesh.protected_edges)
+
+
+def _worst_curved_ratio(mesh) -> float:
+    """The smallest scaled Jacobian of the tets of ``mesh``'s quadratic output that have
+    a curved edge's node (1.0 without any)."""
+    quad = quadratic_mesh(mesh)
+    curved = quad.curved[quad.tets[:, 4:] - quad.n_corners].any(axis=1)
+    return float(jacobian_ratios(quad.points, quad.tets[curved]).min(initial=1.0))
+
+
+@_cases("improve_curved")
+@given(mesh_specs(), options(), st.data())
+def test_improve_guards_curved_tets(spec, opts, data):
+    # random edges bent by a random fraction of their length (TetMesh.curved_edges): the
+    # quadratic output's curved tets end no worse than min(floor, the input's worst)
+    mesh = build_mesh(spec)
+    assume(mesh is not None)
+    edges = np.unique(np.sort(mesh.tets[:, MID_EDGES[4]].reshape(-1, 2), axis=1), axis=0)
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    edges = edges[rng.random(len(edges)) < data.draw(st.sampled_from([0.2, 0.5, 1.0]))]
+    assume(len(edges) > 0)
+    ends = mesh.points[edges]
+    length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)
+    bend = data.draw(st.sampled_from([0.01, 0.05, 0.2]))
+    mids = ends.mean(axis=1) + rng.normal(size=(len(edges), 3)) * (bend * length)[:, None]
+    floor = data.draw(st.sampled_from([0.0, 0.3, 0.6, 1.0]))
+    bent = mesh.replace(curved_edges=(edges, mids))
+    result = jtet.improve(bent, opts.replace(min_scaled_jacobian=floor))
+    assert not result.status.startswith("invariant violation"), (spec, opts, result.status)
+    # the ratios are quotients of float64 determinants: the same up to round-off
+    before, after = _worst_curved_ratio(bent), _worst_curved_ratio(result.mesh)
+    assert after >= min(floor, before) - 1e-9, (spec, opts, floor, before, after)
