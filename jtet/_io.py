@@ -1876,7 +1876,7 @@ def _write(
     if fmt == "xdmf":
         from ._xdmf import companion, write_xdmf
 
-        write_xdmf(mesh, tmp, companion(tmp), heavy_name, cell_data)
+        write_xdmf(mesh, tmp, companion(tmp), heavy_name, cell_data, quad)
         return
     if fmt in ("vtu", "vtk"):
         _write_vtk_file(mesh_to_grid(mesh, cell_data, quad), tmp, fmt)
@@ -2053,8 +2053,8 @@ def require_quadratic_format(path) -> None:
     fmt = output_format(path)
     if fmt not in QUADRATIC_FORMATS:
         raise MeshFileError(
-            f"{path}: jtet writes quadratic (10-node) tets to .vtu, .vtk, .msh, .inp, .med "
-            f"and .exo files only, not to {_FORMAT_NAMES[fmt]} files"
+            f"{path}: jtet writes quadratic (10-node) tets to .vtu, .vtk, .msh, .inp, .med, "
+            f".exo and .xdmf files only, not to {_FORMAT_NAMES[fmt]} files"
         )
 
 

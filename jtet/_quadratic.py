@@ -7,7 +7,7 @@ boundary's, read with ``load(path, linear=True)``), or else its midpoint. The mi
 nodes are numbered after the mesh's points, so every vertex id (protected entities,
 node sets, periodic pairs) keeps its meaning.
 
-Orders (every format lists the corners first, in the order of its linear cell): VTK,
+Orders (every format lists the corners first, in the order of its linear cell): VTK, XDMF,
 meshio, Abaqus and Exodus put the mid-edge nodes of a tet on the edges ``TET10_EDGES``
 (01, 12, 02, 03, 13, 23), of a triangle on ``TRI6_EDGES`` (01, 12, 02); Gmsh swaps the
 last two of a tet (meshio does it for us) and MED lists its corners the other way
@@ -33,7 +33,7 @@ MID_EDGES = {
     2: np.array([[0, 1]]),
 }
 # the formats ``save(..., quadratic=True)`` writes
-QUADRATIC_FORMATS = ("vtu", "vtk", "gmsh", "abaqus", "med", "exodus")
+QUADRATIC_FORMATS = ("vtu", "vtk", "gmsh", "abaqus", "med", "exodus", "xdmf")
 
 
 class QuadraticMesh(NamedTuple):

@@ -121,16 +121,25 @@ def _number_type(a: np.ndarray) -> dict:
     return {"NumberType": kind, "Precision": str(a.dtype.itemsize)}
 
 
-def write_xdmf(mesh, xdmf: Path, heavy: Path, heavy_name: str, cell_data: dict) -> None:
+def write_xdmf(mesh, xdmf: Path, heavy: Path, heavy_name: str, cell_data: dict, quad=None) -> None:
     """Write ``mesh`` as the XDMF file ``xdmf`` whose heavy data goes to the HDF5 file
     ``heavy``, which ``xdmf`` names ``heavy_name`` (relative to its directory: the final
     name, while both are written under temporary names). ``cell_data``: name -> (m, ...)
-    per-tet arrays, written as cell attributes of the ``mesh`` grid."""
+    per-tet arrays, written as cell attributes of the ``mesh`` grid.
+
+    With ``quad`` (``_quadratic.quadratic_mesh(mesh)``) the cells are quadratic, as
+    dolfinx writes a mesh of second-order geometry: ``Tetrahedron_10`` over all the
+    nodes, the facet tags' ``Triangle_6`` and the edge tags' ``Edge_3``, in VTK's node
+    order (which XDMF uses), and point data on every node."""
     import h5py
 
+    points, tets, point_data = mesh.points, mesh.tets, mesh.point_data
+    if quad is not None:
+        points, tets, point_data = quad.points, quad.tets, quad.point_data
+    tet_topology = ("Tetrahedron", 4) if quad is None else ("Tetrahedron_10", 10)
     datasets: dict[str, np.ndarray] = {
-        "Mesh/mesh/geometry": np.asarray(mesh.points, np.float64),
-        "Mesh/mesh/topology": np.asarray(mesh.tets, np.int64),
+        "Mesh/mesh/geometry": np.asarray(points, np.float64),
+        "Mesh/mesh/topology": np.asarray(tets, np.int64),
         "Mesh/mesh/region": np.asarray(mesh.region, np.int64),
     }
     root = ET.Element("Xdmf", {"Version": "3.0"})
@@ -163,7 +172,7 @@ def write_xdmf(mesh, xdmf: Path, heavy: Path, heavy_name: str, cell_data: dict) 
         attrs = {"Name": name, "AttributeType": kind, "Center": center}
         item(ET.SubElement(g, "Attribute", attrs), key)
 
-    main = grid("mesh", "Tetrahedron", 4, "Mesh/mesh/topology")
+    main = grid("mesh", *tet_topology, "Mesh/mesh/topology")
     attribute(main, "region", "Mesh/mesh/region")
     mask = mesh.protected_tet_mask()
     if mask.any():
@@ -175,14 +184,19 @@ def write_xdmf(mesh, xdmf: Path, heavy: Path, heavy_name: str, cell_data: dict) 
         a = a.astype(np.uint8) if a.dtype == bool else a  # HDF5 has no bool type
         datasets[f"Mesh/mesh/cell_data/{i}"] = a.reshape(len(a), -1) if a.ndim > 2 else a
         attribute(main, name, f"Mesh/mesh/cell_data/{i}")
-    for i, (name, values) in enumerate(mesh.point_data.items()):
+    for i, (name, values) in enumerate(point_data.items()):
         datasets[f"Mesh/mesh/point_data/{i}"] = np.asarray(values)
         attribute(main, name, f"Mesh/mesh/point_data/{i}", "Node")
-    cell_tags = grid(TAG_GRIDS[3], "Tetrahedron", 4, "Mesh/mesh/topology")
+    cell_tags = grid(TAG_GRIDS[3], *tet_topology, "Mesh/mesh/topology")
     attribute(cell_tags, TAG_GRIDS[3], "Mesh/mesh/region")
+    faces, edges = mesh.protected_faces, mesh.protected_edges
+    face_topology, edge_topology = "Triangle", "Polyline"
+    if quad is not None:
+        faces, edges = quad.cells(faces), quad.cells(edges)
+        face_topology, edge_topology = "Triangle_6", "Edge_3"
     for dim, cells, labels, topology in (
-        (2, mesh.protected_faces, mesh.protected_face_labels, "Triangle"),
-        (1, mesh.protected_edges, mesh.protected_edge_labels, "Polyline"),
+        (2, faces, mesh.protected_face_labels, face_topology),
+        (1, edges, mesh.protected_edge_labels, edge_topology),
         (
             0,
             np.asarray(mesh.protected_vertices).reshape(-1, 1),
@@ -565,18 +579,22 @@ def _read_xdmf_arrays(path: Path, source: str) -> dict:
         cell_attrs = _node_attributes(g, data, what, n_main, "cell")
         region_name = next((a for a in (*REGION_ARRAYS, TAG_GRIDS[3]) if a in attrs), None)
         labels = None if region_name is None else _labels(attrs[region_name], region_name, source)
-        # the tets of the main grid as one block (a Mixed topology may hold several runs)
+        # the tets of the main grid as one block (a Mixed topology may hold several runs):
+        # linear ones, or else 10-node ones (dolfinx's second-order geometry, which
+        # ``load(linear=True)`` reads as their corners)
+        types = {t for t, _, _ in main_cells}
+        tet_type = "tetra" if "tetra" in types or "tetra10" not in types else "tetra10"
         tet_pos = np.concatenate(
-            [pos for t, _, pos in main_cells if t == "tetra"] or [np.zeros(0, np.int64)]
+            [pos for t, _, pos in main_cells if t == tet_type] or [np.zeros(0, np.int64)]
         )
         tets = np.concatenate(
-            [c for t, c, _ in main_cells if t == "tetra"] or [np.zeros((0, 4), np.int64)]
+            [c for t, c, _ in main_cells if t == tet_type] or [np.zeros((0, 4), np.int64)]
         )
         region = None if labels is None else labels[tet_pos]
         blocks = [
             (t, c, None if labels is None else labels[pos])
             for t, c, pos in main_cells
-            if t != "tetra"
+            if t != tet_type
         ]
         cell_data = {
             name: a[tet_pos]
@@ -601,13 +619,14 @@ def _read_xdmf_arrays(path: Path, source: str) -> dict:
             labels2 = None if labels2 is None else _labels(labels2, name2, source)
             for t, c, pos in cells2:
                 lab = None if labels2 is None else labels2[pos]
-                if t != "tetra":
+                if t != tet_type:
                     blocks.append((t, c, lab))
                 elif lab is not None and region is None:  # dolfinx's cell tags
-                    region = _tag_region(tets, c, lab, len(points), source, what2)
+                    # (a 10-node tet is known by its corners, which come first)
+                    region = _tag_region(tets[:, :4], c[:, :4], lab, len(points), source, what2)
     finally:
         data.close()
-    blocks.insert(0, ("tetra", tets, region))
+    blocks.insert(0, (tet_type, tets, region))
     names = []
     for info in domain.findall("Information"):
         if info.get("Name") == LABEL_NAMES_INFO:

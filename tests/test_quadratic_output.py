@@ -14,7 +14,7 @@ from jtet._errors import MeshFileError, MeshInputError
 from jtet._quadratic import MID_EDGES, folded_tets, jacobian_ratios, quadratic_mesh
 from jtet.cli import main
 
-FORMATS = ["vtu", "vtk", "msh", "inp", "med", "exo"]
+FORMATS = ["vtu", "vtk", "msh", "inp", "med", "exo", "xdmf"]
 
 
 @pytest.fixture(scope="module")
@@ -72,7 +72,7 @@ def _gmsh_region_volumes(path) -> dict:
 def test_written_nodes_are_gmsh_second_order_nodes(gmsh_files, tmp_path, ext):
     """Gmsh's order-2 mesh read with --linear and written with quadratic=True has
     Gmsh's nodes on every edge (its curved ones on the ball among them), read back in
-    VTK's order by VTK (.vtu, .vtk, .exo) or meshio from jtet's file and by meshio from
+    VTK's order by VTK (.vtu, .vtk, .exo, .xdmf) or meshio from jtet's file and by meshio from
     Gmsh's (MED: by Gmsh and MEDCoupling, below)."""
     meshio = pytest.importorskip("meshio")
     mesh = _load_linear(gmsh_files / "quadratic.msh")
@@ -95,6 +95,16 @@ def test_written_nodes_are_gmsh_second_order_nodes(gmsh_files, tmp_path, ext):
         if ext == "exo":  # VTK's Exodus reader rounds the points to float32
             expected = _edge_nodes(reference.points.astype(np.float32), tets10)
         assert got == expected
+    elif ext == "xdmf":  # VTK's XDMF reader (ParaView's); meshio reads one grid only
+        pv = pytest.importorskip("pyvista")
+        from vtkmodules.vtkIOXdmf2 import vtkXdmfReader
+
+        reader = vtkXdmfReader()
+        reader.SetFileName(str(out))
+        reader.Update()
+        grid = pv.wrap(reader.GetOutputDataObject(0))["mesh"]
+        assert set(grid.celltypes.tolist()) == {24}  # VTK_QUADRATIC_TETRA
+        assert _edge_nodes(grid.points, grid.cells_dict[24]) == expected
     elif ext != "med":
         written = meshio.read(out)
         assert _edge_nodes(written.points, written.get_cells_type("tetra10")) == expected
@@ -106,6 +116,10 @@ def test_written_nodes_are_gmsh_second_order_nodes(gmsh_files, tmp_path, ext):
     np.testing.assert_array_equal(again.tets, mesh.tets)
     np.testing.assert_array_equal(again.curved_edges.edges, mesh.curved_edges.edges)
     np.testing.assert_array_equal(again.curved_edges.points, mesh.curved_edges.points)
+    # the protected faces (the walls, the sphere), from the 6-node triangles
+    assert len(mesh.protected_faces)
+    np.testing.assert_array_equal(again.protected_faces, mesh.protected_faces)
+    np.testing.assert_array_equal(again.protected_face_labels, mesh.protected_face_labels)
 
 
 @pytest.mark.parametrize("ext", ["msh", "med"])
@@ -252,7 +266,7 @@ def test_refused_formats_and_cli(gmsh_files, tmp_path, capsys):
     """--quadratic to a format written linear only fails before the input is read; the
     CLI's improve and convert write 10-node tets that Gmsh reads."""
     mesh = _load_linear(gmsh_files / "quadratic.msh")
-    for ext in ("mesh", "xdmf", "vol", "node"):
+    for ext in ("mesh", "meshb", "vol", "node"):
         with pytest.raises(MeshFileError, match="quadratic"):
             jtet.save(mesh, tmp_path / f"out.{ext}", quadratic=True)
         assert not (tmp_path / f"out.{ext}").exists()
