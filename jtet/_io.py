@@ -1662,7 +1662,8 @@ def _load(path) -> TetMesh:
             "label_names": _xdmf_label_names(found["names"], source),
             "protected_tets": None
             if found["protected"] is None
-            else found["blocks"][0][1][found["protected"]],
+            # (the corners of 10-node tets, which ``load(linear=True)`` reads)
+            else found["blocks"][0][1][found["protected"], :4],
             "point_data": found["point_data"],
             "cell_data": found["cell_data"],
         }

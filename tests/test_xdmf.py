@@ -361,3 +361,28 @@ def test_cell_tags_in_any_order_on_a_large_vertex_numbering(tmp_path, labelled):
     expected[order] = mesh.region[order]
     np.testing.assert_array_equal(back.region, expected)
     assert len(np.unique(back.region)) == 4
+
+
+def test_quadratic_round_trip(tmp_path, labelled):
+    """``quadratic=True`` writes 10-node tets (a node off its midpoint on one edge) that
+    ``linear=True`` reads back as the same mesh: corners, regions and names, protected
+    entities and tets (of 10 nodes in the file: found by their corners), point data and
+    the curved edge."""
+    a, b = labelled.tets[0, :2]
+    bent = labelled.points[[a, b]].mean(axis=0) + 0.01
+    mesh = labelled.replace(
+        curved_edges=([[a, b]], [bent]), point_data={"x": labelled.points[:, 0].copy()}
+    )
+    path = tmp_path / "q.xdmf"
+    _save(mesh, path, quadratic=True)  # (a sliver folds under the bent edge: a warning)
+    assert 'TopologyType="Tetrahedron_10"' in path.read_text()
+    with pytest.warns(UserWarning, match="read as linear"):
+        back = jtet.load(path, linear=True)
+    for name in ("points", "tets", "region", "protected_faces", "protected_face_labels",
+                 "protected_edges", "protected_edge_labels", "protected_vertices",
+                 "protected_vertex_labels", "protected_tets"):  # fmt: skip
+        np.testing.assert_array_equal(getattr(back, name), getattr(mesh, name), err_msg=name)
+    assert back.label_names == mesh.label_names
+    np.testing.assert_array_equal(back.point_data["x"], mesh.point_data["x"])
+    np.testing.assert_array_equal(back.curved_edges.edges, [sorted([a, b])])
+    np.testing.assert_array_equal(back.curved_edges.points, [bent])
