@@ -127,10 +127,9 @@ def write_xdmf(mesh, xdmf: Path, heavy: Path, heavy_name: str, cell_data: dict, 
     name, while both are written under temporary names). ``cell_data``: name -> (m, ...)
     per-tet arrays, written as cell attributes of the ``mesh`` grid.
 
-    With ``quad`` (``_quadratic.quadratic_mesh(mesh)``) the cells are quadratic, as
-    dolfinx writes a mesh of second-order geometry: ``Tetrahedron_10`` over all the
-    nodes, the facet tags' ``Triangle_6`` and the edge tags' ``Edge_3``, in VTK's node
-    order (which XDMF uses), and point data on every node."""
+    With ``quad`` (``_quadratic.quadratic_mesh(mesh)``) the cells are quadratic:
+    ``Tetrahedron_10`` over all the nodes, the facet tags' ``Triangle_6`` and the edge
+    tags' ``Edge_3``, in VTK's node order (XDMF's), and point data on every node."""
     import h5py
 
     points, tets, point_data = mesh.points, mesh.tets, mesh.point_data
