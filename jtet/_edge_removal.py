@@ -153,6 +153,13 @@ def _build_chains(mesh: TetMesh, edges: np.ndarray) -> _Chains:
     )
 
 
+def _edge_claims(T, ce: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(claims, own): the tets around each edge of ``ce`` (c,), one edge after the
+    other, and the position in ``ce`` of the edge each one is around."""
+    own, off = _segments(T.edge_tets_ptr, ce)
+    return T.edge_tets[T.edge_tets_ptr[ce][own] + off], own
+
+
 class _Flips:
     """The new tets of the candidates' flips, from the rings' optimal triangulations
     (``tris_of``: ring size -> (chain rows, ring vertex ids, triangles))."""
@@ -306,20 +313,19 @@ def edge_removal_pass(
         # tets to the others (rejected after it, it would keep them from its losers,
         # which are not tried again while nothing around them changes)
         cand = np.flatnonzero(improves)
-        own, off = _segments(tp, edges[cand])
+        claims, own = _edge_claims(T, edges[cand])
         new_tets, _, new_owner, _ = flips.tets(improves)
         improves &= ~worse_owners(
             mesh,
             min_scaled_jacobian,
-            (mesh.points, mesh.tets[T.edge_tets[tp[edges[cand]][own] + off]], cand[own]),
+            (mesh.points, mesh.tets[claims], cand[own]),
             (mesh.points, new_tets, new_owner),
             len(edges),
         )
     cand = np.flatnonzero(improves)
     ce = edges[cand]
     claim_ptr = np.concatenate([[0], np.cumsum(tp[ce + 1] - tp[ce])])
-    own, off = _segments(tp, ce)
-    claims = T.edge_tets[tp[ce][own] + off]
+    claims, own = _edge_claims(T, ce)
     win_local = select_conflict_free(claim_ptr, claims, q_old[cand], mesh.n_tets)
     winners = np.zeros(len(edges), bool)
     winners[cand[win_local]] = True

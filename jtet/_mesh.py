@@ -848,9 +848,9 @@ class TetMesh:
     def _part(self, sel: np.ndarray) -> tuple[TetMesh, np.ndarray, np.ndarray]:
         """The tets where ``sel`` (m,) is True as a mesh of their own (same feature
         angle), with the protected faces, edges and vertices that are faces, edges and
-        vertices of those tets, and the curved edges between their vertices. Returns (submesh, verts, faces_in): ``verts`` (v,) maps
-        the submesh's vertex ids to this mesh's (sorted), ``faces_in`` (k,) marks the
-        protected faces taken."""
+        vertices of those tets, and the curved edges between their vertices. Returns
+        (submesh, verts, faces_in): ``verts`` (v,) maps the submesh's vertex ids to this
+        mesh's (sorted), ``faces_in`` (k,) marks the protected faces taken."""
         from ._topology import TET_EDGES, TET_FACES, match_rows
 
         tets = self.tets[sel]

@@ -881,12 +881,13 @@ def _bends_curved_tets(mesh, topo, pts, ids, positions, floor: float) -> np.ndar
     (vertices at ``pts``; curved edges as ``mesh`` has them)."""
     from ._curved_guard import below, scaled_jacobians
 
-    pos, starts = csr_rows(topo.vert_tets_ptr, ids)
-    owner = np.repeat(np.arange(len(ids)), np.diff(np.append(starts, len(pos))))
+    pos, _ = csr_rows(topo.vert_tets_ptr, ids)
+    owner = np.repeat(np.arange(len(ids)), np.diff(topo.vert_tets_ptr)[ids])
     star = mesh.tets[topo.vert_tets[pos]]
     # the old stars at ``pts``, not ``mesh.points``: earlier colours of the pass moved
     # some of their vertices (their curved edges are straight from then on). The moves
-    # are tried in ``pts`` itself and taken back (a copy per batch: O(n) each)
+    # are tried in ``pts`` itself and taken back (not in a copy of ``pts`` per batch,
+    # which costs O(n) each)
     before = scaled_jacobians(mesh, pts, star)
     saved = pts[ids].copy()
     pts[ids] = positions
