@@ -28,6 +28,8 @@ import itertools
 import os
 import re
 import secrets
+import shutil
+import tempfile
 import warnings
 from pathlib import Path
 
@@ -1200,11 +1202,14 @@ def _tetgen_faces(node: Path) -> tuple[np.ndarray, np.ndarray] | None:
             warnings.simplefilter("error")  # a word among the numbers: unreadable
             values = np.fromstring(text, dtype=np.int64, sep=" ")
         count, with_markers = int(values[0]), int(values[1]) == 1
-        # a row: id, 3 nodes, [marker], [2 adjacent tets (tetgen -nn)]
+        # a row: id, 3 nodes, [3 edge nodes (tetgen -o2)], [marker], [2 adjacent tets
+        # (tetgen -nn)]: 4 or 6 columns, 7 or 9 with the edge nodes, one more with markers
         cols = (len(values) - 2) // count if count > 0 else 4 + with_markers
         if count < 0 or cols < 4 + with_markers or len(values) - 2 != cols * count:
             raise ValueError(f"{count} faces announced, {len(values) - 2} numbers read")
         table = values[2:].reshape(count, cols)
+        if cols - with_markers in (7, 9):  # the edge nodes: the tets' (load drops them)
+            table = np.delete(table, [4, 5, 6], axis=1)
     except (OSError, ValueError, IndexError, StopIteration) as e:
         warnings.warn(
             f"{face}: not a readable TetGen face file ({_reason(e)}); ignored", stacklevel=3
@@ -1214,17 +1219,18 @@ def _tetgen_faces(node: Path) -> tuple[np.ndarray, np.ndarray] | None:
     return table[:, 1:4] - base, markers
 
 
-def _tetgen_attributes(mesh: TetMesh) -> dict:
-    """``mesh.point_data`` as meshio's TetGen writer takes point attributes: one float
-    column per name (``scalar_columns``; meshio writes the names in a comment line,
-    which ``_tetgen_point_data`` reads), and a boundary marker column of zeros when there
-    are any (without a ``:ref`` array meshio would write the first attribute as the
+def _tetgen_attributes(point_data: dict, n_points: int) -> dict:
+    """``point_data`` (a mesh's, or its quadratic cells' over all their nodes) as
+    meshio's TetGen writer takes point attributes: one float column per name
+    (``scalar_columns``; meshio writes the names in a comment line, which
+    ``_tetgen_point_data`` reads), and a boundary marker column of zeros when there are
+    any (without a ``:ref`` array meshio would write the first attribute as the
     markers)."""
     from ._point_data import scalar_columns
 
-    columns = scalar_columns(mesh.point_data)
+    columns = scalar_columns(point_data)
     if columns:
-        columns["tetgen:ref"] = np.zeros(mesh.n_points, np.int64)
+        columns["tetgen:ref"] = np.zeros(n_points, np.int64)
     return columns
 
 
@@ -1256,21 +1262,25 @@ def _tetgen_point_data(m, node: Path) -> dict:
 
 def _meshio_mesh(mesh: TetMesh, fmt: str, quad=None):
     """A ``meshio.Mesh`` of ``mesh`` for a Gmsh, Medit or TetGen file; with ``quad``
-    (``_quadratic.quadratic_mesh(mesh)``, Gmsh only) its cells are quadratic (meshio
-    puts a tet's nodes in Gmsh's order)."""
+    (``_quadratic.quadratic_mesh(mesh)``) its cells are quadratic (meshio puts a tet's
+    nodes in Gmsh's order); a TetGen one has all their nodes but the tets' corners only
+    (meshio writes 4-node tets: ``_write`` then writes the 10-node ``.ele`` file)."""
     import meshio
 
     region = np.array(mesh.region, dtype=np.int64)
     blocks = [meshio.CellBlock("tetra", np.array(mesh.tets, dtype=np.int64))]
-    if quad is not None:
-        blocks = [meshio.CellBlock("tetra10", quad.tets)]
     if fmt == "tetgen":
+        points, point_data = mesh.points, mesh.point_data
+        if quad is not None:
+            points, point_data = quad.points, quad.point_data
         return meshio.Mesh(
-            np.array(mesh.points, np.float64),
+            np.array(points, np.float64),
             blocks,
             cell_data={"tetgen:ref": [region]},
-            point_data=_tetgen_attributes(mesh),
+            point_data=_tetgen_attributes(point_data, len(points)),
         )
+    if quad is not None:
+        blocks = [meshio.CellBlock("tetra10", quad.tets)]
     data = {name: [region] for name in _TAG_ARRAYS[fmt]}
     extra = _lower_blocks(mesh, fmt)
     for kind, cells, tags in extra:
@@ -1369,10 +1379,12 @@ def _tetgen_header(path: Path) -> str:
     return header
 
 
-def _check_tetgen_elements(ele: Path) -> None:
-    """Raise ``MeshInputError`` when the header of the TetGen ``.ele`` file gives other
-    elements than 4-node tets (``tetgen -o2`` writes 10-node ones), which meshio
-    refuses without a reason, and ``MeshFileError`` when either file has no header."""
+def _check_tetgen_elements(ele: Path) -> bool:
+    """Whether the TetGen ``.ele`` file holds 10-node tets (``tetgen -o2``) that
+    ``load(..., linear=True)`` reads (``_tetgen_o2``). Raise ``MeshInputError`` when
+    its header gives other elements than 4-node tets or, without ``linear``, 10-node
+    ones (meshio refuses both without a reason), and ``MeshFileError`` when either file
+    has no header."""
     _tetgen_header(ele.with_suffix(".node"))
     header = _tetgen_header(ele)
     fields = header.split("#")[0].split()  # elements, nodes per element, attributes
@@ -1383,12 +1395,12 @@ def _check_tetgen_elements(ele: Path) -> None:
         last = _last_line(ele)
         if last.strip() != header.strip():
             _check_tetgen_attributes(ele, last)
-        return
+        return False
     if int(fields[1]) == 10:
+        if reading_linear():
+            return True
         count = int(fields[0]) if fields[0].isdigit() else 0
-        raise MeshInputError(
-            _non_tet_message(str(ele), ["10-node tetrahedron"], [count], True, linear_reads=False)
-        )
+        raise MeshInputError(_non_tet_message(str(ele), ["10-node tetrahedron"], [count], True))
     raise MeshInputError(f"{ele}: {fields[1]} nodes per element; jtet reads 4-node tetrahedra")
 
 
@@ -1636,11 +1648,12 @@ def _load(path) -> TetMesh:
         )
     if p.stat().st_size == 0:
         raise MeshFileError(f"{p}: the file is empty")
+    quadratic_tetgen = False
     if fmt == "tetgen":
         other = p.with_suffix(".ele" if ext == ".node" else ".node")
         if not other.is_file():
             raise MeshFileError(f"{p}: the TetGen companion file {other.name} is missing")
-        _check_tetgen_elements(p.with_suffix(".ele"))
+        quadratic_tetgen = _check_tetgen_elements(p.with_suffix(".ele"))
     source = str(p)
     extras = {}
     if fmt in ("vtu", "vtk"):
@@ -1672,6 +1685,16 @@ def _load(path) -> TetMesh:
     else:
         captured = ""
         readable = _medit_without_unknown_sections(p) if ext == ".mesh" else None
+        linear_dir = None
+        if quadratic_tetgen:  # meshio reads a 4-node copy of the 10-node tets
+            from ._tetgen_o2 import linear_copy
+
+            linear_dir = Path(tempfile.mkdtemp(prefix="jtet-tetgen-o2-"))
+            try:
+                readable = linear_copy(p.with_suffix(".ele"), linear_dir)
+            except BaseException:
+                shutil.rmtree(linear_dir, ignore_errors=True)
+                raise
         try:
             with _quiet_meshio() as buf, gmsh_read_mends() as views:
                 m = _meshio_module(fmt).read(str(readable or p))
@@ -1683,7 +1706,9 @@ def _load(path) -> TetMesh:
                 f"{p}: not a readable {_FORMAT_NAMES[fmt]} file ({_reason(e, captured)})"
             ) from None
         finally:
-            if readable is not None:
+            if linear_dir is not None:
+                shutil.rmtree(linear_dir, ignore_errors=True)
+            elif readable is not None:
                 readable.unlink(missing_ok=True)
         # the Gmsh views whose sections do not parse (read ones: ``_gmsh_view_data``)
         _warn_dropped_arrays(views.get("point", []), views.get("cell", []), source)
@@ -1907,6 +1932,10 @@ def _write(
         sections = _medit_sections(mesh)
         if sections:
             _append_required(tmp, sections)
+    if fmt == "tetgen" and quad is not None:
+        from ._tetgen_o2 import write_quadratic_ele
+
+        write_quadratic_ele(tmp.with_suffix(".ele"), quad.tets, mesh.region)
     if fmt == "tetgen" and len(mesh.protected_faces):
         _write_tetgen_faces(tmp.with_suffix(".face"), mesh)
 
@@ -2055,7 +2084,8 @@ def require_quadratic_format(path) -> None:
     if fmt not in QUADRATIC_FORMATS:
         raise MeshFileError(
             f"{path}: jtet writes quadratic (10-node) tets to .vtu, .vtk, .msh, .inp, .med, "
-            f".exo and .xdmf files only, not to {_FORMAT_NAMES[fmt]} files"
+            f".exo, .xdmf and TetGen .node / .ele files only, not to {_FORMAT_NAMES[fmt]} "
+            "files"
         )
 
 

@@ -10,8 +10,8 @@ node sets, periodic pairs) keeps its meaning.
 Orders (every format lists the corners first, in the order of its linear cell): VTK, XDMF,
 meshio, Abaqus and Exodus put the mid-edge nodes of a tet on the edges ``TET10_EDGES``
 (01, 12, 02, 03, 13, 23), of a triangle on ``TRI6_EDGES`` (01, 12, 02); Gmsh swaps the
-last two of a tet (meshio does it for us) and MED lists its corners the other way
-round (``_med``).
+last two of a tet (meshio does it for us), MED lists its corners the other way round
+(``_med``) and TetGen has an order of its own (``_tetgen_o2``).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ MID_EDGES = {
     2: np.array([[0, 1]]),
 }
 # the formats ``save(..., quadratic=True)`` writes
-QUADRATIC_FORMATS = ("vtu", "vtk", "gmsh", "abaqus", "med", "exodus", "xdmf")
+QUADRATIC_FORMATS = ("vtu", "vtk", "gmsh", "abaqus", "med", "exodus", "xdmf", "tetgen")
 
 
 class QuadraticMesh(NamedTuple):

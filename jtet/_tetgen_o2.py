@@ -1,0 +1,160 @@
+"""TetGen's second-order files (``tetgen -o2``): a ``.ele`` file of 10-node tets.
+
+TetGen writes a tet's four corners, then the nodes of its edges in the order of its
+edge table (``edge2ver`` read through ``orgpivot`` / ``destpivot``): the edges 23, 03,
+01, 12, 13, 02 (``TETGEN_MID_EDGES``; checked against TetGen 1.6's own output in the
+tests). All the edge nodes are numbered after the corners. Its ``.face`` file then
+lists three edge nodes after a face's corners, in one of two orders (all faces, or
+subfaces), which jtet does not need: they are the tets' nodes.
+
+``load(path, linear=True)`` reads such a file as its corners (``linear_copy``: a
+4-node ``.ele`` beside a link to the ``.node`` file, for meshio), noting the edge nodes
+with their edges for ``load`` to drop them or keep them as curved edges.
+``save(..., quadratic=True)`` writes the ``.ele`` file of 10-node tets
+(``write_quadratic_ele``).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ._errors import MeshFileError, MeshInputError
+
+# corner pairs of the edge nodes of a TetGen 10-node tet, in the file's order
+TETGEN_MID_EDGES = np.array([[2, 3], [0, 3], [0, 1], [1, 2], [1, 3], [0, 2]])
+# for each of TetGen's edge nodes, its column among VTK's (``_quadratic.MID_EDGES[4]``:
+# 01, 12, 02, 03, 13, 23)
+_VTK_COLUMN = np.array([5, 3, 0, 1, 4, 2])
+
+
+def _numbers(path: Path) -> np.ndarray:
+    """Every number of a TetGen file (comments blanked) as float64 (exact for ids below
+    2**53), in one C-level parse; ``MeshFileError`` for a word among them."""
+    try:
+        text = re.sub(r"#[^\n]*", " ", path.read_text(errors="replace"))
+    except OSError as e:
+        raise MeshFileError(f"{path}: cannot read ({e.strerror or e})") from None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # np.fromstring warns and stops at a word
+        try:
+            return np.fromstring(text, dtype=np.float64, sep=" ")
+        except (ValueError, DeprecationWarning):
+            raise MeshFileError(
+                f"{path}: not a readable TetGen file (a word among its numbers)"
+            ) from None
+
+
+def _node_count_and_base(node: Path) -> tuple[int, int]:
+    """(number of nodes, number of the first node: 0 or 1, the base of every id in the
+    ``.ele`` and ``.face`` files) of the TetGen ``.node`` file, from its first two lines
+    that hold more than a comment."""
+    lines = []
+    try:
+        with open(node, errors="replace") as f:
+            for line in f:
+                data = line.split("#")[0].split()
+                if data:
+                    lines.append(data)
+                if len(lines) == 2:
+                    break
+    except OSError as e:
+        raise MeshFileError(f"{node}: cannot read ({e.strerror or e})") from None
+    try:
+        return int(lines[0][0]), int(float(lines[1][0]))
+    except (IndexError, ValueError):
+        raise MeshFileError(f"{node}: not a readable TetGen node file") from None
+
+
+def _quadratic_table(ele: Path) -> tuple[np.ndarray, int]:
+    """(rows (m, 11 + k): number, 10 node ids, k attributes; k) of the TetGen ``.ele``
+    file of 10-node tets ``ele``."""
+    values = _numbers(ele)
+    if len(values) < 3:
+        raise MeshFileError(f"{ele}: not a readable TetGen element file (no header)")
+    count, n_attributes = int(values[0]), int(values[2])
+    width = 11 + n_attributes
+    if count < 0 or n_attributes < 0 or len(values) - 3 != count * width:
+        raise MeshFileError(
+            f"{ele}: not a readable TetGen element file ({count} elements of 10 nodes and "
+            f"{n_attributes} attribute(s) announced, {len(values) - 3} numbers read)"
+        )
+    rows = values[3:].reshape(count, width)
+    if (rows[:, :11] != np.round(rows[:, :11])).any():
+        raise MeshInputError(f"{ele}: an element number or node id is no integer")
+    return rows, n_attributes
+
+
+def linear_copy(ele: Path, directory: Path) -> Path:
+    """The ``.node`` path of a linear copy of the TetGen mesh whose ``.ele`` file
+    ``ele`` holds 10-node tets, made in ``directory`` (the caller removes it): the
+    ``.ele`` file of their corners and attributes, and a link to (or copy of) the
+    ``.node`` file. The edge nodes are noted with their edges (``note_mid_nodes``).
+
+    TetGen 1.6's ``-o2`` writes ids that are no node for some of its first tet's edge
+    nodes. A tet whose edge node ids are out of the ``.node`` file's range, or are a
+    tet's corner, gets its corners read and its edge nodes ignored, with a warning: the
+    nodes of its edges are those the other tets around them list.
+    """
+    from ._io import _check_tetgen_attributes, format_rows, note_mid_nodes
+
+    node = ele.with_suffix(".node")
+    n_nodes, base = _node_count_and_base(node)
+    rows, n_attributes = _quadratic_table(ele)
+    attributes = rows[:, 11:]
+    if (attributes != np.round(attributes)).any():
+        _check_tetgen_attributes(ele)  # says which element and what its attribute is
+    ids = rows[:, 1:11].astype(np.int64) - base
+    corners, mids = ids[:, :4], ids[:, 4:]
+    if len(corners) and (corners.min() < 0 or corners.max() >= n_nodes):
+        bad = int(np.flatnonzero(((corners < 0) | (corners >= n_nodes)).any(axis=1))[0])
+        raise MeshInputError(
+            f"{ele}: element {int(rows[bad, 0])} has a corner that is no node of the "
+            f"{n_nodes} in {node.name}"
+        )
+    is_corner = np.zeros(n_nodes, bool)
+    is_corner[corners.reshape(-1)] = True
+    wrong = ((mids < 0) | (mids >= n_nodes)).any(axis=1)
+    wrong[~wrong] = is_corner[mids[~wrong]].any(axis=1)
+    if wrong.any():
+        numbers = ", ".join(str(int(k)) for k in rows[wrong, 0][:5])
+        warnings.warn(
+            f"{ele}: {int(wrong.sum())} element(s) ({numbers}) list edge node ids that are no "
+            "edge node (TetGen 1.6's -o2 writes such ids for its first element): their "
+            "corners are read, and their edges keep the nodes the other elements list",
+            stacklevel=4,
+        )
+    note_mid_nodes(mids[~wrong], corners[~wrong][:, TETGEN_MID_EDGES])
+    table = np.column_stack(
+        [rows[:, 0].astype(np.int64), corners + base, attributes.astype(np.int64)]
+    )
+    out = directory / "linear.ele"
+    with open(out, "w") as f:
+        f.write(f"{len(rows)} 4 {n_attributes}\n")
+        f.write(format_rows(table, "%d" + " %d" * (table.shape[1] - 1) + "\n"))
+    linked = directory / "linear.node"
+    try:
+        os.symlink(node.resolve(), linked)
+    except OSError:  # a file system without links
+        shutil.copyfile(node, linked)
+    return linked
+
+
+def write_quadratic_ele(path: Path, tets10: np.ndarray, region: np.ndarray) -> None:
+    """The TetGen ``.ele`` file at ``path`` of the 10-node tets ``tets10`` (m, 10) in
+    VTK's order (``_quadratic.QuadraticMesh.tets``), numbered from 0 like the ``.node``
+    file meshio writes, with ``region`` (m,) as their attribute."""
+    from ._io import format_rows
+
+    tets10 = np.asarray(tets10, np.int64)
+    ordered = np.concatenate([tets10[:, :4], tets10[:, 4 + _VTK_COLUMN]], axis=1)
+    table = np.column_stack([np.arange(len(tets10)), ordered, np.asarray(region, np.int64)])
+    with open(path, "w") as f:
+        f.write("# 10-node tets: id, 4 corners, the nodes of edges 23 03 01 12 13 02, region\n")
+        f.write(f"{len(tets10)} 10 1\n")
+        f.write(format_rows(table, "%d" + " %d" * 11 + "\n"))
