@@ -235,3 +235,28 @@ def brute_force_interpolation(mesh, f, where):
     best = np.argmax(weights.min(axis=2), axis=1)
     w = weights[np.arange(len(where)), best]
     return (w * f[mesh.tets[best]]).sum(axis=1), w.min(axis=1)
+
+
+# TetGen's order of a 10-node tet's edge nodes, read off its edge tables by hand
+# (``edge2ver`` through ``orgpivot`` / ``destpivot``); tests/test_tetgen_o2.py checks
+# it on TetGen's own file
+TETGEN_EDGES = [(2, 3), (0, 3), (0, 1), (1, 2), (1, 3), (0, 2)]
+
+
+def _tetgen_rows(path: Path) -> list[list[float]]:
+    """The data lines of a TetGen file as numbers (comments dropped), header first."""
+    out = []
+    for line in path.read_text().splitlines():
+        data = line.split("#")[0].split()
+        if data:
+            out.append([float(v) for v in data])
+    return out
+
+
+def tetgen_file(path: Path):
+    """(points (n, 3), 10-node tets (m, 10) 0-based, attributes (m, k)) of a TetGen -o2
+    ``.node`` / ``.ele`` pair, parsed line by line (independently of jtet's reader)."""
+    nodes = np.array(_tetgen_rows(path.with_suffix(".node"))[1:])
+    base = int(nodes[0, 0])
+    ele = np.array(_tetgen_rows(path.with_suffix(".ele"))[1:])
+    return nodes[:, 1:4], ele[:, 1:11].astype(np.int64) - base, ele[:, 11:]

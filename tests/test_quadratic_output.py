@@ -7,14 +7,14 @@ import warnings
 
 import numpy as np
 import pytest
-from helpers import delaunay_mesh, named_ball_in_box
+from helpers import TETGEN_EDGES, delaunay_mesh, named_ball_in_box, tetgen_file
 
 import jtet
 from jtet._errors import MeshFileError, MeshInputError
 from jtet._quadratic import MID_EDGES, folded_tets, jacobian_ratios, quadratic_mesh
 from jtet.cli import main
 
-FORMATS = ["vtu", "vtk", "msh", "inp", "med", "exo", "xdmf"]
+FORMATS = ["vtu", "vtk", "msh", "inp", "med", "exo", "xdmf", "node"]
 
 
 @pytest.fixture(scope="module")
@@ -31,12 +31,13 @@ def _load_linear(path):
         return jtet.load(path, linear=True)
 
 
-def _edge_nodes(points, tets10) -> dict:
+def _edge_nodes(points, tets10, order=MID_EDGES[4]) -> dict:
     """{(sorted rounded corner coordinates of an edge): rounded node coordinates} of 10-node
-    tets in VTK's order (meshio's), independent of the node numbering."""
+    tets in VTK's order (meshio's; or the edges ``order``), independent of the node
+    numbering."""
     p = np.round(np.asarray(points, np.float64), 12)
     out = {}
-    for (i, j), col in zip(MID_EDGES[4], range(4, 10), strict=True):
+    for (i, j), col in zip(order, range(4, 10), strict=True):
         for a, b, m in zip(p[tets10[:, i]], p[tets10[:, j]], p[tets10[:, col]], strict=True):
             out[tuple(sorted([tuple(a), tuple(b)]))] = tuple(m)
     return out
@@ -105,6 +106,9 @@ def test_written_nodes_are_gmsh_second_order_nodes(gmsh_files, tmp_path, ext):
         grid = pv.wrap(reader.GetOutputDataObject(0))["mesh"]
         assert set(grid.celltypes.tolist()) == {24}  # VTK_QUADRATIC_TETRA
         assert _edge_nodes(grid.points, grid.cells_dict[24]) == expected
+    elif ext == "node":  # TetGen's order, parsed by hand (tests/test_tetgen_o2.py)
+        points, tets, _ = tetgen_file(out)
+        assert _edge_nodes(points, tets, TETGEN_EDGES) == expected
     elif ext != "med":
         written = meshio.read(out)
         assert _edge_nodes(written.points, written.get_cells_type("tetra10")) == expected
@@ -266,7 +270,7 @@ def test_refused_formats_and_cli(gmsh_files, tmp_path, capsys):
     """--quadratic to a format written linear only fails before the input is read; the
     CLI's improve and convert write 10-node tets that Gmsh reads."""
     mesh = _load_linear(gmsh_files / "quadratic.msh")
-    for ext in ("mesh", "meshb", "vol", "node"):
+    for ext in ("mesh", "meshb", "vol"):
         with pytest.raises(MeshFileError, match="quadratic"):
             jtet.save(mesh, tmp_path / f"out.{ext}", quadratic=True)
         assert not (tmp_path / f"out.{ext}").exists()

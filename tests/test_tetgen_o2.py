@@ -9,36 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import delaunay_mesh
+from helpers import TETGEN_EDGES, delaunay_mesh, tetgen_file
 
 import jtet
 from jtet._errors import MeshFileError, MeshInputError
 from jtet.cli import main
 
 DATA = Path(__file__).parent / "data" / "tetgen_o2"
-# TetGen's order of a 10-node tet's edge nodes, read off its edge tables by hand
-# (``edge2ver`` through ``orgpivot`` / ``destpivot``); the test below checks it on
-# TetGen's own file
-TETGEN_EDGES = [(2, 3), (0, 3), (0, 1), (1, 2), (1, 3), (0, 2)]
-
-
-def _rows(path: Path) -> list[list[float]]:
-    """The data lines of a TetGen file as numbers (comments dropped), header first."""
-    out = []
-    for line in path.read_text().splitlines():
-        data = line.split("#")[0].split()
-        if data:
-            out.append([float(v) for v in data])
-    return out
-
-
-def _tetgen_file(path: Path):
-    """(points (n, 3), 10-node tets (m, 10) 0-based, attributes (m, k)) of a TetGen -o2
-    ``.node`` / ``.ele`` pair, parsed line by line (independently of jtet's reader)."""
-    nodes = np.array(_rows(path.with_suffix(".node"))[1:])
-    base = int(nodes[0, 0])
-    ele = np.array(_rows(path.with_suffix(".ele"))[1:])
-    return nodes[:, 1:4], ele[:, 1:11].astype(np.int64) - base, ele[:, 11:]
 
 
 def _load_linear(path):
@@ -54,7 +31,7 @@ def test_tetgen_edge_order_is_tetgens():
     exactly (TetGen averages the two ends), and the module's constant is that order."""
     from jtet._tetgen_o2 import TETGEN_MID_EDGES
 
-    points, tets, _ = _tetgen_file(DATA / "ball.1.node")
+    points, tets, _ = tetgen_file(DATA / "ball.1.node")
     assert TETGEN_MID_EDGES.tolist() == [list(e) for e in TETGEN_EDGES]
     good = tets[1:]
     for k, (a, b) in enumerate(TETGEN_EDGES):
@@ -106,13 +83,22 @@ def _copy(tmp_path: Path, ele_text: str | None = None) -> Path:
     "change, error, match",
     [
         (lambda rows: rows[:-2], MeshFileError, "elements of 10 nodes"),  # cut short
-        (lambda rows: [rows[0], rows[1].replace(" 18 ", " 9999 ", 1), *rows[2:]],
-         MeshInputError, "element 1 has a corner that is no node"),  # fmt: skip
+        (
+            lambda rows: [rows[0], rows[1].replace(" 18 ", " 9999 ", 1), *rows[2:]],
+            MeshInputError,
+            "element 1 has a corner that is no node",
+        ),  # fmt: skip
         (lambda rows: [rows[0], rows[1] + " 2.5", *rows[2:]], MeshFileError, "announced"),
-        (lambda rows: [rows[0], rows[1].rsplit(" ", 1)[0] + " 1.5", *rows[2:]],
-         MeshInputError, "attribute '1.5'"),  # fmt: skip
-        (lambda rows: [rows[0], rows[1].replace("64", "x", 1), *rows[2:]], MeshFileError,
-         "a word"),  # fmt: skip
+        (
+            lambda rows: [rows[0], rows[1].rsplit(" ", 1)[0] + " 1.5", *rows[2:]],
+            MeshInputError,
+            "attribute '1.5'",
+        ),  # fmt: skip
+        (
+            lambda rows: [rows[0], rows[1].replace("64", "x", 1), *rows[2:]],
+            MeshFileError,
+            "a word",
+        ),  # fmt: skip
     ],
 )
 def test_damaged_tetgen_o2_files_are_refused(tmp_path, change, error, match):
@@ -154,7 +140,7 @@ def test_quadratic_tetgen_output_round_trip_with_curved_edges(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a bent edge may fold a tet (folded_tets)
         jtet.save(mesh, out, quadratic=True)
-    points, tets, attributes = _tetgen_file(out)
+    points, tets, attributes = tetgen_file(out)
     expected = {tuple(e): p for e, p in zip(edges.tolist(), bent, strict=True)}
     np.testing.assert_array_equal(tets[:, :4], mesh.tets)
     np.testing.assert_array_equal(attributes[:, 0], mesh.region)
@@ -174,3 +160,20 @@ def test_quadratic_tetgen_output_round_trip_with_curved_edges(tmp_path):
     np.testing.assert_array_equal(again.protected_face_labels, mesh.protected_face_labels)
     np.testing.assert_array_equal(again.point_data["T"], mesh.point_data["T"])
     assert any("12 off their edges' midpoints" in s for s in said)
+
+
+def test_cli_improves_tetgen_o2_to_tetgen_o2(tmp_path):
+    """``jtet improve ball.1.node out.node --linear --quadratic``: TetGen's -o2 mesh in,
+    a 10-node TetGen mesh out, improved, with the ball's facets and region."""
+    out = tmp_path / "out.node"
+    args = ["improve", str(DATA / "ball.1.node"), str(out), "-q", "--linear", "--quadratic"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main(args) == 0
+    header = (tmp_path / "out.ele").read_text().splitlines()[1].split()
+    assert header[1:] == ["10", "1"]  # 10-node tets, the region attribute
+    improved, _ = _load_linear(out)
+    before = jtet.stats(jtet.load(DATA / "ball_linear.1.node"))
+    assert jtet.stats(improved).min_dihedral > before.min_dihedral
+    assert set(improved.protected_face_labels.tolist()) == {5}
+    assert set(improved.region.tolist()) == {1}
