@@ -12,7 +12,8 @@ smallest scaled Jacobian (``minSJ``, <= 0 for a folded tet). jtet's nodal check 
 the tets whose determinant is not positive at one of their 10 nodes. Each h is improved
 without the guard on curved tets and with it (``--floors``: ``min_scaled_jacobian``).
 The second table times ``save`` of the improved mesh, linear and quadratic, in each
-format that writes both.
+format that writes both (the sizes of all the files written), and ``load`` of the
+quadratic file with ``linear=True``.
 
     python experiments/quadratic_ball.py                 # h = 0.08 and 0.04
     python experiments/quadratic_ball.py --h 0.2 0.12 --timing-h 0 --floors none 0 0.3 0.5
@@ -30,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 import jtet
+from jtet._io import written_files
 from jtet._quadratic import folded_tets, quadratic_mesh
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -154,15 +156,22 @@ def timing_rows(h: float, seed: int, work: Path) -> list[str]:
         f"({len(quad.edges)} mid-edge nodes)"
     )
     rows = []
-    for ext in ("vtu", "vtk", "msh", "inp", "med", "exo"):
+    for ext in ("vtu", "vtk", "msh", "inp", "med", "exo", "xdmf", "node"):
         times = []
         for quadratic in (False, True):
             path = work / f"timing_{'q' if quadratic else 'l'}.{ext}"
             t = time.perf_counter()
             quiet(jtet.save, out, path, quadratic=quadratic)
-            times.append((time.perf_counter() - t, path.stat().st_size / 1e6))
+            size = sum(f.stat().st_size for f in written_files(path) if f.exists())
+            times.append((time.perf_counter() - t, size / 1e6))
+        t = time.perf_counter()
+        back = quiet(jtet.load, path, linear=True)  # the quadratic file
+        read_s = time.perf_counter() - t
+        assert back.n_tets == out.n_tets
         (tl, sl), (tq, sq) = times
-        rows.append(f"| .{ext} | {tl:.2f} | {tq:.2f} | {tq / tl:.1f} | {sl:.0f} | {sq:.0f} |")
+        rows.append(
+            f"| .{ext} | {tl:.2f} | {tq:.2f} | {tq / tl:.1f} | {sl:.0f} | {sq:.0f} | {read_s:.2f} |"
+        )
     return rows
 
 
@@ -191,8 +200,11 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(rows))
     if args.timing_h:
         timing = timing_rows(args.timing_h, args.seed, work)
-        print("\n| format | save linear (s) | quadratic (s) | ratio | MB linear | quadratic |")
-        print("|---|---|---|---|---|---|")
+        print(
+            "\n| format | save linear (s) | quadratic (s) | ratio | MB linear | quadratic "
+            "| read quadratic with --linear (s) |"
+        )
+        print("|---|---|---|---|---|---|---|")
         print("\n".join(timing))
     print(f"\nfiles in {work}")
     return 0
