@@ -498,7 +498,8 @@ class SmoothStats:
         successes: vertices that moved (their star minimum rose by more than ``min_gain``).
         skipped: candidates not attempted because their star exceeds the largest capacity.
         pinned: boundary vertices that ``boundary="slide"`` would move but whose incident
-            subfacets / subsegments are not flat / straight to ``slide_tol`` (kept fixed).
+            subfacets / subsegments are not flat / straight to ``slide_tol``, or that end
+            a curved edge (kept fixed).
         moved: (successes,) int64 ids of the vertices that moved.
         moved_tets: (m,) bool, the tets with a moved vertex (the only ones whose quality
             changed).
@@ -564,7 +565,9 @@ def motion_bases(
     to ``slide_tol``: then each incident subfacet moves within its own plane and the
     surface stays geometrically identical (provided no tet inverts, which the kernel
     guarantees). Vertices of subfacets next to an inverted or flat tet are pinned too:
-    such a subfacet may be folded, and sliding would change the surface the folds cover.
+    such a subfacet may be folded, and sliding would change the surface the folds cover;
+    and the ends of curved edges (``TetMesh.curved_edges``), whose nodes stay only while
+    the ends do.
     """
     if boundary not in ("fixed", "slide"):
         raise JtetError(f"boundary must be 'fixed' or 'slide', got {boundary!r}")
@@ -614,6 +617,11 @@ def motion_bases(
             cr = np.linalg.norm(np.cross(np.repeat(e, 2, axis=0), basis[verts, :, 0]), axis=1)
             viol = sliding[verts] & (kind[verts] == SEGMENT) & (cr > slide_tol)
             bad[verts[viol]] = True
+        if mesh.has_curved_edges:
+            # a curved edge keeps its node only while both its ends stay where they are
+            # (``_quadratic.curved_edges_kept``): a vertex sliding off one would write the
+            # curved boundary back straight there
+            bad[np.asarray(mesh.curved_edges.edges).reshape(-1)] = True
         bad &= sliding
         pinned = int(bad.sum())
         sliding &= ~bad

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import grid_mesh
+from helpers import delaunay_mesh, grid_mesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
@@ -231,3 +231,23 @@ def test_perturbation_rounds_see_the_curved_edges():
     q = sub.quality("biased_min_sine")
     state = RoundState(sub, q, q, q, jtet.Options(), 0.0, 0.6, 0.0, q < 0.3)
     assert pairs(RoundState.start(state.for_pipe()).sub.current) == expected
+
+
+def test_sliding_keeps_the_ends_of_curved_edges():
+    """With the boundary sliding, a flat face's vertices move, but not the ends of its
+    curved edges: every curved edge on the boundary comes out of improve with its node
+    (the same run without curved edges slides some of those ends, so the check bites)."""
+    mesh = delaunay_mesh(150, seed=5, surface_points=80)
+    topo = mesh.topology
+    faces = topo.faces[topo.subfacet]
+    edges = np.unique(np.sort(faces[:, [[0, 1], [1, 2], [0, 2]]].reshape(-1, 2), axis=1), axis=0)
+    rng = np.random.default_rng(5)
+    edges = edges[rng.choice(len(edges), 60, replace=False)]
+    bent = mesh.points[edges].mean(axis=1) + 1e-4
+    curved = mesh.replace(curved_edges=(edges, bent))
+    ends = np.unique(edges)
+    plain = jtet.improve(mesh, boundary="slide", seed=0, perturb=0, max_passes=4).mesh
+    slid = (plain.points[ends] != mesh.points[ends]).any(axis=1)
+    assert slid.any()
+    out = jtet.improve(curved, boundary="slide", seed=0, perturb=0, max_passes=4).mesh
+    np.testing.assert_array_equal(out.points[ends], mesh.points[ends])
