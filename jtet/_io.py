@@ -44,6 +44,7 @@ from ._medit import (
     _medit_without_unknown_sections,
 )
 from ._mesh import TetMesh
+from ._tetgen import NAMES_COMMENT
 
 #: Cell arrays read as region labels, in order of preference. ``region`` is jtet's own;
 #: meshio names the others after the format (Gmsh physical tags, Medit references, TetGen
@@ -1219,24 +1220,6 @@ def _tetgen_faces(node: Path) -> tuple[np.ndarray, np.ndarray] | None:
     return table[:, 1:4] - base, markers
 
 
-def _tetgen_attributes(point_data: dict, n_points: int) -> dict:
-    """``point_data`` (a mesh's, or its quadratic cells' over all their nodes) as
-    meshio's TetGen writer takes point attributes: one float column per name
-    (``scalar_columns``; meshio writes the names in a comment line, which
-    ``_tetgen_point_data`` reads), and a boundary marker column of zeros when there are
-    any (without a ``:ref`` array meshio would write the first attribute as the
-    markers)."""
-    from ._point_data import scalar_columns
-
-    columns = scalar_columns(point_data)
-    if columns:
-        columns["tetgen:ref"] = np.zeros(n_points, np.int64)
-    return columns
-
-
-_TETGEN_NAMES = "# attribute and marker names:"
-
-
 def _tetgen_point_data(m, node: Path) -> dict:
     """``TetMesh.point_data`` of the point attributes meshio read from the TetGen
     ``.node`` file (``tetgen:attr1``, ...): named as the file's names comment says
@@ -1252,8 +1235,8 @@ def _tetgen_point_data(m, node: Path) -> dict:
     names = [f"attr{k + 1}" for k in range(len(attrs))]
     with open(node, errors="replace") as f:
         for line in itertools.islice(f, 8):
-            if line.startswith(_TETGEN_NAMES):
-                given = [n.strip() for n in line[len(_TETGEN_NAMES) :].split(",")]
+            if line.startswith(NAMES_COMMENT):
+                given = [n.strip() for n in line[len(NAMES_COMMENT) :].split(",")]
                 if len(given) >= len(attrs) and all(given[: len(attrs)]):
                     names = given[: len(attrs)]
                 break
@@ -1261,24 +1244,13 @@ def _tetgen_point_data(m, node: Path) -> dict:
 
 
 def _meshio_mesh(mesh: TetMesh, fmt: str, quad=None):
-    """A ``meshio.Mesh`` of ``mesh`` for a Gmsh, Medit or TetGen file; with ``quad``
-    (``_quadratic.quadratic_mesh(mesh)``) its cells are quadratic (meshio puts a tet's
-    nodes in Gmsh's order); a TetGen one has all their nodes but the tets' corners only
-    (meshio writes 4-node tets: ``_write`` then writes the 10-node ``.ele`` file)."""
+    """A ``meshio.Mesh`` of ``mesh`` for a Gmsh or Medit file; with ``quad``
+    (``_quadratic.quadratic_mesh(mesh)``, Gmsh only) its cells are quadratic (meshio
+    puts a tet's nodes in Gmsh's order)."""
     import meshio
 
     region = np.array(mesh.region, dtype=np.int64)
     blocks = [meshio.CellBlock("tetra", np.array(mesh.tets, dtype=np.int64))]
-    if fmt == "tetgen":
-        points, point_data = mesh.points, mesh.point_data
-        if quad is not None:
-            points, point_data = quad.points, quad.point_data
-        return meshio.Mesh(
-            np.array(points, np.float64),
-            blocks,
-            cell_data={"tetgen:ref": [region]},
-            point_data=_tetgen_attributes(point_data, len(points)),
-        )
     if quad is not None:
         blocks = [meshio.CellBlock("tetra10", quad.tets)]
     data = {name: [region] for name in _TAG_ARRAYS[fmt]}
@@ -1381,7 +1353,7 @@ def _tetgen_header(path: Path) -> str:
 
 def _check_tetgen_elements(ele: Path) -> bool:
     """Whether the TetGen ``.ele`` file holds 10-node tets (``tetgen -o2``) that
-    ``load(..., linear=True)`` reads (``_tetgen_o2``). Raise ``MeshInputError`` when
+    ``load(..., linear=True)`` reads (``_tetgen``). Raise ``MeshInputError`` when
     its header gives other elements than 4-node tets or, without ``linear``, 10-node
     ones (meshio refuses both without a reason), and ``MeshFileError`` when either file
     has no header."""
@@ -1687,7 +1659,7 @@ def _load(path) -> TetMesh:
         readable = _medit_without_unknown_sections(p) if ext == ".mesh" else None
         linear_dir = None
         if quadratic_tetgen:  # meshio reads a 4-node copy of the 10-node tets
-            from ._tetgen_o2 import linear_copy
+            from ._tetgen import linear_copy
 
             linear_dir = Path(tempfile.mkdtemp(prefix="jtet-tetgen-o2-"))
             try:
@@ -1918,6 +1890,15 @@ def _write(
         blocks += [(kind, cells, tags) for kind, cells, tags in _lower_blocks(mesh, fmt)]
         write_meshb(tmp, mesh.points, blocks, _medit_sections(mesh))
         return
+    if fmt == "tetgen":
+        from ._tetgen import write_tetgen
+
+        cells = mesh if quad is None else quad
+        node = tmp.with_suffix(".node")
+        write_tetgen(node, cells.points, cells.point_data, cells.tets, mesh.region)
+        if len(mesh.protected_faces):
+            _write_tetgen_faces(tmp.with_suffix(".face"), mesh)
+        return
     with _quiet_meshio():
         m = _meshio_mesh(mesh, fmt, quad)
         if fmt == "gmsh":
@@ -1932,12 +1913,6 @@ def _write(
         sections = _medit_sections(mesh)
         if sections:
             _append_required(tmp, sections)
-    if fmt == "tetgen" and quad is not None:
-        from ._tetgen_o2 import write_quadratic_ele
-
-        write_quadratic_ele(tmp.with_suffix(".ele"), quad.tets, mesh.region)
-    if fmt == "tetgen" and len(mesh.protected_faces):
-        _write_tetgen_faces(tmp.with_suffix(".face"), mesh)
 
 
 def _kept_exactly(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:

@@ -11,7 +11,7 @@ Orders (every format lists the corners first, in the order of its linear cell): 
 meshio, Abaqus and Exodus put the mid-edge nodes of a tet on the edges ``TET10_EDGES``
 (01, 12, 02, 03, 13, 23), of a triangle on ``TRI6_EDGES`` (01, 12, 02); Gmsh swaps the
 last two of a tet (meshio does it for us), MED lists its corners the other way round
-(``_med``) and TetGen has an order of its own (``_tetgen_o2``).
+(``_med``) and TetGen has an order of its own (``_tetgen``).
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ def test_tetgen_edge_order_is_tetgens():
     """In TetGen's own -o2 file every edge node of every element (but element 0, whose
     ids TetGen 1.6 writes wrong) is the midpoint of the edge ``TETGEN_EDGES`` gives,
     exactly (TetGen averages the two ends), and the module's constant is that order."""
-    from jtet._tetgen_o2 import TETGEN_MID_EDGES
+    from jtet._tetgen import TETGEN_MID_EDGES
 
     points, tets, _ = tetgen_file(DATA / "ball.1.node")
     assert TETGEN_MID_EDGES.tolist() == [list(e) for e in TETGEN_EDGES]
@@ -177,3 +177,19 @@ def test_cli_improves_tetgen_o2_to_tetgen_o2(tmp_path):
     assert jtet.stats(improved).min_dihedral > before.min_dihedral
     assert set(improved.protected_face_labels.tolist()) == {5}
     assert set(improved.region.tolist()) == {1}
+
+
+def test_tetgen_reads_jtet_quadratic_output(tmp_path):
+    """TetGen's own reader (tetgenpy, AGPL: tests only) takes jtet's 10-node .node /
+    .ele files: the same points, the same 10 nodes per tet in the file's order, and the
+    region attribute."""
+    tetgenpy = pytest.importorskip("tetgenpy")
+    mesh = delaunay_mesh(50, seed=4)
+    mesh = mesh.replace(region=np.arange(mesh.n_tets) % 2 + 1)
+    jtet.save(mesh, tmp_path / "q.node", quadratic=True)
+    points, tets, attributes = tetgen_file(tmp_path / "q.node")
+    io = tetgenpy.TetgenIO()
+    io.load_node(str(tmp_path / "q")), io.load_tet(str(tmp_path / "q"))
+    np.testing.assert_array_equal(io.points(), points)
+    np.testing.assert_array_equal(io.tetrahedra(), tets)
+    np.testing.assert_array_equal(np.ravel(io.tetrahedronattributes()), attributes[:, 0])
