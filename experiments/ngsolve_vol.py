@@ -14,8 +14,10 @@ point from ``domin`` to ``domout`` as Netgen's own do (on the interface: into th
 
 ``--write-fixture DIR`` (run it with the NGSolve Python) writes ``netgen_ball.vol.gz``,
 the Netgen-written file ``tests/test_netgen.py`` reads (maxh 0.25, and the integrals
-NGSolve computes on it into ``netgen_ball.json``), and ``netgen_periodic.vol.gz``: a
-unit cube periodic in x and y (two identifications, maxh 0.3).
+NGSolve computes on it into ``netgen_ball.json``), ``netgen_periodic.vol.gz``: a
+unit cube periodic in x and y (two identifications, maxh 0.3), and
+``netgen_ball_o2.vol.gz``: the ball in the cube at maxh 0.4, made second order by
+Netgen (``Mesh.SecondOrder``: 10-node tets, the ball's edge nodes on the sphere).
 """
 
 from __future__ import annotations
@@ -96,6 +98,10 @@ def write_fixture(folder: Path) -> None:
     )
     (folder / "netgen_ball.json").write_text(out.stdout)
     print(f"wrote {path} and {folder / 'netgen_ball.json'}")
+    second = netgen_mesh(0.4)
+    second.SecondOrder()  # curved: the nodes of the sphere's edges on the sphere
+    second.Save(str(folder / "netgen_ball_o2.vol.gz"))
+    print(f"wrote {folder / 'netgen_ball_o2.vol.gz'}")
 
 
 def integrals(python: str, path: Path) -> dict:
