@@ -35,6 +35,10 @@ from ._errors import MeshFileError, MeshInputError
 
 # Netgen's vertex order of a tet is VTK's with the second and third swapped
 _SWAP = [0, 2, 1, 3]
+# corner pairs (in Netgen's order) of the edge nodes of its 10-node tets, in the file's
+# order (checked on Netgen's own second-order file in the tests: every node off its
+# edge's midpoint lies on the curved surface)
+_MID_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 # sections whose numbers jtet reads, with the number of leading columns before the
 # vertex count ("surfaceelements": surfnr bcnr domin domout np p1 p2 p3 [geometry info])
 _SURFACE = ("surfaceelements", "surfaceelementsgi", "surfaceelementsuv")
@@ -214,7 +218,7 @@ def _numbers(rows: list[str], width: int | None, what: str, source: str, kind=np
 def _volume_elements(rows: list[str], source: str) -> tuple[np.ndarray, np.ndarray]:
     """(tets (m, 4) 0-based in VTK's order, material numbers (m,)) of ``volumeelements``
     (rows: matnr np p1 .. pnp); ``MeshInputError`` naming other elements."""
-    from ._io import quadratic_corners, reading_linear
+    from ._io import note_mid_nodes, reading_linear
 
     counts = np.array([ln.split()[1] if len(ln.split()) > 1 else "0" for ln in rows[:1]])
     table = None
@@ -225,8 +229,9 @@ def _volume_elements(rows: list[str], source: str) -> tuple[np.ndarray, np.ndarr
         except MeshFileError:
             table = None
         if table is not None and (table[:, 1] == 10).all():
-            corners = quadratic_corners(table[:, 2:] - 1, 4, carry=False)
-            return corners[:, _SWAP], table[:, 0]
+            nodes = table[:, 2:] - 1
+            note_mid_nodes(nodes[:, 4:], nodes[:, _MID_EDGES])  # curved ones are kept
+            return nodes[:, :4][:, _SWAP], table[:, 0]
         table = None
     if len(counts) and counts[0] == "4":
         try:
@@ -274,11 +279,22 @@ def _ids(table: np.ndarray, columns: list, what: str, source: str) -> np.ndarray
 
 def _surface_elements(sections: dict, source: str) -> tuple[np.ndarray, np.ndarray]:
     """(triangles (k, 3) 0-based, boundary-condition numbers (k,)) of the surface
-    elements (rows: surfnr bcnr domin domout np p1 p2 p3 [geometry info per point])."""
+    elements (rows: surfnr bcnr domin domout np p1 p2 p3 [geometry info per point]);
+    with ``load(..., linear=True)``, second-order ones (np 6: the nodes of their edges
+    after the corners) as their corners."""
+    from ._io import note_mid_nodes, reading_linear
+
     found, table = _section_table(sections, _SURFACE, source)
     if found is None:
         return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
-    if table is None or table.shape[1] < 8 or (table[:, 4] != 3).any():
+    sizes = (3, 6) if reading_linear() else (3,)
+    if (
+        table is None
+        or table.shape[1] < 8
+        or (table[:, 4] != table[0, 4]).any()
+        or table[0, 4] not in sizes
+        or table.shape[1] < 5 + table[0, 4]
+    ):
         warnings.warn(
             f"{source}: Netgen surface elements other than triangles (or of mixed kinds); "
             "none of them is kept as a protected face",
@@ -286,6 +302,8 @@ def _surface_elements(sections: dict, source: str) -> tuple[np.ndarray, np.ndarr
         )
         return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
     ids = _ids(table, [1, 5, 6, 7], "surface elements", source)
+    if table[0, 4] == 6:  # the edge nodes: the tets' (their curved ones come from there)
+        note_mid_nodes(_ids(table, [8, 9, 10], "surface elements", source) - 1)
     return ids[:, 1:] - 1, ids[:, 0]
 
 

@@ -7,7 +7,13 @@ import warnings
 
 import numpy as np
 import pytest
-from helpers import TETGEN_EDGES, delaunay_mesh, named_ball_in_box, tetgen_file
+from helpers import (
+    TETGEN_EDGES,
+    delaunay_mesh,
+    gmsh_region_volumes,
+    named_ball_in_box,
+    tetgen_file,
+)
 
 import jtet
 from jtet._errors import MeshFileError, MeshInputError
@@ -41,32 +47,6 @@ def _edge_nodes(points, tets10, order=MID_EDGES[4]) -> dict:
         for a, b, m in zip(p[tets10[:, i]], p[tets10[:, j]], p[tets10[:, col]], strict=True):
             out[tuple(sorted([tuple(a), tuple(b)]))] = tuple(m)
     return out
-
-
-def _gmsh_region_volumes(path) -> dict:
-    """{physical volume name: volume} of a mesh file, by Gmsh: the sum over its elements
-    of Gmsh's Jacobian determinants times its Gauss weights (exact for a 10-node tet's
-    cubic determinant with the 4th-order rule), and the element types."""
-    gmsh = pytest.importorskip("gmsh")
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Verbosity", 1)
-        gmsh.open(str(path))
-        volumes, types = {}, set()
-        for _, tag in gmsh.model.getPhysicalGroups(3):
-            name = gmsh.model.getPhysicalName(3, tag)
-            total = 0.0
-            for entity in gmsh.model.getEntitiesForPhysicalGroup(3, tag):
-                kinds, elements, _ = gmsh.model.mesh.getElements(3, entity)
-                for kind, ids in zip(kinds, elements, strict=True):
-                    types.add(int(kind))
-                    uvw, weights = gmsh.model.mesh.getIntegrationPoints(int(kind), "Gauss4")
-                    _, det, _ = gmsh.model.mesh.getJacobians(int(kind), uvw, entity)
-                    total += (det.reshape(len(ids), -1) * weights).sum()
-            volumes[name] = total
-        return volumes, types
-    finally:
-        gmsh.finalize()
 
 
 @pytest.mark.parametrize("ext", FORMATS)
@@ -140,8 +120,8 @@ def test_gmsh_measures_the_curved_ball_after_improve(gmsh_files, tmp_path, ext):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # a folded tet or two, as in Gmsh's own mesh
         jtet.save(result.mesh, out, quadratic=True)
-    got, types = _gmsh_region_volumes(out)
-    reference, _ = _gmsh_region_volumes(gmsh_files / "quadratic.msh")
+    got, types = gmsh_region_volumes(out)
+    reference, _ = gmsh_region_volumes(gmsh_files / "quadratic.msh")
     assert types == {11}  # Gmsh's 10-node tet
     assert got["ball"] == pytest.approx(reference["ball"], rel=1e-12)
     # the unit cube, to Gmsh's own sum for its mesh (which misses 1 by 3.4e-12)
@@ -285,7 +265,7 @@ def test_refused_formats_and_cli(gmsh_files, tmp_path, capsys):
         assert main(args) == 0
         assert main(["convert", str(src), str(tmp_path / "c.inp"), "-q", "--linear",
                      "--quadratic"]) == 0  # fmt: skip
-    _, types = _gmsh_region_volumes(out)
+    _, types = gmsh_region_volumes(out)
     assert types == {11}
     text = (tmp_path / "c.inp").read_text()
     assert "TYPE=C3D10" in text and "TYPE=C3D4" not in text
