@@ -10,7 +10,10 @@ labelled with their edge number); ``pointelements`` -> protected vertices; the n
 ``materials``, ``bcnames``, ``cd2names`` and ``cd3names`` -> ``TetMesh.label_names``; periodic
 ``identifications`` -> ``TetMesh.periodic`` links, which ``improve`` keeps (their
 vertices and the surface edges between them stay), written back as identifications. Netgen orients tets the other way
-round from VTK: they are read and written with two vertices swapped.
+round from VTK: they are read and written with two vertices swapped. With
+``load(..., linear=True)`` a second-order file (``Mesh.SecondOrder``: 10-node tets,
+6-node surface elements) reads as its corners, and the nodes of its curved edges (in
+Netgen's order, ``_MID_EDGES``) become ``TetMesh.curved_edges``.
 
 ``write_vol`` writes points, tets with their region as material number, and as surface
 elements every boundary face, every face between two regions and every protected face,
