@@ -1861,7 +1861,7 @@ def _write(
     if fmt == "netgen":
         from ._netgen import write_vol
 
-        write_vol(mesh, tmp)
+        write_vol(mesh, tmp, quad)
         return
     if fmt == "abaqus":
         from ._abaqus import write_inp
@@ -2066,8 +2066,8 @@ def require_quadratic_format(path) -> None:
     if fmt not in QUADRATIC_FORMATS:
         raise MeshFileError(
             f"{path}: jtet writes quadratic (10-node) tets to .vtu, .vtk, .msh, .inp, .med, "
-            f".exo, .xdmf and TetGen .node / .ele files only, not to {_FORMAT_NAMES[fmt]} "
-            "files"
+            f".exo, .xdmf, .vol and TetGen .node / .ele files only, not to "
+            f"{_FORMAT_NAMES[fmt]} files"
         )
 
 

@@ -33,7 +33,7 @@ MID_EDGES = {
     2: np.array([[0, 1]]),
 }
 # the formats ``save(..., quadratic=True)`` writes
-QUADRATIC_FORMATS = ("vtu", "vtk", "gmsh", "abaqus", "med", "exodus", "xdmf", "tetgen")
+QUADRATIC_FORMATS = ("vtu", "vtk", "gmsh", "abaqus", "med", "exodus", "xdmf", "tetgen", "netgen")
 
 
 class QuadraticMesh(NamedTuple):

@@ -320,3 +320,65 @@ def test_netgen_second_order_file_keeps_its_curved_ball(tmp_path):
     assert abs(volumes["inclusion"] + volumes["matrix"] - 1) < 1e-10
     assert abs(linear["inclusion"] + linear["matrix"] - 1) < 1e-10
     assert abs(linear["inclusion"] - sphere) / sphere > 5e-2
+
+
+def _vol_cells(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points (n, 3), volume elements (m, 10), surface elements (k, 6)) 0-based, of a
+    second-order .vol file, parsed line by line (independently of jtet's reader)."""
+    opener = gzip.open if path.suffix == ".gz" else open
+    with opener(path, "rt") as f:
+        lines = [ln.strip() for ln in f]
+
+    def section(name: str, width: int, first: int) -> np.ndarray:
+        at = next(i for i, ln in enumerate(lines) if ln.startswith(name))
+        count = int(lines[at + 1])
+        rows = [ln.split() for ln in lines[at + 2 : at + 2 + count]]
+        return np.array([[float(v) for v in r[first : first + width]] for r in rows])
+
+    points = section("points", 3, 0)
+    volume = section("volumeelements", 10, 2).astype(np.int64) - 1
+    surface = section("surfaceelements", 6, 5).astype(np.int64) - 1
+    return points, volume, surface
+
+
+def _nodes_by_edge(points, cells, pairs) -> dict:
+    """{(sorted corner coordinates of an edge): its node's coordinates} of ``cells``
+    whose edge nodes follow their corners on the corner pairs ``pairs``."""
+    out = {}
+    corners = len(cells[0]) - len(pairs)
+    for k, (a, b) in enumerate(pairs):
+        for row in cells:
+            ends = sorted([tuple(points[row[a]]), tuple(points[row[b]])])
+            out[tuple(ends)] = tuple(points[row[corners + k]])
+    return out
+
+
+def test_quadratic_vol_output_has_netgens_nodes(tmp_path):
+    """Netgen's second-order file read with --linear and written with quadratic=True:
+    parsed by hand, its 10-node tets and 6-node surface elements put on every edge the
+    node Netgen's own file has there (Netgen's orders: tets 01 02 03 12 13 23, triangles
+    12 02 01), and it reads back the same. (Netgen 6.2.2608 reads the file too, and its
+    Gmsh export puts every node where jtet's quadratic mesh has it:
+    ``experiments/ngsolve_vol.py --quadratic-check``.)"""
+    tet_pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    tri_pairs = [(1, 2), (0, 2), (0, 1)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mesh = jtet.load(DATA / "netgen_ball_o2.vol.gz", linear=True)
+        jtet.save(mesh, tmp_path / "q.vol", quadratic=True)
+        again = jtet.load(tmp_path / "q.vol", linear=True)
+    theirs = _vol_cells(DATA / "netgen_ball_o2.vol.gz")
+    ours = _vol_cells(tmp_path / "q.vol")
+    for column, pairs in ((1, tet_pairs), (2, tri_pairs)):
+        got = _nodes_by_edge(ours[0], ours[column], pairs)
+        want = _nodes_by_edge(theirs[0], theirs[column], pairs)
+        assert got.keys() == want.keys()
+        # the curved nodes are Netgen's to the bit; jtet puts a straight edge's node at
+        # 0.5 (a + b), which may differ from Netgen's by an ulp
+        difference = np.array([got[k] for k in want]) - np.array(list(want.values()))
+        assert np.abs(difference).max() <= 2.3e-16
+    np.testing.assert_array_equal(again.points, mesh.points)
+    np.testing.assert_array_equal(again.tets, mesh.tets)
+    np.testing.assert_array_equal(again.curved_edges.points, mesh.curved_edges.points)
+    np.testing.assert_array_equal(again.protected_faces, mesh.protected_faces)
+    assert again.label_names == mesh.label_names
