@@ -11,6 +11,7 @@ point from ``domin`` to ``domout`` as Netgen's own do (on the interface: into th
 
     python experiments/ngsolve_vol.py --ngsolve-python /tmp/ngvenv/bin/python
     /tmp/ngvenv/bin/python experiments/ngsolve_vol.py --write-fixture tests/data
+    python experiments/ngsolve_vol.py --ngsolve-python /tmp/ngvenv/bin/python --quadratic-check
 
 ``--write-fixture DIR`` (run it with the NGSolve Python) writes ``netgen_ball.vol.gz``,
 the Netgen-written file ``tests/test_netgen.py`` reads (maxh 0.25, and the integrals
@@ -111,14 +112,71 @@ def integrals(python: str, path: Path) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+# run by the Netgen Python: load a .vol file and export it as Gmsh 2 (Netgen's own
+# mapping of its second-order nodes to Gmsh's order)
+_EXPORT_GMSH = r"""
+import sys
+from netgen.meshing import Mesh
+mesh = Mesh()
+mesh.Load(sys.argv[1])
+mesh.Export(sys.argv[2], "Gmsh2 Format")
+"""
+
+
+def quadratic_check(python: str) -> None:
+    """jtet's quadratic .vol output through Netgen: Netgen's second-order fixture read
+    with --linear, improved, written with --quadratic; Netgen loads the file and
+    exports it as Gmsh 2, and every 10-node tet and 6-node triangle there has, on each
+    edge, the node jtet's quadratic mesh has (points matched to Netgen's 6 printed
+    digits)."""
+    import warnings
+
+    import meshio
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    import jtet
+    from jtet._quadratic import MID_EDGES, quadratic_mesh
+
+    warnings.simplefilter("ignore")
+    fixture = Path(__file__).resolve().parents[1] / "tests" / "data" / "netgen_ball_o2.vol.gz"
+    mesh = jtet.improve(jtet.load(fixture, linear=True), seed=0).mesh
+    quad = quadratic_mesh(mesh)
+    with tempfile.TemporaryDirectory() as tmp:
+        out, exported = Path(tmp) / "jtet_o2.vol", Path(tmp) / "netgen_export.msh"
+        jtet.save(mesh, out, quadratic=True)
+        subprocess.run([python, "-c", _EXPORT_GMSH, str(out), str(exported)], check=True)
+        theirs = meshio.read(exported)
+    distance, ids = cKDTree(quad.points).query(theirs.points)
+    tets, tris = ids[theirs.get_cells_type("tetra10")], ids[theirs.get_cells_type("triangle6")]
+    ends = tets[:, MID_EDGES[4]].reshape(-1, 2)
+    tets_ok = np.array_equal(quad.cells(ends)[:, 2].reshape(-1, 6), tets[:, 4:])
+    tris_ok = np.array_equal(quad.cells(tris[:, :3])[:, 3:], tris[:, 3:])
+    print(
+        f"Netgen's export of jtet's quadratic .vol ({mesh.n_tets} tets, "
+        f"{len(mesh.curved_edges.edges)} curved edges): points within "
+        f"{distance.max():.1e} of jtet's; {len(tets)} 10-node tets "
+        f"{'all' if tets_ok else 'NOT all'} with jtet's edge nodes, {len(tris)} 6-node "
+        f"triangles {'all' if tris_ok else 'NOT all'} with them"
+    )
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--ngsolve-python", default="python3", help="a Python that has NGSolve")
     p.add_argument("--maxh", type=float, default=0.1, help="Netgen's mesh size")
     p.add_argument("--write-fixture", type=Path, help="write the test file into this folder")
+    p.add_argument(
+        "--quadratic-check",
+        action="store_true",
+        help="only check jtet's quadratic .vol output through Netgen (netgen-mesher is enough)",
+    )
     args = p.parse_args()
     if args.write_fixture:
         write_fixture(args.write_fixture)
+        return
+    if args.quadratic_check:
+        quadratic_check(args.ngsolve_python)
         return
     import jtet
 

@@ -797,8 +797,8 @@ def _add_quadratic(p) -> None:
         "--quadratic",
         action="store_true",
         help="write 10-node tets (6-node protected faces, 3-node protected edges; .vtu "
-        ".vtk .msh .inp .med .exo .xdmf, TetGen .node): a node on each edge, on the input's curved "
-        "boundary where --linear read one, else at the edge's midpoint",
+        ".vtk .msh .inp .med .exo .xdmf .vol, TetGen .node): a node on each edge, on the "
+        "input's curved boundary where --linear read one, else at the edge's midpoint",
     )
 
 
