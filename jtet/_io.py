@@ -1953,7 +1953,8 @@ def format_rows(table: np.ndarray, fmt: str) -> str:
 def _write_tetgen_faces(path: Path, mesh: TetMesh) -> None:
     """The protected faces of ``mesh`` as a TetGen ``.face`` file with their labels as
     boundary markers (what TetGen writes for the boundary and the constrained facets of
-    its meshes, and what ``load`` reads back), numbered from 0 like meshio's ``.node``."""
+    its meshes, and what ``load`` reads back), numbered from 0 like the ``.node`` file
+    (``_tetgen.write_tetgen``)."""
     faces = np.asarray(mesh.protected_faces, np.int64)
     table = np.column_stack(
         [np.arange(len(faces)), faces, np.asarray(mesh.protected_face_labels, np.int64)]
