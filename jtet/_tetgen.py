@@ -1,4 +1,5 @@
-"""TetGen's second-order files (``tetgen -o2``): a ``.ele`` file of 10-node tets.
+"""TetGen files jtet reads and writes itself: the second-order ``.ele`` file
+(``tetgen -o2``: 10-node tets), and the ``.node`` / ``.ele`` files of its output.
 
 TetGen writes a tet's four corners, then the nodes of its edges in the order of its
 edge table (``edge2ver`` read through ``orgpivot`` / ``destpivot``): the edges 23, 03,
