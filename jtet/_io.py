@@ -39,9 +39,9 @@ from ._errors import MeshFileError, MeshInputError
 from ._gmsh_read import gmsh_read_mends
 from ._medit import (
     _append_required,
+    _medit_readable_copy,
     _medit_required,
     _medit_required_tets,
-    _medit_without_unknown_sections,
 )
 from ._mesh import TetMesh
 from ._tetgen import NAMES_COMMENT
@@ -1663,7 +1663,7 @@ def _load(path) -> TetMesh:
         arrays, extras = _meshb_arrays(p, source)
     else:
         captured = ""
-        readable = _medit_without_unknown_sections(p) if ext == ".mesh" else None
+        readable = _medit_readable_copy(p) if ext == ".mesh" else None
         linear_dir = None
         if quadratic_tetgen:  # meshio reads a 4-node copy of the 10-node tets
             from ._tetgen import linear_copy
@@ -1856,8 +1856,7 @@ def _write(
     mesh: TetMesh, tmp: Path, fmt: str, cell_data: dict, heavy_name: str = "", quad=None
 ) -> None:
     """Write ``mesh`` as a ``fmt`` file at ``tmp``; with ``quad``
-    (``_quadratic.quadratic_mesh(mesh)``; a format of ``QUADRATIC_FORMATS``) its cells
-    are quadratic."""
+    (``_quadratic.quadratic_mesh(mesh)``) its cells are quadratic."""
     if fmt == "netgen":
         from ._netgen import write_vol
 
@@ -1889,13 +1888,25 @@ def _write(
     if fmt == "medit" and mesh.point_data:
         from ._medit_sol import sol_path, write_sol
 
-        write_sol(sol_path(tmp), mesh.point_data)
-    if fmt == "medit" and tmp.suffix.lower() == ".meshb":
+        write_sol(sol_path(tmp), mesh.point_data if quad is None else quad.point_data)
+    if fmt == "medit" and (quad is not None or tmp.suffix.lower() == ".meshb"):
+        from ._medit import write_medit_p2
         from ._meshb import write_meshb
 
-        blocks = [("tetra", mesh.tets, mesh.region)]
-        blocks += [(kind, cells, tags) for kind, cells, tags in _lower_blocks(mesh, fmt)]
-        write_meshb(tmp, mesh.points, blocks, _medit_sections(mesh))
+        blocks = [("tetra", mesh.tets, mesh.region)] + _lower_blocks(mesh, fmt)
+        points = mesh.points
+        if quad is not None:  # P2 sections: the corners, then the edge nodes (VTK's order)
+            p2 = {"tetra": "tetra10", "triangle": "triangle6", "line": "line3"}
+            blocks = [(p2[kind], quad.cells(cells), tags) for kind, cells, tags in blocks[1:]]
+            blocks.insert(0, ("tetra10", quad.tets, mesh.region))
+            points = quad.points
+        if tmp.suffix.lower() == ".meshb":
+            write_meshb(tmp, points, blocks, _medit_sections(mesh))
+            return
+        write_medit_p2(tmp, points, blocks)
+        sections = _medit_sections(mesh)
+        if sections:
+            _append_required(tmp, sections)
         return
     if fmt == "tetgen":
         from ._tetgen import write_tetgen
@@ -2055,29 +2066,11 @@ def move_into_place(tmp: Path, target: Path) -> None:
     os.replace(tmp, target)
 
 
-def require_quadratic_format(path) -> None:
-    """Refuse a quadratic output to ``path`` in a format jtet writes only linear.
-
-    Raises:
-        MeshFileError: the extension is unknown or not one of ``QUADRATIC_FORMATS``.
-    """
-    from ._quadratic import QUADRATIC_FORMATS
-
-    fmt = output_format(path)
-    if fmt not in QUADRATIC_FORMATS:
-        raise MeshFileError(
-            f"{path}: jtet writes quadratic (10-node) tets to .vtu, .vtk, .msh, .inp, .med, "
-            f".exo, .xdmf, .vol and TetGen .node / .ele files only, not to "
-            f"{_FORMAT_NAMES[fmt]} files"
-        )
-
-
 def _quadratic_output(mesh: TetMesh, path: Path):
     """``_quadratic.quadratic_mesh(mesh)`` for ``save(..., quadratic=True)``, with a
     warning when curved tets fold (a non-positive Jacobian at a node)."""
     from ._quadratic import folded_tets, quadratic_mesh
 
-    require_quadratic_format(path)
     quad = quadratic_mesh(mesh)
     n_folded, worst = folded_tets(quad)
     if n_folded:

@@ -1,6 +1,7 @@
-"""Medit (``.mesh``) sections of MMG's that meshio 5.3 skips or refuses: the required
-vertices, edges, triangles and tets jtet reads itself (and the vertices and tets it
-writes), and the sections it removes from a temporary copy for meshio to read the rest."""
+"""Medit (``.mesh``) sections that meshio 5.3 skips or refuses: MMG's required vertices,
+edges, triangles and tets, which jtet reads itself (and writes), and the second-order
+(P2) sections, which jtet reads as linear ones and writes for a quadratic output; and
+the temporary copy of a file that meshio reads without them."""
 
 from __future__ import annotations
 
@@ -80,29 +81,116 @@ _MESHIO_UNKNOWN_SECTIONS = (
 )
 
 
-def _medit_without_unknown_sections(path: Path) -> Path | None:
-    """A temporary copy of the ASCII Medit file ``path`` without the sections of
-    ``_MESHIO_UNKNOWN_SECTIONS`` (for meshio to read), or None when it has none of them.
-    The caller removes the copy."""
+# Medit's second-order sections (libMeshb's P2 elements) -> (the linear section, corners,
+# nodes per line): the corners, then the nodes of the edges in VTK's order
+# (``_quadratic.MID_EDGES``: Gmsh's Medit writer puts them so, checked in the tests),
+# then the reference
+P2_SECTIONS = {
+    "TetrahedraP2": ("Tetrahedra", 4, 10),
+    "TrianglesP2": ("Triangles", 3, 6),
+    "EdgesP2": ("Edges", 2, 3),
+}
+# the start of the line after a section's numbers: the next keyword
+_NEXT_KEYWORD = re.compile(rb"\n[ \t]*[A-Za-z]")
+
+
+def _p2_rows(data, at: int, section: str, width: int, path: Path) -> tuple[np.ndarray, int]:
+    """(rows (k, width + 1): 1-based node ids and the reference; the offset after the
+    last) of the P2 section whose keyword is at ``at``, in one C-level parse;
+    ``MeshFileError`` for a count that does not match its numbers."""
+    import warnings
+
+    start = at + len(section)
+    nxt = _NEXT_KEYWORD.search(data, start)
+    end = nxt.start() + 1 if nxt else len(data)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # np.fromstring warns and stops at a word
+        try:
+            values = np.fromstring(bytes(data[start:end]), dtype=np.int64, sep=" ")
+        except (ValueError, DeprecationWarning):
+            values = np.zeros(0, np.int64)
+    count = int(values[0]) if len(values) else -1
+    if count < 0 or len(values) != 1 + count * (width + 1):
+        raise MeshFileError(f"{path}: unreadable {section} section")
+    return values[1:].reshape(count, width + 1), end
+
+
+def _medit_readable_copy(path: Path) -> Path | None:
+    """A temporary copy of the ASCII Medit file ``path`` for meshio to read, or None
+    when meshio reads the file as it is: without the sections of
+    ``_MESHIO_UNKNOWN_SECTIONS``, and (``load(..., linear=True)``) with its P2 sections
+    (``P2_SECTIONS``) as linear sections of their corners, their edge nodes noted for
+    ``load`` (``quadratic_corners``). The caller removes the copy. ``MeshInputError``
+    for P2 sections without ``linear``."""
     import mmap
     import tempfile
 
+    from ._io import _non_tet_message, format_rows, quadratic_corners, reading_linear
+
     with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
-        cuts = sorted(
-            (at, _section_ids(data, at, section, path)[1])
+        cuts = [
+            (at, _section_ids(data, at, section, path)[1], b"")
             for section in _MESHIO_UNKNOWN_SECTIONS
             for at in _keyword_positions(data, section)
-        )
+        ]
+        found = {}
+        for section, (linear, corners, width) in P2_SECTIONS.items():
+            for at in _keyword_positions(data, section):
+                rows, end = _p2_rows(data, at, section, width, path)
+                found[section] = found.get(section, 0) + len(rows)
+                if not reading_linear():
+                    continue
+                kept = quadratic_corners(rows[:, :width] - 1, corners) + 1
+                table = np.column_stack([kept, rows[:, -1]])
+                text = f"{linear}\n{len(rows)}\n" + format_rows(
+                    table, "%d" + " %d" * corners + "\n"
+                )
+                cuts.append((at, end, text.encode()))
+        if found and not reading_linear():
+            if "TetrahedraP2" in found:
+                raise MeshInputError(
+                    _non_tet_message(
+                        str(path), ["10-node tetrahedron"], [found["TetrahedraP2"]], True
+                    )
+                )
+            listing = ", ".join(f"{k} x {v}" for k, v in found.items())
+            raise MeshInputError(
+                f"{path}: second-order sections ({listing}); --linear, jtet.load(path, "
+                "linear=True), reads them as their corners"
+            )
         if not cuts:
             return None
         fd, name = tempfile.mkstemp(prefix="jtet-medit-", suffix=".mesh")
         with os.fdopen(fd, "wb") as out:
             start = 0
-            for a, b in cuts:
+            for a, b, replacement in sorted(cuts):
                 out.write(data[start:a])
+                out.write(replacement)
                 start = b
             out.write(data[start:])
     return Path(name)
+
+
+def write_medit_p2(path: Path, points: np.ndarray, blocks) -> None:
+    """An ASCII Medit file of second-order cells at ``path``: ``points`` (n, 3) with
+    reference 0, and ``blocks`` [(meshio cell type "tetra10" / "triangle6" / "line3",
+    cells (k, j) 0-based in VTK's order, references (k,))] as P2 sections, then ``End``
+    (``_append_required`` puts the Required* sections before it)."""
+    from ._io import format_rows
+
+    sections = {"tetra10": "TetrahedraP2", "triangle6": "TrianglesP2", "line3": "EdgesP2"}
+    points = np.asarray(points, np.float64)
+    with open(path, "w") as f:
+        f.write("MeshVersionFormatted 2\n\nDimension 3\n\n")
+        f.write(f"Vertices\n{len(points)}\n")
+        table = np.column_stack([points, np.zeros(len(points))])
+        f.write(format_rows(table, "%.17g %.17g %.17g %d\n"))
+        for kind, cells, refs in blocks:
+            cells = np.asarray(cells, np.int64)
+            table = np.column_stack([cells + 1, np.asarray(refs, np.int64)])
+            f.write(f"\n{sections[kind]}\n{len(cells)}\n")
+            f.write(format_rows(table, "%d" + " %d" * cells.shape[1] + "\n"))
+        f.write("\nEnd\n")
 
 
 def _medit_required_tets(ids: np.ndarray | None, tets: np.ndarray, path: Path):

@@ -52,8 +52,12 @@ OTHER_VOLUMES = {
     30: ("tetra10", 10),
     33: ("hexahedron27", 27),
 }
+#: keyword code -> (meshio cell type, nodes per line) of the second-order (P2) cells:
+#: the corners, then the nodes of the edges in VTK's order (as in ``_medit``), read as
+#: their corners with ``load(..., linear=True)`` and written for a quadratic output
+P2_CELLS = {30: ("tetra10", 10), 24: ("triangle6", 6), 25: ("line3", 3)}
 #: meshio cell type -> keyword code
-ORDER = {name: code for code, (name, _) in CELLS.items()}
+ORDER = {name: code for code, (name, _) in {**CELLS, **P2_CELLS}.items()}
 
 
 def _widths(version: int) -> tuple[str, str, str]:
@@ -84,7 +88,9 @@ def read_meshb(path: Path, source: str):
         body = at + 4 + reader.pos_size
         if code == DIMENSION:
             dim = reader.dimension(body, nxt)
-        elif code == VERTICES or code in CELLS or code in REQUIRED or code in OTHER_VOLUMES:
+        elif code in (VERTICES, *CELLS, *REQUIRED, *OTHER_VOLUMES) or (
+            code in P2_CELLS and reading_linear()
+        ):
             count = reader.count(body)
             start = body + reader.int_size
             if code == VERTICES:
@@ -93,11 +99,13 @@ def read_meshb(path: Path, source: str):
                 rows = reader.table(start, count, [reader.real] * dim + [reader.int])
                 points = rows[:, :dim].astype(np.float64)
                 end = start + count * (dim * reader.real.itemsize + reader.int.itemsize)
-            elif code == 30 and reading_linear():  # P2 tets as their corners
-                rows = reader.table(start, count, [reader.int] * 11).astype(np.int64)
-                end = start + count * 11 * reader.int.itemsize
-                corners = quadratic_corners(rows[:, :10] - 1, 4, carry=False)
-                blocks.append(("tetra", corners, rows[:, -1]))
+            elif code in P2_CELLS and reading_linear():  # P2 cells as their corners
+                kind, width = P2_CELLS[code]
+                rows = reader.table(start, count, [reader.int] * (width + 1)).astype(np.int64)
+                end = start + count * (width + 1) * reader.int.itemsize
+                linear = {"tetra10": ("tetra", 4), "triangle6": ("triangle", 3)}
+                name, k = linear.get(kind, ("line", 2))
+                blocks.append((name, quadratic_corners(rows[:, :width] - 1, k), rows[:, -1]))
             elif code in OTHER_VOLUMES:
                 name, k = OTHER_VOLUMES[code]
                 others[name] = others.get(name, 0) + count
@@ -205,8 +213,8 @@ class _Reader:
 
 def write_meshb(path: Path, points: np.ndarray, blocks, required: dict) -> None:
     """Write a binary Medit file: ``points`` (n, 3) with reference 0, ``blocks``
-    [(meshio cell type "line" / "triangle" / "tetra", cells (k, j) 0-based, references
-    (k,))], ``required`` {section name of ``REQUIRED``: 0-based ids (k,)} (empty ones are
+    [(meshio cell type "line" / "triangle" / "tetra", or "line3" / "triangle6" /
+    "tetra10" (P2, in VTK's order), cells (k, j) 0-based, references (k,))], ``required`` {section name of ``REQUIRED``: 0-based ids (k,)} (empty ones are
     left out). Version 2, or 3 when the file passes 2 GiB (see the module docstring)."""
     n = len(points)
     sizes = [len(points) * 28] + [len(c) * (c.shape[1] + 1) * 4 for _, c, _ in blocks]

@@ -32,8 +32,6 @@ MID_EDGES = {
     3: np.array([[0, 1], [1, 2], [0, 2]]),
     2: np.array([[0, 1]]),
 }
-# the formats ``save(..., quadratic=True)`` writes
-QUADRATIC_FORMATS = ("vtu", "vtk", "gmsh", "abaqus", "med", "exodus", "xdmf", "tetgen", "netgen")
 
 
 class QuadraticMesh(NamedTuple):

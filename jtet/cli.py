@@ -339,7 +339,7 @@ def cmd_improve(args) -> int:
             f"({len(args.paths)} path(s) given)"
         )
     src, out = (Path(p) for p in args.paths)
-    _check_output(out, args)
+    _check_output(out)
     _refuse_input_as_output(src, out, args.overwrite)
     mesh = _read_input(src, args)
     return _run_improve(mesh, out, args, str(src))
@@ -370,7 +370,7 @@ def _batch_outputs(args) -> list[tuple[Path, Path]]:
     for path in args.paths:
         src = Path(path)
         out = outdir / (src.stem + (ext or src.suffix))
-        _check_output(out, args)
+        _check_output(out)
         _refuse_input_as_output(src, out, args.overwrite)
         pairs.append((src, out))
     seen, plots = {}, {}
@@ -606,7 +606,7 @@ def cmd_convert(args) -> int:
     from ._report import quality_cell_data
 
     src, out = Path(args.input), Path(args.output)
-    _check_output(out, args)  # an unknown extension fails before the input is read
+    _check_output(out)  # an unknown extension fails before the input is read
     _refuse_input_as_output(src, out, args.overwrite)
     mesh = _read_input(src, args)
     cell_data = quality_cell_data(mesh) if args.quality_arrays else None
@@ -782,14 +782,12 @@ def _add_drop(p) -> None:
     )
 
 
-def _check_output(out: Path, args) -> None:
-    """Refuse, before any work, an output ``out`` of an unknown extension, or of a
-    format jtet writes only linear when ``--quadratic`` asks for 10-node tets."""
-    from ._io import output_format, require_quadratic_format
+def _check_output(out: Path) -> None:
+    """Refuse, before any work, an output ``out`` of an unknown extension (every format
+    jtet writes takes ``--quadratic`` too)."""
+    from ._io import output_format
 
     output_format(out)
-    if getattr(args, "quadratic", False):
-        require_quadratic_format(out)
 
 
 def _add_quadratic(p) -> None:

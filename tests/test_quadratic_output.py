@@ -20,7 +20,7 @@ from jtet._errors import MeshFileError, MeshInputError
 from jtet._quadratic import MID_EDGES, folded_tets, jacobian_ratios, quadratic_mesh
 from jtet.cli import main
 
-FORMATS = ["vtu", "vtk", "msh", "inp", "med", "exo", "xdmf", "node"]
+FORMATS = ["vtu", "vtk", "msh", "inp", "med", "exo", "xdmf", "node", "mesh", "meshb"]
 
 
 @pytest.fixture(scope="module")
@@ -47,6 +47,43 @@ def _edge_nodes(points, tets10, order=MID_EDGES[4]) -> dict:
         for a, b, m in zip(p[tets10[:, i]], p[tets10[:, j]], p[tets10[:, col]], strict=True):
             out[tuple(sorted([tuple(a), tuple(b)]))] = tuple(m)
     return out
+
+
+def _gmsh_tets10(path):
+    """(points, 10-node tets 0-based in Gmsh's order) of a file Gmsh opens."""
+    gmsh = pytest.importorskip("gmsh")
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Verbosity", 1)
+        gmsh.open(str(path))
+        tags, coords, _ = gmsh.model.mesh.getNodes()
+        at = np.zeros(int(tags.max()) + 1, np.int64)
+        at[tags.astype(np.int64)] = np.arange(len(tags))
+        kinds, _, nodes = gmsh.model.mesh.getElements(3)
+        assert [int(k) for k in kinds] == [11]  # 10-node tets only
+        return coords.reshape(-1, 3), at[nodes[0].astype(np.int64)].reshape(-1, 10)
+    finally:
+        gmsh.finalize()
+
+
+def _meshb_tets10(path):
+    """(points, TetrahedraP2 rows 0-based) of a binary Medit file of version 2 (4-byte
+    positions: ``save`` writes that below 2 GiB), walked keyword by keyword by hand."""
+    data = np.fromfile(path, np.uint8)
+    assert data[:8].view("<i4").tolist() == [1, 2]
+    points, tets, at = None, None, 8
+    while True:
+        code, nxt = data[at : at + 8].view("<i4").tolist()
+        if code == 54:  # End
+            return points, tets
+        count = int(data[at + 8 : at + 12].view("<i4")[0])
+        body = data[at + 12 : nxt]
+        if code == 4:  # Vertices: x y z (float64) and a reference (int32)
+            rows = body.view(np.dtype([("xyz", "<f8", 3), ("ref", "<i4")]))
+            points = rows["xyz"].astype(np.float64)
+        elif code == 30:  # TetrahedraP2: 10 nodes and a reference
+            tets = body.view("<i4").reshape(count, 11)[:, :10].astype(np.int64) - 1
+        at = nxt
 
 
 @pytest.mark.parametrize("ext", FORMATS)
@@ -86,6 +123,12 @@ def test_written_nodes_are_gmsh_second_order_nodes(gmsh_files, tmp_path, ext):
         grid = pv.wrap(reader.GetOutputDataObject(0))["mesh"]
         assert set(grid.celltypes.tolist()) == {24}  # VTK_QUADRATIC_TETRA
         assert _edge_nodes(grid.points, grid.cells_dict[24]) == expected
+    elif ext == "mesh":  # Medit P2, read by Gmsh (its tet10 order swaps the last two)
+        points, tets = _gmsh_tets10(out)
+        assert _edge_nodes(points, tets[:, [0, 1, 2, 3, 4, 5, 6, 7, 9, 8]]) == expected
+    elif ext == "meshb":  # binary Medit P2 (keyword 30), parsed by hand
+        points, tets = _meshb_tets10(out)
+        assert _edge_nodes(points, tets) == expected
     elif ext == "node":  # TetGen's order, parsed by hand (tests/test_tetgen_o2.py)
         points, tets, _ = tetgen_file(out)
         assert _edge_nodes(points, tets, TETGEN_EDGES) == expected
@@ -247,16 +290,16 @@ def test_curved_edges_field_checks_and_moves():
 
 
 def test_refused_formats_and_cli(gmsh_files, tmp_path, capsys):
-    """--quadratic to a format written linear only fails before the input is read; the
-    CLI's improve and convert write 10-node tets that Gmsh reads."""
+    """--quadratic to an unknown extension fails before the input is read (every
+    format jtet writes takes it); the CLI's improve and convert write 10-node tets that
+    Gmsh reads."""
     mesh = _load_linear(gmsh_files / "quadratic.msh")
-    for ext in ("mesh", "meshb"):
-        with pytest.raises(MeshFileError, match="quadratic"):
-            jtet.save(mesh, tmp_path / f"out.{ext}", quadratic=True)
-        assert not (tmp_path / f"out.{ext}").exists()
+    with pytest.raises(MeshFileError, match="extension"):
+        jtet.save(mesh, tmp_path / "out.sol", quadratic=True)
+    assert not (tmp_path / "out.sol").exists()
     missing = tmp_path / "missing.msh"
-    assert main(["improve", str(missing), str(tmp_path / "o.mesh"), "--quadratic"]) == 2
-    assert "quadratic" in capsys.readouterr().err
+    assert main(["improve", str(missing), str(tmp_path / "o.sol"), "--quadratic"]) == 2
+    assert "extension" in capsys.readouterr().err
     src = gmsh_files / "quadratic.msh"
     out = tmp_path / "improved.msh"
     args = ["improve", str(src), str(out), "-q", "--linear", "--quadratic", "--perturb", "0"]
@@ -385,3 +428,53 @@ def test_improve_drops_curved_edges_it_flips_or_moves():
     np.testing.assert_array_equal(out.curved_edges.edges, edges[expected])
     np.testing.assert_array_equal(out.curved_edges.points, bent[expected])
     assert any(f"; {len(edges) - len(expected)} dropped" in note for note in result.notes)
+
+
+def test_gmsh_medit_p2_file_reads_as_its_order_2_mesh(tmp_path):
+    """Gmsh writes its order-2 mesh of a ball as a Medit file of P2 sections
+    (TetrahedraP2, TrianglesP2) and as .msh: without --linear the Medit file is refused
+    with the hint; with it, it reads as the same corners, tets, curved edges and
+    boundary faces as the .msh file, compared by coordinates (the node order is
+    Medit's, VTK's: a wrong order would make straight edges curved). (Gmsh 4.15
+    crashes writing the ball in a box of the tests above as Medit.)"""
+    gmsh = pytest.importorskip("gmsh")
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Verbosity", 1)
+        gmsh.model.occ.addSphere(0.5, 0.5, 0.5, 0.25)
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.1)
+        gmsh.model.mesh.generate(3)
+        gmsh.model.mesh.setOrder(2)
+        gmsh.write(str(tmp_path / "gmsh_p2.msh"))
+        gmsh.write(str(tmp_path / "gmsh_p2.mesh"))
+    finally:
+        gmsh.finalize()
+    text = (tmp_path / "gmsh_p2.mesh").read_text()
+    assert "TetrahedraP2" in text and "TrianglesP2" in text
+    with pytest.raises(MeshInputError, match="--linear"):
+        jtet.load(tmp_path / "gmsh_p2.mesh")
+    medit = _load_linear(tmp_path / "gmsh_p2.mesh")
+    msh = _load_linear(tmp_path / "gmsh_p2.msh")
+
+    def rows(a):  # sorted by their coordinates to 8 digits (Gmsh's Medit writer prints 14)
+        a = np.asarray(a, np.float64).reshape(len(a), -1)
+        return np.lexsort(np.round(a, 8).T[::-1])
+
+    close = {"rtol": 0, "atol": 1e-13}
+    mine, theirs = rows(medit.points), rows(msh.points)
+    np.testing.assert_allclose(medit.points[mine], msh.points[theirs], **close)
+    as_msh = np.empty(medit.n_points, np.int64)  # medit's point ids -> msh's
+    as_msh[mine] = theirs
+
+    def same_cells(a, b):
+        a, b = np.sort(as_msh[a], axis=1), np.sort(b, axis=1)
+        np.testing.assert_array_equal(np.unique(a, axis=0), np.unique(b, axis=0))
+
+    same_cells(medit.tets, msh.tets)
+    same_cells(medit.protected_faces, msh.protected_faces)
+    same_cells(medit.curved_edges.edges, msh.curved_edges.edges)
+    assert len(msh.curved_edges.edges) > 50
+    mapped = np.sort(as_msh[medit.curved_edges.edges], axis=1)
+    order = np.lexsort(mapped.T[::-1])  # msh's curved edges are sorted so
+    np.testing.assert_allclose(medit.curved_edges.points[order], msh.curved_edges.points, **close)
