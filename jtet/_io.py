@@ -1585,7 +1585,7 @@ def load(path: str | os.PathLike, *, linear: bool = False) -> TetMesh:
     ``jtet improve --linear``) as their corners, and leaves out the mid-edge nodes no
     other cell uses (node sets and point data follow), with a warning: jtet improves
     linear tets. The nodes of 10-node tets off their edges' midpoints (a curved
-    boundary; not of Medit P2 files) are kept as ``TetMesh.curved_edges``
+    boundary) are kept as ``TetMesh.curved_edges``
     for a quadratic output (``save(..., quadratic=True)``). Without it such a file is
     refused.
 

@@ -794,9 +794,9 @@ def _add_quadratic(p) -> None:
     p.add_argument(
         "--quadratic",
         action="store_true",
-        help="write 10-node tets (6-node protected faces, 3-node protected edges; .vtu "
-        ".vtk .msh .inp .med .exo .xdmf .vol, TetGen .node): a node on each edge, on the "
-        "input's curved boundary where --linear read one, else at the edge's midpoint",
+        help="write 10-node tets (6-node protected faces, 3-node protected edges; every "
+        "format): a node on each edge, on the input's curved boundary where --linear read "
+        "one, else at the edge's midpoint",
     )
 
 

@@ -478,3 +478,26 @@ def test_gmsh_medit_p2_file_reads_as_its_order_2_mesh(tmp_path):
     mapped = np.sort(as_msh[medit.curved_edges.edges], axis=1)
     order = np.lexsort(mapped.T[::-1])  # msh's curved edges are sorted so
     np.testing.assert_allclose(medit.curved_edges.points[order], msh.curved_edges.points, **close)
+
+
+@pytest.mark.parametrize("damage", ["count", "word"])
+def test_damaged_medit_p2_section_is_refused(tmp_path, damage):
+    """A P2 section whose count does not match its numbers, or with a word among
+    them, is a clear MeshFileError, and the temporary copy made for meshio is gone."""
+    import tempfile
+    from pathlib import Path
+
+    mesh = delaunay_mesh(30, seed=1)
+    jtet.save(mesh, tmp_path / "p2.mesh", quadratic=True)
+    text = (tmp_path / "p2.mesh").read_text()
+    head, rest = text.split("TetrahedraP2\n", 1)
+    count, rows = rest.split("\n", 1)
+    if damage == "count":
+        rest = f"{int(count) + 1}\n{rows}"
+    else:
+        rest = f"{count}\n{rows.replace(' ', ' x ', 1)}"
+    (tmp_path / "p2.mesh").write_text(head + "TetrahedraP2\n" + rest)
+    before = set(Path(tempfile.gettempdir()).glob("jtet-medit-*"))
+    with pytest.raises(MeshFileError, match="unreadable TetrahedraP2 section"):
+        jtet.load(tmp_path / "p2.mesh", linear=True)
+    assert set(Path(tempfile.gettempdir()).glob("jtet-medit-*")) == before
