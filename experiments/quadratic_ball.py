@@ -156,7 +156,7 @@ def timing_rows(h: float, seed: int, work: Path) -> list[str]:
         f"({len(quad.edges)} mid-edge nodes)"
     )
     rows = []
-    for ext in ("vtu", "vtk", "msh", "inp", "med", "exo", "xdmf", "node"):
+    for ext in ("vtu", "vtk", "msh", "inp", "med", "exo", "xdmf", "node", "vol", "mesh", "meshb"):
         times = []
         for quadratic in (False, True):
             path = work / f"timing_{'q' if quadratic else 'l'}.{ext}"
