@@ -10,6 +10,7 @@ import pytest
 from helpers import (
     TETGEN_EDGES,
     delaunay_mesh,
+    gmsh_model,
     gmsh_region_volumes,
     named_ball_in_box,
     tetgen_file,
@@ -51,10 +52,7 @@ def _edge_nodes(points, tets10, order=MID_EDGES[4]) -> dict:
 
 def _gmsh_tets10(path):
     """(points, 10-node tets 0-based in Gmsh's order) of a file Gmsh opens."""
-    gmsh = pytest.importorskip("gmsh")
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Verbosity", 1)
+    with gmsh_model() as gmsh:
         gmsh.open(str(path))
         tags, coords, _ = gmsh.model.mesh.getNodes()
         at = np.zeros(int(tags.max()) + 1, np.int64)
@@ -62,8 +60,6 @@ def _gmsh_tets10(path):
         kinds, _, nodes = gmsh.model.mesh.getElements(3)
         assert [int(k) for k in kinds] == [11]  # 10-node tets only
         return coords.reshape(-1, 3), at[nodes[0].astype(np.int64)].reshape(-1, 10)
-    finally:
-        gmsh.finalize()
 
 
 def _meshb_tets10(path):
@@ -437,10 +433,7 @@ def test_gmsh_medit_p2_file_reads_as_its_order_2_mesh(tmp_path):
     boundary faces as the .msh file, compared by coordinates (the node order is
     Medit's, VTK's: a wrong order would make straight edges curved). (Gmsh 4.15
     crashes writing the ball in a box of the tests above as Medit.)"""
-    gmsh = pytest.importorskip("gmsh")
-    gmsh.initialize()
-    try:
-        gmsh.option.setNumber("General.Verbosity", 1)
+    with gmsh_model() as gmsh:
         gmsh.model.occ.addSphere(0.5, 0.5, 0.5, 0.25)
         gmsh.model.occ.synchronize()
         gmsh.option.setNumber("Mesh.MeshSizeMax", 0.1)
@@ -448,8 +441,6 @@ def test_gmsh_medit_p2_file_reads_as_its_order_2_mesh(tmp_path):
         gmsh.model.mesh.setOrder(2)
         gmsh.write(str(tmp_path / "gmsh_p2.msh"))
         gmsh.write(str(tmp_path / "gmsh_p2.mesh"))
-    finally:
-        gmsh.finalize()
     text = (tmp_path / "gmsh_p2.mesh").read_text()
     assert "TetrahedraP2" in text and "TrianglesP2" in text
     with pytest.raises(MeshInputError, match="--linear"):
