@@ -79,6 +79,8 @@ _VTK_QUADRATIC = {24: 10, 22: 5, 21: 3}
 _VTK_QUADRATIC_TETRA = 24
 # the same for meshio's cell blocks: (linear type, its corners)
 _MESHIO_QUADRATIC = {"tetra10": ("tetra", 4), "triangle6": ("triangle", 3), "line3": ("line", 2)}
+# and the other way: the quadratic block of a linear one
+_QUADRATIC_BLOCK = {linear: quadratic for quadratic, (linear, _) in _MESHIO_QUADRATIC.items()}
 
 _READ_FORMATS = {
     ".vtu": "vtu",
@@ -1256,8 +1258,8 @@ def _meshio_mesh(mesh: TetMesh, fmt: str, quad=None):
     data = {name: [region] for name in _TAG_ARRAYS[fmt]}
     extra = _lower_blocks(mesh, fmt)
     for kind, cells, tags in extra:
-        if quad is not None and kind in ("triangle", "line"):
-            kind, cells = {"triangle": "triangle6", "line": "line3"}[kind], quad.cells(cells)
+        if quad is not None and kind in _QUADRATIC_BLOCK:
+            kind, cells = _QUADRATIC_BLOCK[kind], quad.cells(cells)
         blocks.append(meshio.CellBlock(kind, np.array(cells, np.int64)))
         for arrays in data.values():
             arrays.append(np.array(tags, np.int64))
@@ -1893,13 +1895,11 @@ def _write(
         from ._medit import write_medit_p2
         from ._meshb import write_meshb
 
-        blocks = [("tetra", mesh.tets, mesh.region)] + _lower_blocks(mesh, fmt)
-        points = mesh.points
+        lower = _lower_blocks(mesh, fmt)
+        points, blocks = mesh.points, [("tetra", mesh.tets, mesh.region), *lower]
         if quad is not None:  # P2 sections: the corners, then the edge nodes (VTK's order)
-            p2 = {"tetra": "tetra10", "triangle": "triangle6", "line": "line3"}
-            blocks = [(p2[kind], quad.cells(cells), tags) for kind, cells, tags in blocks[1:]]
-            blocks.insert(0, ("tetra10", quad.tets, mesh.region))
-            points = quad.points
+            points, blocks = quad.points, [("tetra10", quad.tets, mesh.region)]
+            blocks += [(_QUADRATIC_BLOCK[k], quad.cells(c), tags) for k, c, tags in lower]
         if tmp.suffix.lower() == ".meshb":
             write_meshb(tmp, points, blocks, _medit_sections(mesh))
             return
@@ -2127,8 +2127,8 @@ def save(
     (``_med``). What a format cannot store is dropped with a warning.
 
     ``quadratic=True`` writes 10-node tets (and 6-node protected faces, 3-node protected
-    edges) to ``.vtu``, ``.vtk``, ``.msh``, ``.inp`` (C3D10), ``.med`` (T10) and
-    ``.exo`` (TETRA10) files: a node on each edge, that of ``mesh.curved_edges`` (a
+    edges), in every format (``.inp``: C3D10, ``.med``: T10, ``.exo``: TETRA10, Medit:
+    P2 sections, TetGen and Netgen: their own node orders): a node on each edge, that of ``mesh.curved_edges`` (a
     curved boundary read with ``load(path, linear=True)``) or the midpoint
     (``_quadratic``), numbered after the mesh's points. A warning counts the curved tets
     whose Jacobian is not positive at every node.
@@ -2139,9 +2139,8 @@ def save(
     Returns the path written (for TetGen, the ``.node`` file).
 
     Raises:
-        MeshFileError: unknown extension (with ``quadratic=True``: one written linear
-            only), missing directory, existing file with ``overwrite=False``, or any
-            failure while writing.
+        MeshFileError: unknown extension, missing directory, existing file with
+            ``overwrite=False``, or any failure while writing.
         MeshInputError: ``cell_data`` does not have one value per tet.
     """
     p = Path(path)

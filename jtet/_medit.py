@@ -178,17 +178,18 @@ def write_medit_p2(path: Path, points: np.ndarray, blocks) -> None:
     (``_append_required`` puts the Required* sections before it)."""
     from ._io import format_rows
 
-    sections = {"tetra10": "TetrahedraP2", "triangle6": "TrianglesP2", "line3": "EdgesP2"}
+    # the section of a block by its nodes per cell (10, 6, 3)
+    sections = {width: name for name, (_, _, width) in P2_SECTIONS.items()}
     points = np.asarray(points, np.float64)
     with open(path, "w") as f:
         f.write("MeshVersionFormatted 2\n\nDimension 3\n\n")
         f.write(f"Vertices\n{len(points)}\n")
         table = np.column_stack([points, np.zeros(len(points))])
         f.write(format_rows(table, "%.17g %.17g %.17g %d\n"))
-        for kind, cells, refs in blocks:
+        for _, cells, refs in blocks:
             cells = np.asarray(cells, np.int64)
             table = np.column_stack([cells + 1, np.asarray(refs, np.int64)])
-            f.write(f"\n{sections[kind]}\n{len(cells)}\n")
+            f.write(f"\n{sections[cells.shape[1]]}\n{len(cells)}\n")
             f.write(format_rows(table, "%d" + " %d" * cells.shape[1] + "\n"))
         f.write("\nEnd\n")
 

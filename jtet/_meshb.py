@@ -73,7 +73,7 @@ def read_meshb(path: Path, source: str):
     Medit file ``path``, in its sections' order. ``MeshFileError`` for a file that is no
     such file or is damaged, ``MeshInputError`` for one of another kind of mesh (2-D,
     other volume elements)."""
-    from ._io import quadratic_corners, reading_linear
+    from ._io import _MESHIO_QUADRATIC, quadratic_corners, reading_linear
 
     data = np.fromfile(path, np.uint8)
     reader = _Reader(data, source)
@@ -103,8 +103,7 @@ def read_meshb(path: Path, source: str):
                 kind, width = P2_CELLS[code]
                 rows = reader.table(start, count, [reader.int] * (width + 1)).astype(np.int64)
                 end = start + count * (width + 1) * reader.int.itemsize
-                linear = {"tetra10": ("tetra", 4), "triangle6": ("triangle", 3)}
-                name, k = linear.get(kind, ("line", 2))
+                name, k = _MESHIO_QUADRATIC[kind]
                 blocks.append((name, quadratic_corners(rows[:, :width] - 1, k), rows[:, -1]))
             elif code in OTHER_VOLUMES:
                 name, k = OTHER_VOLUMES[code]
@@ -214,7 +213,8 @@ class _Reader:
 def write_meshb(path: Path, points: np.ndarray, blocks, required: dict) -> None:
     """Write a binary Medit file: ``points`` (n, 3) with reference 0, ``blocks``
     [(meshio cell type "line" / "triangle" / "tetra", or "line3" / "triangle6" /
-    "tetra10" (P2, in VTK's order), cells (k, j) 0-based, references (k,))], ``required`` {section name of ``REQUIRED``: 0-based ids (k,)} (empty ones are
+    "tetra10" (P2, in VTK's order), cells (k, j) 0-based, references (k,))],
+    ``required`` {section name of ``REQUIRED``: 0-based ids (k,)} (empty ones are
     left out). Version 2, or 3 when the file passes 2 GiB (see the module docstring)."""
     n = len(points)
     sizes = [len(points) * 28] + [len(c) * (c.shape[1] + 1) * 4 for _, c, _ in blocks]

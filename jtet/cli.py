@@ -338,8 +338,10 @@ def cmd_improve(args) -> int:
             f"jtet improve takes IN OUT, or several inputs with --out-dir DIR "
             f"({len(args.paths)} path(s) given)"
         )
+    from ._io import output_format
+
     src, out = (Path(p) for p in args.paths)
-    _check_output(out)
+    output_format(out)  # an unknown extension fails before the input is read
     _refuse_input_as_output(src, out, args.overwrite)
     mesh = _read_input(src, args)
     return _run_improve(mesh, out, args, str(src))
@@ -356,7 +358,7 @@ def _batch_outputs(args) -> list[tuple[Path, Path]]:
     """(input, output) of every file of ``jtet improve IN... --out-dir DIR``, checked
     before any run: a known output format, no two inputs to one output (nor to one
     figure, with --plot), no input overwritten without --overwrite."""
-    from ._io import read_files, written_files
+    from ._io import output_format, read_files, written_files
 
     if args.plot and not Path(args.plot).parent.is_dir():
         raise JtetError(f"--plot {args.plot}: {Path(args.plot).parent} is no existing directory")
@@ -370,7 +372,7 @@ def _batch_outputs(args) -> list[tuple[Path, Path]]:
     for path in args.paths:
         src = Path(path)
         out = outdir / (src.stem + (ext or src.suffix))
-        _check_output(out)
+        output_format(out)
         _refuse_input_as_output(src, out, args.overwrite)
         pairs.append((src, out))
     seen, plots = {}, {}
@@ -602,11 +604,11 @@ def cmd_convert(args) -> int:
     """``jtet convert IN OUT``: the mesh of IN in the format of OUT's extension, with what
     jtet reads and writes of every format (regions, labelled protected faces, edges and
     vertices: Gmsh physical groups, Medit references, TetGen markers, VTK arrays)."""
-    from ._io import save
+    from ._io import output_format, save
     from ._report import quality_cell_data
 
     src, out = Path(args.input), Path(args.output)
-    _check_output(out)  # an unknown extension fails before the input is read
+    output_format(out)  # an unknown extension fails before the input is read
     _refuse_input_as_output(src, out, args.overwrite)
     mesh = _read_input(src, args)
     cell_data = quality_cell_data(mesh) if args.quality_arrays else None
@@ -780,14 +782,6 @@ def _add_drop(p) -> None:
         help="leave these point or cell data arrays of the input out (an integer cell "
         "array that labels no pieces, whose interfaces improve would keep in place)",
     )
-
-
-def _check_output(out: Path) -> None:
-    """Refuse, before any work, an output ``out`` of an unknown extension (every format
-    jtet writes takes ``--quadratic`` too)."""
-    from ._io import output_format
-
-    output_format(out)
 
 
 def _add_quadratic(p) -> None:
