@@ -1185,25 +1185,18 @@ def _tetgen_faces(node: Path) -> tuple[np.ndarray, np.ndarray] | None:
     ``node`` and their (k,) boundary markers (0 without): TetGen lists the boundary and
     the constrained internal facets of its mesh there. None when there is no such file;
     an unreadable one is ignored with a warning (the mesh is in ``.node`` / ``.ele``)."""
+    from ._tetgen import _node_count_and_base, _numbers
+
     face = node.with_suffix(".face")
     if not face.is_file():
         return None
-
-    def rows(path):  # data lines, without comments
-        with open(path, errors="replace") as f:
-            for line in f:
-                data = line.split("#")[0].split()
-                if data:
-                    yield data
-
     try:
-        base = int(float(next(itertools.islice(rows(node), 1, None))[0]))  # first node id
-        # one C-level parse of every number, comments blanked first (a million faces:
-        # 0.14 s; a Python loop over the lines took 1.5 s)
-        text = re.sub(r"#[^\n]*", " ", face.read_text(errors="replace"))
-        with warnings.catch_warnings():
-            warnings.simplefilter("error")  # a word among the numbers: unreadable
-            values = np.fromstring(text, dtype=np.int64, sep=" ")
+        _, base = _node_count_and_base(node)
+        # one C-level parse of every number (a million faces: 0.14 s; a Python loop over
+        # the lines took 1.5 s); a word among them: MeshFileError, an OSError
+        values = _numbers(face)
+        if values.dtype.kind != "i":
+            raise ValueError("a number that is no integer")
         count, with_markers = int(values[0]), int(values[1]) == 1
         # a row: id, 3 nodes, [3 edge nodes (tetgen -o2)], [marker], [2 adjacent tets
         # (tetgen -nn)]: 4 or 6 columns, 7 or 9 with the edge nodes, one more with markers
