@@ -1908,7 +1908,7 @@ def _write(
         node = tmp.with_suffix(".node")
         write_tetgen(node, cells.points, cells.point_data, cells.tets, mesh.region)
         if len(mesh.protected_faces):
-            _write_tetgen_faces(tmp.with_suffix(".face"), mesh)
+            _write_tetgen_faces(tmp.with_suffix(".face"), mesh, quad)
         return
     with _quiet_meshio():
         m = _meshio_mesh(mesh, fmt, quad)
@@ -1954,20 +1954,23 @@ def format_rows(table: np.ndarray, fmt: str) -> str:
     return (fmt * len(table)) % tuple(np.asarray(table).ravel().tolist())
 
 
-def _write_tetgen_faces(path: Path, mesh: TetMesh) -> None:
+def _write_tetgen_faces(path: Path, mesh: TetMesh, quad=None) -> None:
     """The protected faces of ``mesh`` as a TetGen ``.face`` file with their labels as
     boundary markers (what TetGen writes for the boundary and the constrained facets of
     its meshes, and what ``load`` reads back), numbered from 0 like the ``.node`` file
-    (``_tetgen.write_tetgen``)."""
+    (``_tetgen.write_tetgen``). With ``quad`` (``_quadratic.quadratic_mesh(mesh)``),
+    each face also lists the nodes of its edges ab, bc, ca, as ``tetgen -o2`` writes
+    them (VTK's quadratic triangle order is the same)."""
     faces = np.asarray(mesh.protected_faces, np.int64)
+    rows = faces if quad is None else quad.cells(faces)
     table = np.column_stack(
-        [np.arange(len(faces)), faces, np.asarray(mesh.protected_face_labels, np.int64)]
+        [np.arange(len(faces)), rows, np.asarray(mesh.protected_face_labels, np.int64)]
     )
-    rows = format_rows(table, "%d %d %d %d %d\n")
+    nodes = "3 nodes" if quad is None else "3 corners a b c, the nodes of edges ab bc ca"
     with open(path, "w") as f:
-        f.write("# faces of the mesh that stay (jtet's protected faces): id, 3 nodes, label\n")
+        f.write(f"# faces of the mesh that stay (jtet's protected faces): id, {nodes}, label\n")
         f.write(f"{len(faces)} 1\n")
-        f.write(rows)
+        f.write(format_rows(table, "%d" + " %d" * (rows.shape[1] + 1) + "\n"))
 
 
 def output_format(path) -> str:

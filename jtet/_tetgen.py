@@ -5,8 +5,9 @@ TetGen writes a tet's four corners, then the nodes of its edges in the order of 
 edge table (``edge2ver`` read through ``orgpivot`` / ``destpivot``): the edges 23, 03,
 01, 12, 13, 02 (``TETGEN_MID_EDGES``; checked against TetGen 1.6's own output in the
 tests). All the edge nodes are numbered after the corners. Its ``.face`` file then
-lists three edge nodes after a face's corners, in one of two orders (all faces, or
-subfaces), which jtet does not need: they are the tets' nodes.
+lists, after a face's corners a, b, c, the nodes of its edges ab, bc, ca (``outfaces``
+and ``outsubfaces`` walk the face's edges from its origin; TetGen 1.6's own file
+agrees): ``load`` drops them (they are the tets' nodes), ``save`` writes them.
 
 ``load(path, linear=True)`` reads such a file as its corners (``linear_copy``: a
 4-node ``.ele`` beside a link to the ``.node`` file, for meshio), noting the edge nodes

@@ -241,6 +241,9 @@ def brute_force_interpolation(mesh, f, where):
 # (``edge2ver`` through ``orgpivot`` / ``destpivot``); tests/test_tetgen_o2.py checks
 # it on TetGen's own file
 TETGEN_EDGES = [(2, 3), (0, 3), (0, 1), (1, 2), (1, 3), (0, 2)]
+# and of a 6-node face's (TetGen's ``outfaces`` / ``outsubfaces`` walk the face's edges
+# from its origin with ``enext``): ab, bc, ca of the face's corners a, b, c
+TETGEN_FACE_EDGES = [(0, 1), (1, 2), (2, 0)]
 
 
 def _tetgen_rows(path: Path) -> list[list[float]]:
@@ -260,6 +263,14 @@ def tetgen_file(path: Path):
     base = int(nodes[0, 0])
     ele = np.array(_tetgen_rows(path.with_suffix(".ele"))[1:])
     return nodes[:, 1:4], ele[:, 1:11].astype(np.int64) - base, ele[:, 11:]
+
+
+def tetgen_face_file(path: Path):
+    """(6-node faces (k, 6) 0-based, markers (k,)) of the TetGen -o2 ``.face`` file
+    beside ``path``, parsed line by line (numbered from the ``.node`` file's first id)."""
+    base = int(_tetgen_rows(path.with_suffix(".node"))[1][0])
+    rows = np.array(_tetgen_rows(path.with_suffix(".face"))[1:], np.int64)
+    return rows[:, 1:7] - base, rows[:, 7]
 
 
 def gmsh_region_volumes(path) -> tuple[dict, set]:

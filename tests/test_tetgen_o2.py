@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import TETGEN_EDGES, delaunay_mesh, tetgen_file
+from helpers import TETGEN_EDGES, TETGEN_FACE_EDGES, delaunay_mesh, tetgen_face_file, tetgen_file
 
 import jtet
 from jtet._errors import MeshFileError, MeshInputError
@@ -38,6 +38,19 @@ def test_tetgen_edge_order_is_tetgens():
         mid = 0.5 * (points[good[:, a]] + points[good[:, b]])
         np.testing.assert_array_equal(points[good[:, 4 + k]], mid)
     assert (tets[0, 4:8] < 0).any() or (tets[0, 4:8] >= len(points)).any()
+
+
+def test_tetgen_face_edge_order_is_tetgens():
+    """In TetGen's own -o2 .face file the three nodes after a face's corners are the
+    midpoints of its edges in the order ``TETGEN_FACE_EDGES`` gives (ab, bc, ca), for
+    every face whose ids are nodes (one face lists element 0's wrong ids)."""
+    points, _, _ = tetgen_file(DATA / "ball.1.node")
+    faces, markers = tetgen_face_file(DATA / "ball.1.node")
+    good = (faces < len(points)).all(axis=1) & (faces >= 0).all(axis=1)
+    assert good.sum() == len(faces) - 1 and set(markers.tolist()) == {5}
+    for k, (a, b) in enumerate(TETGEN_FACE_EDGES):
+        mid = 0.5 * (points[faces[good, a]] + points[faces[good, b]])
+        np.testing.assert_array_equal(points[faces[good, 3 + k]], mid)
 
 
 def test_tetgen_o2_output_reads_as_tetgens_linear_mesh():
@@ -160,6 +173,18 @@ def test_quadratic_tetgen_output_round_trip_with_curved_edges(tmp_path):
     np.testing.assert_array_equal(again.protected_face_labels, mesh.protected_face_labels)
     np.testing.assert_array_equal(again.point_data["T"], mesh.point_data["T"])
     assert any("12 off their edges' midpoints" in s for s in said)
+    # the .face file lists each face's edge nodes as TetGen -o2 does: the tets' nodes
+    faces, markers = tetgen_face_file(out)
+    np.testing.assert_array_equal(faces[:, :3], mesh.protected_faces)
+    np.testing.assert_array_equal(markers, mesh.protected_face_labels)
+    node_of = {}
+    for k, (a, b) in enumerate(TETGEN_EDGES):
+        for t in range(len(tets)):
+            node_of[tuple(sorted((int(tets[t, a]), int(tets[t, b]))))] = int(tets[t, 4 + k])
+    for k, (a, b) in enumerate(TETGEN_FACE_EDGES):
+        for f in range(len(faces)):
+            key = tuple(sorted((int(faces[f, a]), int(faces[f, b]))))
+            assert faces[f, 3 + k] == node_of[key]
 
 
 def test_cli_improves_tetgen_o2_to_tetgen_o2(tmp_path):
