@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ._errors import MeshFileError, MeshInputError
+from ._quadratic import vtk_edge_columns
 
 # Netgen's vertex order of a tet is VTK's with the second and third swapped
 _SWAP = [0, 2, 1, 3]
@@ -43,8 +44,7 @@ _SWAP = [0, 2, 1, 3]
 # edge's midpoint lies on the curved surface)
 _MID_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]])
 # those edges of a tet in VTK's order (``_SWAP`` undone) as columns of VTK's edge nodes
-# (``_quadratic.MID_EDGES[4]``: 01 12 02 03 13 23)
-_VTK_COLUMNS = np.array([2, 0, 3, 1, 5, 4])
+_VTK_COLUMNS = vtk_edge_columns(np.array(_SWAP)[_MID_EDGES])
 # sections whose numbers jtet reads, with the number of leading columns before the
 # vertex count ("surfaceelements": surfnr bcnr domin domout np p1 p2 p3 [geometry info])
 _SURFACE = ("surfaceelements", "surfaceelementsgi", "surfaceelementsuv")

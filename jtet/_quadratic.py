@@ -34,6 +34,15 @@ MID_EDGES = {
 }
 
 
+def vtk_edge_columns(pairs: np.ndarray) -> np.ndarray:
+    """(k,) for each corner pair of ``pairs`` (k, 2) (a 10-node tet's edges in another
+    format's order, its corners numbered as VTK's), that edge's column among VTK's edge
+    nodes (``MID_EDGES[4]``)."""
+    vtk = np.sort(MID_EDGES[4], axis=1)
+    hit = (np.sort(np.asarray(pairs), axis=1)[:, None, :] == vtk[None]).all(axis=2)
+    return hit.argmax(axis=1)
+
+
 class QuadraticMesh(NamedTuple):
     """A mesh's quadratic cells. ``points`` (n + e, 3): the mesh's points, then one node
     per edge (node ``n + i`` on ``edges[i]``); ``tets`` (m, 10) in VTK's order;

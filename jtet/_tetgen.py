@@ -27,14 +27,14 @@ from pathlib import Path
 import numpy as np
 
 from ._errors import MeshFileError, MeshInputError
+from ._quadratic import vtk_edge_columns
 
 # the comment line of a ``.node`` file that names its attribute columns (meshio's)
 NAMES_COMMENT = "# attribute and marker names:"
 # corner pairs of the edge nodes of a TetGen 10-node tet, in the file's order
 TETGEN_MID_EDGES = np.array([[2, 3], [0, 3], [0, 1], [1, 2], [1, 3], [0, 2]])
-# for each of TetGen's edge nodes, its column among VTK's (``_quadratic.MID_EDGES[4]``:
-# 01, 12, 02, 03, 13, 23)
-_VTK_COLUMN = np.array([5, 3, 0, 1, 4, 2])
+# for each of TetGen's edge nodes, its column among VTK's
+_VTK_COLUMN = vtk_edge_columns(TETGEN_MID_EDGES)
 
 
 def _numbers(path: Path) -> np.ndarray:
