@@ -12,6 +12,12 @@ Jacobian (``_quadratic.jacobian_ratios``, Gmsh's ``minSJ``) below both the floor
 a curved edge count as 1 (straight-sided), so changes away from curved edges are never
 rejected. The mesh's smallest scaled Jacobian thus never falls below the smaller of the
 floor and the input's (``tests/test_curved_guard.py`` checks it after whole runs).
+
+A curved edge on a bounding surface (the boundary, an interface between regions, a
+protected face) is the geometry of that surface: its node is where the surface is, off
+the straight edge. A run never removes such an edge (``surface_curved_edges`` pins it):
+a 2-2 or 4-4 flip of its two coplanar straight faces would put a straight edge across
+the curved surface, and the quadratic output would lose the surface's shape there.
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ import numpy as np
 from jaxtyping import Bool, Float, Int
 
 from ._quadratic import MID_EDGES, jacobian_ratios_at
-from ._topology import corner_counts, match_rows
+from ._topology import TET_FACES, corner_counts, match_rows, sorted_rows
 
 
 def _curved_slots(mesh, points, tets) -> tuple[np.ndarray, np.ndarray]:
@@ -75,6 +81,37 @@ def curved_corners(mesh) -> Bool[np.ndarray, " n"]:
     if mesh.has_curved_edges:
         out[mesh.tets[_curved_slots(mesh, mesh.points, mesh.tets)[0]]] = True
     return out
+
+
+def surface_curved_edges(mesh) -> Int[np.ndarray, "k 2"]:
+    """(k, 2) the curved edges of ``mesh`` (rows of ``curved_edges.edges``) that lie on a
+    face of a bounding surface: a boundary face, a face between two regions or a
+    protected face.
+
+    Found among the tets with two or more corners on curved edges (both tets of a face
+    holding a curved edge are among them), not through a whole-mesh topology."""
+    curved = mesh.curved_edges
+    n = mesh.n_points
+    ends = np.zeros(n, bool)
+    ends[curved.edges.reshape(-1)] = True
+    near = np.flatnonzero(corner_counts(ends, mesh.tets) >= 2)
+    faces = sorted_rows(mesh.tets[near], TET_FACES).reshape(-1, 3)  # (4r, 3)
+    tet_of = np.repeat(near, 4)
+    held = ends[faces].sum(axis=1) >= 2  # only such faces can hold a curved edge
+    faces, tet_of = faces[held], tet_of[held]
+    rows, inverse, count = np.unique(faces, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    region = mesh.region[tet_of]
+    low = np.full(len(rows), np.iinfo(np.int64).max)
+    high = np.full(len(rows), np.iinfo(np.int64).min)
+    np.minimum.at(low, inverse, region)
+    np.maximum.at(high, inverse, region)
+    on_surface = (count == 1) | (low != high)
+    if len(mesh.protected_faces):
+        on_surface |= match_rows(mesh.protected_faces, rows, n) >= 0
+    sides = rows[on_surface][:, [[0, 1], [0, 2], [1, 2]]].reshape(-1, 2)
+    at = match_rows(curved.edges, sides, n)
+    return curved.edges[np.unique(at[at >= 0])]
 
 
 def worse_owners(

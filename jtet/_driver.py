@@ -527,18 +527,25 @@ def _improve(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
 
 def _improve_keeping_curved_edges(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
     """``improve`` of a mesh with curved edges (``TetMesh.curved_edges``): the run's
-    operations keep its curved tets from folding (``_curved_guard``), and the result
-    keeps the curved edges whose edge it still has, with both ends in place
-    (``_quadratic.curved_edges_kept``)."""
+    operations keep its curved tets from folding (``_curved_guard``), the curved edges
+    on bounding surfaces are protected for the run (a flip would cut straight across
+    the curved surface: ``surface_curved_edges``), and the result keeps the curved edges
+    whose edge it still has, with both ends in place (``_quadratic.curved_edges_kept``),
+    and the input's own protected edges."""
     import dataclasses
 
-    from ._curved_guard import scaled_jacobians
+    from ._curved_guard import scaled_jacobians, surface_curved_edges
     from ._quadratic import curved_edges_kept
 
-    result = _improve(mesh, opts, callback)
+    pinned = mesh._with_pinned(surface_curved_edges(mesh), np.zeros(0, np.int64))
+    result = _improve(pinned, opts, callback)
     keep = curved_edges_kept(mesh, result.mesh)
     curved = mesh.curved_edges
-    out = result.mesh.replace(curved_edges=(curved.edges[keep], curved.points[keep]))
+    out = result.mesh.replace(
+        curved_edges=(curved.edges[keep], curved.points[keep]),
+        protected_edges=mesh.protected_edges,
+        protected_edge_labels=mesh.protected_edge_labels,
+    )
     n_kept, n_lost = int(keep.sum()), int((~keep).sum())
     before = scaled_jacobians(mesh, mesh.points, mesh.tets).min()
     after = scaled_jacobians(out, out.points, out.tets).min()
@@ -548,8 +555,8 @@ def _improve_keeping_curved_edges(mesh: TetMesh, opts: Options, callback) -> Imp
         f"curved edges: {n_kept} of the input's {len(keep)} mid-edge nodes off their edge's "
         "midpoint (a curved boundary) kept for a quadratic output (--quadratic)"
         + (
-            f"; {n_lost} dropped (their edge was flipped or an end moved: a quadratic "
-            "output puts the midpoint there)"
+            f"; {n_lost} dropped (their edge, inside the volume, was flipped or an end "
+            "moved: a quadratic output puts the midpoint there)"
             if n_lost
             else ""
         ),

@@ -251,3 +251,49 @@ def test_sliding_keeps_the_ends_of_curved_edges():
     assert slid.any()
     out = jtet.improve(curved, boundary="slide", seed=0, perturb=0, max_passes=4).mesh
     np.testing.assert_array_equal(out.points[ends], mesh.points[ends])
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_surface_curved_edges_are_the_curved_edges_on_subfacets(seed):
+    """Against the whole-mesh topology: a curved edge is on a bounding surface iff one
+    of its faces is a subfacet (boundary, interface between the two regions, protected
+    face). Curved edges drawn at random among all edges, inside and on surfaces."""
+    from jtet._curved_guard import surface_curved_edges
+
+    mesh = bent_mesh(seed, n=6)
+    rng = np.random.default_rng(seed)
+    region = (mesh.points[mesh.tets].mean(axis=1)[:, 0] < 0.45).astype(np.int64)
+    inner = mesh.topology.faces[~mesh.topology.subfacet]
+    protected = inner[rng.choice(len(inner), 10, replace=False)]
+    c = mesh.curved_edges
+    some = rng.random(len(c.edges)) < 0.5
+    mesh = mesh.replace(
+        region=region, protected_faces=protected, curved_edges=(c.edges[some], c.points[some])
+    )
+    topo = mesh.topology
+    on = topo.edge_n_subfacets[topo.edge_ids(mesh.curved_edges.edges)] > 0
+    expected = mesh.curved_edges.edges[on]
+    assert 0 < len(expected) < len(mesh.curved_edges.edges)
+    got = surface_curved_edges(mesh)
+    np.testing.assert_array_equal(np.unique(got, axis=0), np.unique(expected, axis=0))
+
+
+@pytest.mark.parametrize("boundary", ["fixed", "slide"])
+def test_curved_edges_on_flat_boundary_faces_are_never_flipped(boundary):
+    """Every boundary edge of a cube mesh carries a node off its midpoint. Their faces
+    are coplanar, so without the curved nodes the run 2-2 flips some of them (the check
+    bites); with them, the run keeps every one (a flip would cut straight across the
+    curved surface) and gives back the input's own protected edges (none)."""
+    from jtet._quadratic import curved_edges_kept
+
+    mesh = delaunay_mesh(150, seed=0, surface_points=80)
+    topo = mesh.topology
+    faces = topo.faces[topo.subfacet]
+    edges = np.unique(np.sort(faces[:, [[0, 1], [1, 2], [0, 2]]].reshape(-1, 2), axis=1), axis=0)
+    curved = mesh.replace(curved_edges=(edges, mesh.points[edges].mean(axis=1) + 1e-4))
+    plain = jtet.improve(mesh, boundary=boundary, seed=0).mesh
+    assert (plain.topology.edge_ids(edges) < 0).any()
+    out = jtet.improve(curved, boundary=boundary, seed=0).mesh
+    assert curved_edges_kept(curved, out).all()
+    assert len(out.protected_edges) == 0 and len(out.protected_edge_labels) == 0
+    assert out.curved_edges.edges.shape == edges.shape
