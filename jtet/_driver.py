@@ -555,8 +555,8 @@ def _improve_keeping_curved_edges(mesh: TetMesh, opts: Options, callback) -> Imp
         f"curved edges: {n_kept} of the input's {len(keep)} mid-edge nodes off their edge's "
         "midpoint (a curved boundary) kept for a quadratic output (--quadratic)"
         + (
-            f"; {n_lost} dropped (their edge, inside the volume, was flipped or an end "
-            "moved: a quadratic output puts the midpoint there)"
+            f"; {n_lost} dropped (not an edge of the output with both ends in place: "
+            "flipped or moved inside the volume; a quadratic output puts the midpoint there)"
             if n_lost
             else ""
         ),
