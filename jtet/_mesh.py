@@ -449,8 +449,10 @@ class TetMesh:
         curved_edges: ``CurvedEdges``: the mid-edge nodes of a quadratic input that lie
             off their edge's midpoint (a curved boundary), read with ``load(path,
             linear=True)``, for a quadratic output (``save(..., quadratic=True)``).
-            ``improve`` keeps those whose edge and end vertices it leaves in place;
-            ``replace`` with new points drops those whose end vertices moved.
+            ``improve`` keeps those whose edge and end vertices it leaves in place
+            (every one on a bounding surface: it flips none of them and moves none of
+            their ends); ``replace`` with new points drops those whose end vertices
+            moved.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it
