@@ -10,7 +10,8 @@ triangles at a diagonal are coplanar, so a 2-2 flip could replace the diagonal b
 other one, straight across the curved surface.
 
 Each mesh is improved twice: as loaded (its curved edges on the surface are protected
-for the run, ``_curved_guard.surface_curved_edges``) and without its curved edges (a
+for the run when their node is off the plane of their faces,
+``_curved_guard.surface_curved_edges``) and without its curved edges (a
 linear mesh: the flips are free). The table counts the curved edges each output still
 has (the linear run's: those of its edges that are the input's curved ones), the worst
 and largest dihedral angles, and the time of each run and of ``surface_curved_edges``.
@@ -84,7 +85,7 @@ def main() -> None:
                     "input",
                     mesh.n_tets,
                     before,
-                    f"{n_curved} ({len(on_surface)} on surfaces)",
+                    f"{n_curved} ({len(on_surface)} bending a surface)",
                     f"find {t_find:.3f}",
                 )
             )

@@ -14,10 +14,12 @@ rejected. The mesh's smallest scaled Jacobian thus never falls below the smaller
 floor and the input's (``tests/test_curved_guard.py`` checks it after whole runs).
 
 A curved edge on a bounding surface (the boundary, an interface between regions, a
-protected face) is the geometry of that surface: its node is where the surface is, off
-the straight edge. A run never removes such an edge (``surface_curved_edges`` pins it):
-a 2-2 or 4-4 flip of its two coplanar straight faces would put a straight edge across
-the curved surface, and the quadratic output would lose the surface's shape there.
+protected face) whose node is off the plane of its faces is the geometry of that
+surface: the surface bends there. A run never removes such an edge
+(``surface_curved_edges`` pins it): a 2-2 or 4-4 flip of its two coplanar straight faces
+would put a straight edge across the curved surface, and the quadratic output would lose
+the surface's shape there. An edge bent within the plane of its two faces (a node moved
+along a flat face) may be flipped: the two faces cover the same plane either way.
 """
 
 from __future__ import annotations
@@ -83,10 +85,17 @@ def curved_corners(mesh) -> Bool[np.ndarray, " n"]:
     return out
 
 
+# A node farther than this times its edge's length from the plane of a face holding the
+# edge bends the surface (the reader's threshold for a node off its edge's midpoint:
+# ``_io._curved_edges``)
+OFF_PLANE = 1e-6
+
+
 def surface_curved_edges(mesh) -> Int[np.ndarray, "k 2"]:
     """(k, 2) the curved edges of ``mesh`` (rows of ``curved_edges.edges``) that lie on a
-    face of a bounding surface: a boundary face, a face between two regions or a
-    protected face.
+    face of a bounding surface (a boundary face, a face between two regions or a
+    protected face) with their node off that face's plane (by more than ``OFF_PLANE``
+    times the edge's length; a degenerate face counts as bent).
 
     Found among the tets with two or more corners on curved edges (both tets of a face
     holding a curved edge are among them), not through a whole-mesh topology."""
@@ -109,9 +118,19 @@ def surface_curved_edges(mesh) -> Int[np.ndarray, "k 2"]:
     on_surface = (count == 1) | (low != high)
     if len(mesh.protected_faces):
         on_surface |= match_rows(mesh.protected_faces, rows, n) >= 0
-    sides = rows[on_surface][:, [[0, 1], [0, 2], [1, 2]]].reshape(-1, 2)
-    at = match_rows(curved.edges, sides, n)
-    return curved.edges[np.unique(at[at >= 0])]
+    surface = rows[on_surface]
+    at = match_rows(curved.edges, surface[:, [[0, 1], [0, 2], [1, 2]]].reshape(-1, 2), n)
+    hit = np.flatnonzero(at >= 0)
+    corners = mesh.points[surface[hit // 3]]  # (h, 3, 3): the face of each curved side
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    node = curved.points[at[hit]]
+    ends = mesh.points[curved.edges[at[hit]]]
+    height = np.abs(np.einsum("ij,ij->i", node - corners[:, 0], normal))
+    # |(node - c0) . normal| > tol * |b - a| * |normal|: no division by a zero normal
+    length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)
+    bent = height > OFF_PLANE * length * np.linalg.norm(normal, axis=1)
+    bent |= ~normal.any(axis=1)
+    return curved.edges[np.unique(at[hit[bent]])]
 
 
 def worse_owners(

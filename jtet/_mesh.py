@@ -450,8 +450,8 @@ class TetMesh:
             off their edge's midpoint (a curved boundary), read with ``load(path,
             linear=True)``, for a quadratic output (``save(..., quadratic=True)``).
             ``improve`` keeps those whose edge and end vertices it leaves in place
-            (every one on a bounding surface: it flips none of them and moves none of
-            their ends); ``replace`` with new points drops those whose end vertices
+            (every one bending a bounding surface: it flips none of them and moves
+            none of their ends); ``replace`` with new points drops those whose end vertices
             moved.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks

@@ -254,11 +254,13 @@ def test_sliding_keeps_the_ends_of_curved_edges():
 
 
 @pytest.mark.parametrize("seed", [0, 3])
-def test_surface_curved_edges_are_the_curved_edges_on_subfacets(seed):
-    """Against the whole-mesh topology: a curved edge is on a bounding surface iff one
-    of its faces is a subfacet (boundary, interface between the two regions, protected
-    face). Curved edges drawn at random among all edges, inside and on surfaces."""
-    from jtet._curved_guard import surface_curved_edges
+def test_surface_curved_edges_are_the_curved_edges_bending_a_subfacet(seed):
+    """Against a brute force over the whole-mesh topology's subfacets (boundary faces,
+    faces between the two regions, protected faces): a curved edge is pinned iff its node
+    is off the plane of one of the subfacets holding it. Curved edges drawn at random
+    among all edges, inside and on surfaces; half of those on surfaces bent within the
+    plane of one of their subfacets (flat boundary faces: within both)."""
+    from jtet._curved_guard import OFF_PLANE, surface_curved_edges
 
     mesh = bent_mesh(seed, n=6)
     rng = np.random.default_rng(seed)
@@ -267,23 +269,44 @@ def test_surface_curved_edges_are_the_curved_edges_on_subfacets(seed):
     protected = inner[rng.choice(len(inner), 10, replace=False)]
     c = mesh.curved_edges
     some = rng.random(len(c.edges)) < 0.5
-    mesh = mesh.replace(
-        region=region, protected_faces=protected, curved_edges=(c.edges[some], c.points[some])
-    )
+    mesh = mesh.replace(region=region, protected_faces=protected)
     topo = mesh.topology
-    on = topo.edge_n_subfacets[topo.edge_ids(mesh.curved_edges.edges)] > 0
-    expected = mesh.curved_edges.edges[on]
-    assert 0 < len(expected) < len(mesh.curved_edges.edges)
+    edges, nodes = c.edges[some], c.points[some].copy()
+    sub = topo.faces[topo.subfacet]
+    holding = [sub[(sub == a).any(axis=1) & (sub == b).any(axis=1)] for a, b in edges.tolist()]
+    for i, faces in enumerate(holding):
+        if len(faces) and rng.random() < 0.5:  # bend it towards its first face's corner
+            a, b = edges[i]
+            x = (set(faces[0].tolist()) - {a, b}).pop()
+            mid = mesh.points[[a, b]].mean(axis=0)
+            nodes[i] = mid + 0.05 * (mesh.points[x] - mid)
+    mesh = mesh.replace(curved_edges=(edges, nodes))
+
+    def bends(i: int) -> bool:
+        a, b = mesh.points[edges[i]]
+        for face in holding[i]:
+            p = mesh.points[face]
+            normal = np.cross(p[1] - p[0], p[2] - p[0])
+            height = abs(np.dot(nodes[i] - p[0], normal)) / np.linalg.norm(normal)
+            if height > OFF_PLANE * np.linalg.norm(b - a):
+                return True
+        return False
+
+    expected = edges[[bends(i) for i in range(len(edges))]]
+    on_surface = sum(len(f) > 0 for f in holding)
+    assert 0 < len(expected) < on_surface < len(edges)
     got = surface_curved_edges(mesh)
     np.testing.assert_array_equal(np.unique(got, axis=0), np.unique(expected, axis=0))
 
 
 @pytest.mark.parametrize("boundary", ["fixed", "slide"])
 def test_curved_edges_on_flat_boundary_faces_are_never_flipped(boundary):
-    """Every boundary edge of a cube mesh carries a node off its midpoint. Their faces
-    are coplanar, so without the curved nodes the run 2-2 flips some of them (the check
-    bites); with them, the run keeps every one (a flip would cut straight across the
-    curved surface) and gives back the input's own protected edges (none)."""
+    """Every boundary edge of a cube mesh carries a node off its midpoint and off the
+    cube's faces. Their faces are coplanar, so without the curved nodes the run 2-2 flips
+    some of them (the check bites); with them, the run keeps every one (a flip would cut
+    straight across the curved surface) and gives back the input's own protected edges
+    (none). Bent within the cube's faces, they may be flipped."""
+    from jtet._curved_guard import surface_curved_edges
     from jtet._quadratic import curved_edges_kept
 
     mesh = delaunay_mesh(150, seed=0, surface_points=80)
@@ -297,3 +320,16 @@ def test_curved_edges_on_flat_boundary_faces_are_never_flipped(boundary):
     assert curved_edges_kept(curved, out).all()
     assert len(out.protected_edges) == 0 and len(out.protected_edge_labels) == 0
     assert out.curved_edges.edges.shape == edges.shape
+    # bent within the cube's faces instead (towards a corner of a boundary face holding
+    # the edge): the faces cover the same planes either way, so such edges are flipped
+    sides = faces[:, [[0, 1], [0, 2], [1, 2]]].reshape(-1, 2)
+    holder = faces[match_rows(sides, edges, mesh.n_points) // 3]
+    third = holder.sum(axis=1) - edges.sum(axis=1)
+    mid = mesh.points[edges].mean(axis=1)
+    flat = mesh.replace(curved_edges=(edges, mid + 0.05 * (mesh.points[third] - mid)))
+    # pinned: the cube's 12 edges only, bent within one face and off the other (no flip
+    # removes such an edge anyway: a subsegment)
+    pinned = surface_curved_edges(flat)
+    assert len(pinned) == 12 and topo.subsegment[topo.edge_ids(pinned)].all()
+    out = jtet.improve(flat, boundary=boundary, seed=0).mesh
+    assert not curved_edges_kept(flat, out).all()
