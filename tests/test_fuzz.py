@@ -25,10 +25,12 @@ from hypothesis import strategies as st
 from strategies import DAMAGE_OPS, build_mesh, mesh_specs, options
 
 import jtet
+from jtet._curved_guard import surface_curved_edges
 from jtet._edge_removal import edge_removal_pass
 from jtet._invariants import InvariantChecker
 from jtet._point_data import moved_vertices
-from jtet._quadratic import MID_EDGES, folded_tets, quadratic_mesh
+from jtet._quadratic import MID_EDGES, curved_edges_kept, folded_tets, quadratic_mesh
+from jtet._topology import match_rows
 
 PROFILE = os.environ.get("JTET_FUZZ_PROFILE", "ci")
 TOTAL = int(os.environ.get("JTET_FUZZ_CASES", 100_000 if PROFILE == "long" else 1600))
@@ -334,3 +336,8 @@ def test_improve_guards_curved_tets(spec, opts, data):
     # the ratios are quotients of float64 determinants: the same up to round-off
     (_, before), (_, after) = (folded_tets(quadratic_mesh(m)) for m in (bent, result.mesh))
     assert after >= min(floor, before) - 1e-9, (spec, opts, floor, before, after)
+    # the curved edges bending a bounding surface all come out with their nodes, and the
+    # run's pins on them do not stay protected
+    pinned = match_rows(bent.curved_edges.edges, surface_curved_edges(bent), bent.n_points)
+    assert curved_edges_kept(bent, result.mesh)[pinned].all(), (spec, opts)
+    np.testing.assert_array_equal(result.mesh.protected_edges, bent.protected_edges)
