@@ -556,7 +556,8 @@ def _improve_keeping_curved_edges(mesh: TetMesh, opts: Options, callback) -> Imp
         "midpoint (a curved boundary) kept for a quadratic output (--quadratic)"
         + (
             f"; {n_lost} dropped (not an edge of the output with both ends in place: "
-            "flipped or moved inside the volume; a quadratic output puts the midpoint there)"
+            "flipped inside the volume or within a flat face, or an end moved inside the "
+            "volume; a quadratic output puts the midpoint there)"
             if n_lost
             else ""
         ),
