@@ -28,7 +28,7 @@ import numpy as np
 from jaxtyping import Bool, Float, Int
 
 from ._quadratic import MID_EDGES, jacobian_ratios_at
-from ._topology import TET_FACES, corner_counts, match_rows, sorted_rows
+from ._topology import TET_FACES, corner_counts, match_rows, row_keys, sorted_rows
 
 
 def _curved_slots(mesh, points, tets) -> tuple[np.ndarray, np.ndarray]:
@@ -108,8 +108,11 @@ def surface_curved_edges(mesh) -> Int[np.ndarray, "k 2"]:
     tet_of = np.repeat(near, 4)
     held = ends[faces].sum(axis=1) >= 2  # only such faces can hold a curved edge
     faces, tet_of = faces[held], tet_of[held]
-    rows, inverse, count = np.unique(faces, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
+    # grouped by one int64 key per face (np.unique over rows sorts them 10x slower)
+    _, first, inverse, count = np.unique(
+        row_keys(faces, n), return_index=True, return_inverse=True, return_counts=True
+    )
+    rows, inverse = faces[first], inverse.reshape(-1)
     region = mesh.region[tet_of]
     low = np.full(len(rows), np.iinfo(np.int64).max)
     high = np.full(len(rows), np.iinfo(np.int64).min)

@@ -529,9 +529,9 @@ def _improve_keeping_curved_edges(mesh: TetMesh, opts: Options, callback) -> Imp
     """``improve`` of a mesh with curved edges (``TetMesh.curved_edges``): the run's
     operations keep its curved tets from folding (``_curved_guard``), the curved edges
     that bend a bounding surface are protected for the run (a flip would cut straight
-    across the curved surface: ``surface_curved_edges``), and the result keeps the curved edges
-    whose edge it still has, with both ends in place (``_quadratic.curved_edges_kept``),
-    and the input's own protected edges."""
+    across the curved surface: ``surface_curved_edges``), and the result keeps the
+    curved edges whose edge it still has, with both ends in place
+    (``_quadratic.curved_edges_kept``), and the input's own protected edges."""
     import dataclasses
 
     from ._curved_guard import scaled_jacobians, surface_curved_edges

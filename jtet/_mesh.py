@@ -451,8 +451,8 @@ class TetMesh:
             linear=True)``, for a quadratic output (``save(..., quadratic=True)``).
             ``improve`` keeps those whose edge and end vertices it leaves in place
             (every one bending a bounding surface: it flips none of them and moves
-            none of their ends); ``replace`` with new points drops those whose end vertices
-            moved.
+            none of their ends); ``replace`` with new points drops those whose end
+            vertices moved.
 
     Methods that transform a mesh return a new ``TetMesh``. The constructor checks
     shapes, finiteness and index ranges; use ``TetMesh.from_arrays`` for user input (it
