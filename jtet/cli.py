@@ -525,7 +525,8 @@ def cmd_stats(args) -> int:
         if f["curved"]:
             c = f["curved"]
             print(
-                f"{name}quadratic: {c['edges']} curved edges; {c['folded_tets']} tet(s) "
+                f"{name}quadratic: {c['edges']} curved edges ({c['surface_edges']} bend a "
+                f"bounding surface: improve flips none of them); {c['folded_tets']} tet(s) "
                 "folded (a non-positive Jacobian at a node); smallest scaled Jacobian "
                 f"(Gmsh's minSJ) {c['min_scaled_jacobian']:.3f}"
             )
@@ -567,11 +568,13 @@ def _mesh_summary(
         raise JtetError(f"{path}: {e}") from None
     curved = None
     if mesh.has_curved_edges:  # a quadratic file read with --linear: its tets as written
+        from ._curved_guard import surface_curved_edges
         from ._quadratic import folded_tets, quadratic_mesh
 
         n_folded, smallest = folded_tets(quadratic_mesh(mesh))
         curved = {
             "edges": len(mesh.curved_edges.edges),
+            "surface_edges": len(surface_curved_edges(mesh)),
             "folded_tets": n_folded,
             "min_scaled_jacobian": smallest,
         }
