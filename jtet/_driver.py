@@ -537,7 +537,8 @@ def _improve_keeping_curved_edges(mesh: TetMesh, opts: Options, callback) -> Imp
     from ._curved_guard import scaled_jacobians, surface_curved_edges
     from ._quadratic import curved_edges_kept
 
-    pinned = mesh._with_pinned(surface_curved_edges(mesh), np.zeros(0, np.int64))
+    surface = surface_curved_edges(mesh)
+    pinned = mesh._with_pinned(surface, np.zeros(0, np.int64))
     result = _improve(pinned, opts, callback)
     keep = curved_edges_kept(mesh, result.mesh)
     curved = mesh.curved_edges
@@ -553,7 +554,8 @@ def _improve_keeping_curved_edges(mesh: TetMesh, opts: Options, callback) -> Imp
     notes = [
         *result.notes,
         f"curved edges: {n_kept} of the input's {len(keep)} mid-edge nodes off their edge's "
-        "midpoint (a curved boundary) kept for a quadratic output (--quadratic)"
+        "midpoint (a curved boundary) kept for a quadratic output (--quadratic); "
+        f"{len(surface)} bend a bounding surface and were never flipped"
         + (
             f"; {n_lost} dropped (not an edge of the output with both ends in place: "
             "flipped inside the volume or within a flat face, or an end moved inside the "

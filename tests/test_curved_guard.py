@@ -316,8 +316,10 @@ def test_curved_edges_on_flat_boundary_faces_are_never_flipped(boundary):
     curved = mesh.replace(curved_edges=(edges, mesh.points[edges].mean(axis=1) + 1e-4))
     plain = jtet.improve(mesh, boundary=boundary, seed=0).mesh
     assert (plain.topology.edge_ids(edges) < 0).any()
-    out = jtet.improve(curved, boundary=boundary, seed=0).mesh
+    result = jtet.improve(curved, boundary=boundary, seed=0)
+    out = result.mesh
     assert curved_edges_kept(curved, out).all()
+    assert any(f"{len(edges)} bend a bounding surface and were never" in n for n in result.notes)
     assert len(out.protected_edges) == 0 and len(out.protected_edge_labels) == 0
     assert out.curved_edges.edges.shape == edges.shape
     # bent within the cube's faces instead (towards a corner of a boundary face holding
