@@ -14,6 +14,16 @@ sets those integrals beside jtet's own sums of tet volumes and triangle areas.
 ``--write-fixture DIR`` (run it with the dolfinx Python) writes ``dolfinx_cube.xdmf`` /
 ``.h5``, the dolfinx-written file ``tests/test_xdmf.py`` reads: a 4x4x4 unit cube, cell
 tags 1 (x < 0.5) and 2, the exterior facets tagged 1-6 by side.
+
+``--quadratic-check H [H ...]``: Gmsh's second-order ball in a box at each size h
+(``quadratic_ball.py``), read with ``linear=True``, improved, and written with
+``quadratic=True`` as ``.xdmf`` (``Tetrahedron_10``, VTK's node order) and ``.msh``.
+dolfinx reads the ``.xdmf`` as a degree-2 mesh and integrates 1 over each region on its
+curved geometry; Gmsh integrates its own Jacobians over the ``.msh``. A wrong node order
+would bend the tets elsewhere: the two volumes would differ, and differ from the linear
+tets' by more than the curved boundary does.
+
+    python experiments/dolfinx_xdmf.py --quadratic-check 0.2 0.12 0.08
 """
 
 from __future__ import annotations
@@ -102,14 +112,85 @@ def _mesh(name: str):
     return mesh
 
 
+def _read_with_dolfinx(python: str, path: Path, facets: bool) -> tuple[dict, float]:
+    """(dolfinx's JSON line for the file at ``path``, seconds)."""
+    t0 = time.perf_counter()
+    run = subprocess.run(
+        [python, "-c", _READ_WITH_DOLFINX, str(path), "1" if facets else "0"],
+        capture_output=True,
+        text=True,
+    )
+    seconds = time.perf_counter() - t0
+    if run.returncode:
+        sys.exit(f"{path.name}: dolfinx failed:\n{run.stderr[-2000:]}")
+    return json.loads(run.stdout.strip().splitlines()[-1]), seconds
+
+
+def quadratic_check(sizes: list[float], python: str) -> None:
+    """Print the table of ``--quadratic-check``: each region's volume by jtet's linear
+    tets, by Gmsh over jtet's quadratic ``.msh`` and by dolfinx over its ``.xdmf``."""
+    import warnings
+
+    import numpy as np
+
+    import jtet
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from quadratic_ball import gmsh_measures, write_second_order
+
+    print(
+        "| h | region | tets | linear tets | Gmsh, .msh | dolfinx, .xdmf | dolfinx - Gmsh "
+        "| box sides (dolfinx) | max area - 1 |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the --linear read's note on the dropped nodes
+        for h in sizes:
+            src = Path(tmp) / f"order2_{h}.msh"
+            write_second_order(src, h)
+            mesh = jtet.improve(jtet.load(src, linear=True), seed=0).mesh
+            # the box's sides as facet tags (6-node triangles in the file): each has area 1
+            T = mesh.topology
+            faces = T.faces[T.boundary_face]
+            centre = mesh.points[faces].mean(axis=1)
+            axis = np.argmin(np.minimum(centre, 1 - centre), axis=1)
+            side = 1 + 2 * axis + (centre[np.arange(len(faces)), axis] > 0.5)
+            mesh = mesh.replace(protected_faces=faces, protected_face_labels=side)
+            xdmf, msh = Path(tmp) / f"improved_{h}.xdmf", Path(tmp) / f"improved_{h}.msh"
+            jtet.save(mesh, xdmf, quadratic=True)
+            jtet.save(mesh, msh, quadratic=True)
+            found, _ = _read_with_dolfinx(python, xdmf, facets=True)
+            sides = found["area"].values()
+            area_error = max(abs(a - 1.0) for a in sides) if sides else float("nan")
+            by_gmsh = gmsh_measures(msh)
+            for (dim, label), name in sorted(mesh.label_names.items()):
+                if dim != 3:
+                    continue
+                linear = mesh.volumes[mesh.region == label].sum()
+                gmsh_volume = by_gmsh[name][0]
+                dolfinx_volume = found["volume"][str(label)]
+                print(
+                    f"| {h} | {name} | {found['tets']} | {linear:.9f} | {gmsh_volume:.9f} | "
+                    f"{dolfinx_volume:.9f} | {dolfinx_volume - gmsh_volume:+.1e} | "
+                    f"{len(found['area'])} | {area_error:.1e} |"
+                )
+    print(
+        f"\ndolfinx {found['version']}; the ball's own volume: {4 / 3 * 3.141592653589793 * 0.25**3:.9f}"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--meshes", default="demo,two_regions")
     ap.add_argument("--dolfinx-python", default="/usr/bin/python3")
     ap.add_argument("--write-fixture", metavar="DIR")
+    ap.add_argument("--quadratic-check", type=float, nargs="+", metavar="H")
     args = ap.parse_args()
     if args.write_fixture:
         write_fixture(Path(args.write_fixture))
+        return
+    if args.quadratic_check:
+        quadratic_check(args.quadratic_check, args.dolfinx_python)
         return
     import numpy as np
 
@@ -122,16 +203,7 @@ def main() -> None:
             result = jtet.improve(mesh)
             out = Path(tmp) / f"{name.replace(':', '_')}.xdmf"
             jtet.save(result.mesh, out)
-            t0 = time.perf_counter()
-            run = subprocess.run(
-                [args.dolfinx_python, "-c", _READ_WITH_DOLFINX, str(out), "1"],
-                capture_output=True,
-                text=True,
-            )
-            seconds = time.perf_counter() - t0
-            if run.returncode:
-                sys.exit(f"{name}: dolfinx failed:\n{run.stderr[-2000:]}")
-            found = json.loads(run.stdout.strip().splitlines()[-1])
+            found, seconds = _read_with_dolfinx(args.dolfinx_python, out, facets=True)
             m = result.mesh
             p = m.points[m.protected_faces]
             area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
