@@ -136,7 +136,7 @@ def quadratic_check(sizes: list[float], python: str) -> None:
     import jtet
 
     sys.path.insert(0, str(Path(__file__).parent))
-    from quadratic_ball import gmsh_measures, write_second_order
+    from quadratic_ball import RADIUS, gmsh_measures, write_second_order
 
     print(
         "| h | region | tets | linear tets | Gmsh, .msh | dolfinx, .xdmf | dolfinx - Gmsh "
@@ -174,9 +174,8 @@ def quadratic_check(sizes: list[float], python: str) -> None:
                     f"{dolfinx_volume:.9f} | {dolfinx_volume - gmsh_volume:+.1e} | "
                     f"{len(found['area'])} | {area_error:.1e} |"
                 )
-    print(
-        f"\ndolfinx {found['version']}; the ball's own volume: {4 / 3 * 3.141592653589793 * 0.25**3:.9f}"
-    )
+    sphere = 4 / 3 * np.pi * RADIUS**3
+    print(f"\ndolfinx {found['version']}; the ball's own volume: {sphere:.9f}")
 
 
 def main() -> None:

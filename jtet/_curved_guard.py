@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 from jaxtyping import Bool, Float, Int
 
-from ._quadratic import MID_EDGES, jacobian_ratios_at
+from ._quadratic import CURVED_TOL, MID_EDGES, jacobian_ratios_at
 from ._topology import TET_FACES, corner_counts, match_rows, row_keys, sorted_rows
 
 
@@ -85,17 +85,11 @@ def curved_corners(mesh) -> Bool[np.ndarray, " n"]:
     return out
 
 
-# A node farther than this times its edge's length from the plane of a face holding the
-# edge bends the surface (the reader's threshold for a node off its edge's midpoint:
-# ``_io._curved_edges``)
-OFF_PLANE = 1e-6
-
-
 def surface_curved_edges(mesh) -> Int[np.ndarray, "k 2"]:
     """(k, 2) the curved edges of ``mesh`` (rows of ``curved_edges.edges``) that lie on a
     face of a bounding surface (a boundary face, a face between two regions or a
-    protected face) with their node off that face's plane (by more than ``OFF_PLANE``
-    times the edge's length; a degenerate face counts as bent).
+    protected face) with their node off that face's plane (by more than
+    ``_quadratic.CURVED_TOL`` times the edge's length; a degenerate face counts as bent).
 
     Found among the tets with two or more corners on curved edges (both tets of a face
     holding a curved edge are among them), not through a whole-mesh topology."""
@@ -131,7 +125,7 @@ def surface_curved_edges(mesh) -> Int[np.ndarray, "k 2"]:
     height = np.abs(np.einsum("ij,ij->i", node - corners[:, 0], normal))
     # |(node - c0) . normal| > tol * |b - a| * |normal|: no division by a zero normal
     length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)
-    bent = height > OFF_PLANE * length * np.linalg.norm(normal, axis=1)
+    bent = height > CURVED_TOL * length * np.linalg.norm(normal, axis=1)
     bent |= ~normal.any(axis=1)
     return curved.edges[np.unique(at[hit[bent]])]
 

@@ -1480,9 +1480,11 @@ def _curved_edges(points: np.ndarray, found: list):
     first[ids[::-1]] = np.arange(len(ids) - 1, -1, -1)
     first = first[first >= 0]
     ids, ends = ids[first], np.sort(ends[first], axis=1)
+    from ._quadratic import CURVED_TOL
+
     a, b = points[ends[:, 0]], points[ends[:, 1]]
     off = np.linalg.norm(points[ids] - 0.5 * (a + b), axis=1)
-    bent = off > 1e-6 * np.linalg.norm(b - a, axis=1)
+    bent = off > CURVED_TOL * np.linalg.norm(b - a, axis=1)
     return ends[bent], points[ids[bent]]
 
 

@@ -32,6 +32,11 @@ MID_EDGES = {
     3: np.array([[0, 1], [1, 2], [0, 2]]),
     2: np.array([[0, 1]]),
 }
+# A mid-edge node bends its edge (a curved edge, ``TetMesh.curved_edges``) when it lies
+# farther than this times the edge's length off the edge's midpoint, and a bounding
+# surface when that far off the plane of a face holding the edge: more than the rounding
+# of a node written as text with a few digits
+CURVED_TOL = 1e-6
 
 
 def vtk_edge_columns(pairs: np.ndarray) -> np.ndarray:

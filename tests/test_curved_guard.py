@@ -260,7 +260,8 @@ def test_surface_curved_edges_are_the_curved_edges_bending_a_subfacet(seed):
     is off the plane of one of the subfacets holding it. Curved edges drawn at random
     among all edges, inside and on surfaces; half of those on surfaces bent within the
     plane of one of their subfacets (flat boundary faces: within both)."""
-    from jtet._curved_guard import OFF_PLANE, surface_curved_edges
+    from jtet._curved_guard import surface_curved_edges
+    from jtet._quadratic import CURVED_TOL
 
     mesh = bent_mesh(seed, n=6)
     rng = np.random.default_rng(seed)
@@ -288,7 +289,7 @@ def test_surface_curved_edges_are_the_curved_edges_bending_a_subfacet(seed):
             p = mesh.points[face]
             normal = np.cross(p[1] - p[0], p[2] - p[0])
             height = abs(np.dot(nodes[i] - p[0], normal)) / np.linalg.norm(normal)
-            if height > OFF_PLANE * np.linalg.norm(b - a):
+            if height > CURVED_TOL * np.linalg.norm(b - a):
                 return True
         return False
 
