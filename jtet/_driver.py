@@ -790,10 +790,10 @@ def _boundary_faces_at(tets: np.ndarray, on: np.ndarray, k: int) -> np.ndarray:
 def _boundary_edges_between(tets, verts, n: int) -> np.ndarray:
     """(k, 2) sorted rows: the edges of boundary faces of ``tets`` (m, 4) whose two
     vertices are both in ``verts`` (j,) of ``n``."""
-    on = np.zeros(n, bool)
-    on[verts] = True
     from ._topology import row_keys
 
+    on = np.zeros(n, bool)
+    on[verts] = True
     edges = _boundary_faces_at(tets, on, 2)[:, [[0, 1], [0, 2], [1, 2]]].reshape(-1, 2)
     edges = edges[on[edges].all(axis=1)]
     _, first = np.unique(row_keys(edges, n), return_index=True)
