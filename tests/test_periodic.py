@@ -193,10 +193,12 @@ def test_three_way_periodic_rve(tmp_path):
 @pytest.mark.parametrize("seed", range(4))
 def test_boundary_edges_between_match_the_topology(seed):
     """The periodic run's pinned edges, found among the tets with two or more corners in
-    the vertex set, are the whole-mesh topology's boundary edges with both ends in it."""
+    the vertex set, are the whole-mesh topology's boundary edges with both ends in it;
+    the seam's boundary faces with a vertex in the set are the topology's too (rows in
+    lexicographic order, as np.unique over rows gives them)."""
     from helpers import delaunay_mesh
 
-    from jtet._driver import _boundary_edges_between
+    from jtet._driver import _boundary_edges_between, _boundary_faces_at
 
     mesh = delaunay_mesh(300, seed=seed, surface_points=150)
     rng = np.random.default_rng(seed)
@@ -214,3 +216,9 @@ def test_boundary_edges_between_match_the_topology(seed):
     got = _boundary_edges_between(mesh.tets, verts, mesh.n_points)
     assert len(expected) > 20
     np.testing.assert_array_equal(got, expected)
+    faces = np.sort(T.faces[T.boundary_face], axis=1)
+    for k in (1, 2, 3):
+        expected = np.unique(faces[on[faces].sum(axis=1) >= k], axis=0)
+        got = _boundary_faces_at(mesh.tets, on, k)
+        assert len(expected) > 10
+        np.testing.assert_array_equal(got, expected)
