@@ -28,7 +28,7 @@ import numpy as np
 from jaxtyping import Bool, Float, Int
 
 from ._quadratic import CURVED_TOL, MID_EDGES, jacobian_ratios_at
-from ._topology import TET_FACES, corner_counts, match_rows, row_keys, sorted_rows
+from ._topology import corner_counts, faces_at, match_rows, row_keys
 
 
 def _curved_slots(mesh, points, tets) -> tuple[np.ndarray, np.ndarray]:
@@ -97,11 +97,7 @@ def surface_curved_edges(mesh) -> Int[np.ndarray, "k 2"]:
     n = mesh.n_points
     ends = np.zeros(n, bool)
     ends[curved.edges.reshape(-1)] = True
-    near = np.flatnonzero(corner_counts(ends, mesh.tets) >= 2)
-    faces = sorted_rows(mesh.tets[near], TET_FACES).reshape(-1, 3)  # (4r, 3)
-    tet_of = np.repeat(near, 4)
-    held = ends[faces].sum(axis=1) >= 2  # only such faces can hold a curved edge
-    faces, tet_of = faces[held], tet_of[held]
+    faces, tet_of = faces_at(mesh.tets, ends, 2)  # only such faces can hold a curved edge
     # grouped by one int64 key per face (np.unique over rows sorts them 10x slower)
     _, first, inverse, count = np.unique(
         row_keys(faces, n), return_index=True, return_inverse=True, return_counts=True

@@ -776,11 +776,9 @@ def _boundary_faces_at(tets: np.ndarray, on: np.ndarray, k: int) -> np.ndarray:
     such a face, and every tet holding one is among them: the faces are counted there,
     not through a whole-mesh topology, which the run on the pinned mesh builds again
     anyway (its subsegments change)."""
-    from ._topology import TET_FACES, corner_counts, row_keys
+    from ._topology import faces_at, row_keys
 
-    near = tets[corner_counts(on, tets) >= k]
-    faces = np.sort(near[:, TET_FACES].reshape(-1, 3), axis=1)
-    faces = faces[on[faces].sum(axis=1) >= k]
+    faces, _ = faces_at(tets, on, k)
     # one int64 key per face, in the rows' lexicographic order (np.unique over rows
     # sorts them as structured records: ~5x slower)
     _, first, count = np.unique(row_keys(faces, len(on)), return_index=True, return_counts=True)

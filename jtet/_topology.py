@@ -108,6 +108,18 @@ def sorted_rows(tets: np.ndarray, local: np.ndarray) -> np.ndarray:
     return np.stack([lo, a + b + c - lo - hi, hi], axis=2)  # exact: ints
 
 
+def faces_at(tets: np.ndarray, on: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(faces (r, 3) sorted vertex triples, owner (r,) tet ids): the faces of ``tets``
+    (m, 4) with at least ``k`` vertices where ``on`` (n,) bool, once per tet holding
+    them. Only the tets with ``k`` or more corners there hold such a face, and only
+    those are read: a few sweeps, not a whole-mesh topology."""
+    near = np.flatnonzero(corner_counts(on, tets) >= k)
+    faces = sorted_rows(tets[near], TET_FACES).reshape(-1, 3)
+    owner = np.repeat(near, 4)
+    held = on[faces].sum(axis=1) >= k
+    return faces[held], owner[held]
+
+
 # ``_order_rings`` pads all rings to the largest in one bucket when the padded steps are at
 # most this many.
 PADDED_RING_SLOTS = 4096
