@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from ._mesh import TetMesh
@@ -66,6 +68,45 @@ def replace_tets(
         if topo is not None:
             out.__dict__["topology"] = topo
     return out, n_kept
+
+
+class FlipPlan(NamedTuple):
+    """The winners of a flip step, chosen on a mesh and not applied yet: the old tets
+    they remove, the tets they create and the user-protected faces they swap
+    (``replace_tets``'s arguments). Plans of one mesh with disjoint ``remove`` sets are
+    applied together by ``apply_plans``."""
+
+    remove: np.ndarray  # (m,) bool
+    new_tets: np.ndarray  # (k, 4)
+    new_region: np.ndarray  # (k,)
+    old_protected: np.ndarray | None = None  # (p, 3) or None
+    new_protected: np.ndarray | None = None  # (p, 3) or None
+
+
+def apply_plans(mesh: TetMesh, plans: list[FlipPlan]) -> tuple[TetMesh, np.ndarray | None]:
+    """(new mesh, keep): ``mesh`` with the winners of every plan of ``plans`` (None
+    entries skipped) applied by one ``replace_tets``, so that one topology update serves
+    them all; ``keep`` (m,) marks the surviving tets (None and ``mesh`` itself when no
+    plan has a winner). The plans' ``remove`` sets must be disjoint, and the new tets of
+    all of them must make a conforming mesh together (``nonconforming_owners`` with the
+    earlier plans as ``prior``)."""
+    plans = [p for p in plans if p is not None]
+    if not plans:
+        return mesh, None
+    remove = plans[0].remove.copy()
+    for p in plans[1:]:
+        remove |= p.remove
+    old_p = [p.old_protected for p in plans if p.old_protected is not None]
+    new_p = [p.new_protected for p in plans if p.new_protected is not None]
+    out, _ = replace_tets(
+        mesh,
+        remove,
+        np.concatenate([p.new_tets for p in plans]),
+        np.concatenate([p.new_region for p in plans]),
+        np.concatenate(old_p) if old_p else None,
+        np.concatenate(new_p) if new_p else None,
+    )
+    return out, ~remove
 
 
 # Faces of tet (v0, v1, v2, v3) opposite v0..v3, oriented outward for a positive tet; two

@@ -19,9 +19,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ._apply import (
+    FlipPlan,
+    apply_plans,
     nonconforming_owners,
     recreating_owners,
-    replace_tets,
     worse_orientation_owners,
 )
 from ._curved_guard import worse_owners
@@ -222,7 +223,21 @@ class _Flips:
         )
 
 
-def edge_removal_pass(
+def edge_removal_pass(mesh: TetMesh, **options) -> tuple[TetMesh, PassStats, np.ndarray | None]:
+    """One pass: try every candidate edge at once, apply a conflict-free set of winners
+    (``plan_edge_removal``'s, with the same options).
+
+    Returns:
+        (new mesh, stats, keep): ``keep`` (m,) marks the old tets that survive, in order,
+        at the front of the new mesh; the new tets follow. ``keep`` is None (and the
+        mesh returned unchanged) when nothing improved.
+    """
+    plan, stats = plan_edge_removal(mesh, **options)
+    out, keep = apply_plans(mesh, [plan])
+    return out, stats, keep
+
+
+def plan_edge_removal(
     mesh: TetMesh,
     *,
     measure: str = "min_sine",
@@ -234,8 +249,8 @@ def edge_removal_pass(
     sites: np.ndarray | None = None,
     forbidden: np.ndarray | None = None,
     min_scaled_jacobian: float | None = None,
-) -> tuple[TetMesh, PassStats, np.ndarray | None]:
-    """One pass: try every candidate edge at once, apply a conflict-free set of winners.
+) -> tuple[FlipPlan | None, PassStats]:
+    """Try every candidate edge at once and choose a conflict-free set of winners.
 
     Args:
         mesh: input mesh.
@@ -253,9 +268,8 @@ def edge_removal_pass(
             None: no guard; a mesh without curved edges has none to guard).
 
     Returns:
-        (new mesh, stats, keep): ``keep`` (m,) marks the old tets that survive, in order,
-        at the front of the new mesh; the new tets follow. ``keep`` is None (and the
-        mesh returned unchanged) when nothing improved.
+        (plan, stats): the winners' ``FlipPlan`` (None when nothing improved), not
+        applied.
     """
     stats = PassStats("edge")
     T = mesh.topology
@@ -266,7 +280,7 @@ def edge_removal_pass(
         edges, too_big = np.asarray(sites, np.int64), 0
     stats.overflow = too_big
     if len(edges) == 0:
-        return mesh, stats, None
+        return None, stats
     ch = _build_chains(mesh, edges)
     clen = np.diff(ch.ptr)
     tp = T.edge_tets_ptr
@@ -330,7 +344,7 @@ def edge_removal_pass(
     winners = np.zeros(len(edges), bool)
     winners[cand[win_local]] = True
     if not winners.any():
-        return mesh, stats, None
+        return None, stats
     remove = np.zeros(mesh.n_tets, bool)
     remove[claims[win_local[own]]] = True
     new_tets, new_region, new_owner, hinge = flips.tets(winners)
@@ -350,7 +364,7 @@ def edge_removal_pass(
             ok = ~reject[new_owner]
             new_tets, new_region, new_owner = new_tets[ok], new_region[ok], new_owner[ok]
         if not winners.any():
-            return mesh, stats, None
+            return None, stats
         reject = nonconforming_owners(mesh, remove, new_tets, new_owner, len(edges))
         if not reject.any():
             break
@@ -366,8 +380,7 @@ def edge_removal_pass(
         "surface": int(counts[2]),
     }
     old_p, new_p = _protected_updates(mesh, we)
-    out, _ = replace_tets(mesh, remove, new_tets, new_region, old_p, new_p)
-    return out, stats, ~remove
+    return FlipPlan(remove, new_tets, new_region, old_p, new_p), stats
 
 
 def _changes_surface(mesh, hinge: np.ndarray, n_cand) -> np.ndarray:

@@ -29,7 +29,7 @@ import numpy as np
 
 from . import _config
 from ._aot import cached_call, prefetch
-from ._apply import nonconforming_owners, recreating_owners, replace_tets
+from ._apply import FlipPlan, apply_plans, nonconforming_owners, recreating_owners
 from ._curved_guard import worse_owners
 from ._edge_removal import PassStats, _segments
 from ._kernels.multiface import solve_trees
@@ -501,6 +501,23 @@ def _claims(forest: Forest, chosen: np.ndarray, cand: np.ndarray) -> tuple[np.nd
 
 
 def multiface_removal_pass(
+    mesh: TetMesh, **options
+) -> tuple[TetMesh, PassStats, np.ndarray | None]:
+    """One pass: try every candidate face at once, apply a conflict-free set of winners
+    (``plan_multiface_removal``'s, with the same options).
+
+    Returns:
+        (new mesh, stats, keep): ``keep`` (m,) marks the old tets that survive, in order,
+        at the front of the new mesh; the new tets follow. ``keep`` is None (and the
+        mesh returned unchanged) when nothing improved. ``stats.by_size`` counts
+        successes by the number of faces removed.
+    """
+    plan, stats = plan_multiface_removal(mesh, **options)
+    out, keep = apply_plans(mesh, [plan])
+    return out, stats, keep
+
+
+def plan_multiface_removal(
     mesh: TetMesh,
     *,
     measure: str = "min_sine",
@@ -511,8 +528,9 @@ def multiface_removal_pass(
     sites: np.ndarray | None = None,
     forbidden: np.ndarray | None = None,
     min_scaled_jacobian: float | None = None,
-) -> tuple[TetMesh, PassStats, np.ndarray | None]:
-    """One pass: try every candidate face at once, apply a conflict-free set of winners.
+    prior: FlipPlan | None = None,
+) -> tuple[FlipPlan | None, PassStats]:
+    """Try every candidate face at once and choose a conflict-free set of winners.
 
     Args:
         mesh: input mesh (multi-face removal assumes no inverted tets; candidates whose
@@ -527,12 +545,13 @@ def multiface_removal_pass(
         sites: (k,) face ids from ``candidate_faces`` to try instead (``dirty`` unused).
         forbidden: (f, 4) tets no winner may create again (see ``edge_removal_pass``).
         min_scaled_jacobian: floor of the guard on curved tets (``_curved_guard``).
+        prior: another plan of this mesh (edge removal's) to be applied together with
+            this one (``apply_plans``): no winner removes one of its tets, and the new
+            tets of both must conform together.
 
     Returns:
-        (new mesh, stats, keep): ``keep`` (m,) marks the old tets that survive, in order,
-        at the front of the new mesh; the new tets follow. ``keep`` is None (and the
-        mesh returned unchanged) when nothing improved. ``stats.by_size`` counts
-        successes by the number of faces removed.
+        (plan, stats): the winners' ``FlipPlan`` (None when nothing improved), not
+        applied. ``stats.by_size`` counts successes by the number of faces removed.
     """
     stats = PassStats("face")
     q = mesh.quality(measure) if quality is None else np.asarray(quality)
@@ -541,14 +560,14 @@ def multiface_removal_pass(
     has = root >= 0
     a, b, root = a[has], b[has], root[has]
     if len(root) == 0:
-        return mesh, stats, None
+        return None, stats
     forest = build_forest(mesh, a, b, root, q, max_faces)
     stats.attempts = int((~forest.bad).sum())
     stats.overflow = int((forest.overflow & ~forest.bad).sum())
     q_old, q_new, chosen = solve_forest(mesh, forest, q, measure)
     cand = np.flatnonzero(~forest.bad & (q_new > q_old + min_improvement))
     if len(cand) == 0:
-        return mesh, stats, None
+        return None, stats
     # new tets, checked with the exact predicate (float quality > 0 is not a proof)
     owner, new = new_tets_of(forest, chosen, cand)
     flat = orient3d_tets(mesh.points, new) <= 0
@@ -566,6 +585,9 @@ def multiface_removal_pass(
             (mesh.points, new, owner),
             len(forest.a),
         )
+    if prior is not None:  # its tets are taken
+        claims, k = _claims(forest, chosen, cand)
+        dead[np.repeat(cand, 2 * k)[prior.remove[claims]]] = True
     cand = cand[~dead[cand]]
     claims, k = _claims(forest, chosen, cand)
     claim_ptr = np.concatenate([[0], np.cumsum(2 * k)])
@@ -574,7 +596,7 @@ def multiface_removal_pass(
     rank[np.lexsort((-q_new[cand], q_old[cand]))] = np.arange(len(cand))
     win = select_conflict_free(claim_ptr, claims, rank, mesh.n_tets)
     if not win.any():
-        return mesh, stats, None
+        return None, stats
     winners = cand[win]
     remove = np.zeros(mesh.n_tets, bool)
     remove[claims[np.repeat(win, 2 * k)]] = True
@@ -586,7 +608,17 @@ def multiface_removal_pass(
     # neighbourhood holds inverted or degenerate tets; reject those winners and retry.
     claim_owner = np.repeat(cand, 2 * k)
     while True:
-        reject = nonconforming_owners(mesh, remove, new, owner, len(forest.a))
+        # the prior plan's tets are checked with these (owner len(forest.a): its own
+        # tets conform, it chose them on this mesh, and no winner here touches them)
+        reject = nonconforming_owners(
+            mesh,
+            remove if prior is None else remove | prior.remove,
+            new if prior is None else np.concatenate([new, prior.new_tets]),
+            owner
+            if prior is None
+            else np.concatenate([owner, np.full(len(prior.new_tets), len(forest.a))]),
+            len(forest.a) + 1,
+        )[: len(forest.a)]
         if not reject.any():
             break
         remove[claims[reject[claim_owner] & is_w[claim_owner]]] = False
@@ -594,11 +626,10 @@ def multiface_removal_pass(
         ok = ~reject[owner]
         new, owner = new[ok], owner[ok]
         if not is_w.any():
-            return mesh, stats, None
+            return None, stats
     winners = np.flatnonzero(is_w)
     region = mesh.region[forest.ta[owner, 0]]
     sizes = k[win & is_w[cand]]
     stats.successes = int(len(winners))
     stats.by_size = {int(s): int(c) for s, c in zip(*np.unique(sizes, return_counts=True))}
-    out, _ = replace_tets(mesh, remove, new, region)
-    return out, stats, ~remove
+    return FlipPlan(remove, new, region), stats

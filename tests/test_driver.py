@@ -665,3 +665,44 @@ def test_labelled_boundary_patches_keep_their_borders_and_areas():
         assert _area(out, after) == pytest.approx(_area(mesh, before), rel=1e-12)
         assert _border_edges(after) == _border_edges(before)
     assert len(out.protected_faces) == len(boundary)  # the whole boundary, still labelled
+
+
+# --- a large mesh's late edge and face steps share one topology update -------------------
+
+
+def test_step_groups_merge_an_edge_step_and_the_face_step_after_it():
+    from jtet._driver import _step_groups
+
+    assert _step_groups(("edge", "face", "smooth"), True) == [("edge", "face"), ("smooth",)]
+    assert _step_groups(("smooth", "edge", "face"), True) == [("smooth",), ("edge", "face")]
+    for ops in (("face", "edge", "smooth"), ("edge", "smooth", "face"), ("edge",)):
+        assert _step_groups(ops, True) == [(op,) for op in ops]
+    assert _step_groups(("edge", "face", "smooth"), False) == [("edge",), ("face",), ("smooth",)]
+
+
+def test_merged_flip_steps_from_the_second_pass(monkeypatch):
+    # with the size threshold lowered, the passes after the first apply their edge and
+    # face steps together; the run stays valid (checked after every step) and the first
+    # pass is the unmerged run's
+    from jtet import _driver
+
+    mesh = delaunay_mesh(400, seed=5, surface_points=40)
+    kw = dict(perturb=0, check=True, seed=0)
+    plain = jtet.improve(mesh, **kw)
+    monkeypatch.setattr(_driver, "MERGE_FLIP_STEPS", 0)
+    merged = jtet.improve(mesh, **kw)
+    assert merged.status == "converged"
+    strip = [{k: v for k, v in e.items() if k != "seconds"} for e in merged.history]
+    first = [{k: v for k, v in e.items() if k != "seconds"} for e in plain.history]
+    n0 = sum(e["pass"] == 0 for e in plain.history)
+    assert strip[:n0] == first[:n0]
+    late = [e for e in merged.history if e["pass"] >= 1]
+    assert [e["op"] for e in late[:3]] == ["edge", "face", "smooth"]
+    # an edge entry and the face entry after it show the mesh after both steps
+    for edge, face in zip(late[0::3], late[1::3], strict=False):
+        assert edge["n_tets"] == face["n_tets"]
+        assert edge["worst_quality"] == face["worst_quality"]
+    assert sum(e["successes"] for e in late if e["op"] in ("edge", "face")) > 0
+    worst = [e["worst_quality"] for e in merged.history]
+    assert worst == sorted(worst)
+    assert merged.stats_after.quality_min["min_sine"] >= plain.stats_before.quality_min["min_sine"]

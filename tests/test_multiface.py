@@ -37,6 +37,7 @@ from jtet._multiface import (
     solve_forest,
 )
 from jtet._quality import tet_quality
+from jtet._topology import Topology
 
 # ---------------------------------------------------------------------------------------
 # Brute force on abstract trees (random qualities): the DP alone
@@ -453,3 +454,61 @@ def test_candidate_faces_dirty_filter_matches_a_scan_of_every_face(fraction):
     a, b = T.face_apex[f, 0], T.face_apex[f, 1]
     _, first = np.unique(np.minimum(a, b) * mesh.n_points + np.maximum(a, b), return_index=True)
     assert np.array_equal(candidate_faces(mesh, q, dirty), f[np.sort(first)])
+
+
+# ---------------------------------------------------------------------------------------
+# A face plan made beside an edge plan of the same mesh (``prior``), applied together
+
+
+def test_face_plans_beside_edge_plans():
+    """Seeded random meshes: the face plan leaves the edge plan's tets alone, and both
+    applied at once make a valid mesh whose carried topology is a full build's."""
+    from jtet._apply import apply_plans
+    from jtet._edge_removal import plan_edge_removal
+    from jtet._multiface import plan_multiface_removal
+
+    overlapped = face_wins = 0
+    for seed in range(8):
+        mesh = delaunay_mesh(150, seed=seed, surface_points=20)
+        q = mesh.quality()
+        edge_plan, _ = plan_edge_removal(mesh, quality=q)
+        alone, _ = plan_multiface_removal(mesh, quality=q)
+        face_plan, stats = plan_multiface_removal(mesh, quality=q, prior=edge_plan)
+        assert edge_plan is not None and alone is not None
+        overlapped += bool((alone.remove & edge_plan.remove).any())
+        face_wins += stats.successes
+        plans = [edge_plan] if face_plan is None else [edge_plan, face_plan]
+        assert face_plan is None or not (face_plan.remove & edge_plan.remove).any()
+        out, keep = apply_plans(mesh, [edge_plan, face_plan])
+        remove = np.logical_or.reduce([p.remove for p in plans])
+        assert np.array_equal(keep, ~remove)
+        expected = np.concatenate([mesh.tets[keep], *(p.new_tets for p in plans)])
+        assert np.array_equal(out.tets, expected)
+        # conforming, volumes and boundary kept (the checker builds the topology anew)
+        InvariantChecker(mesh).check(out, 0, "edge+face")
+        # neither plan lowers the worst tet it touches, so the whole mesh's worst stays
+        assert out.quality().min() >= q.min()
+        # the topology carried through the update is the one a full build gives
+        assert "topology" in out.__dict__  # derived from the plans' mesh, not built
+        fresh = Topology.build(out)
+        for name in ("faces", "tet_neighbors", "edges", "edge_ring", "vert_tets"):
+            assert np.array_equal(getattr(out.topology, name), getattr(fresh, name))
+    # the plans chosen apart claim common tets on these meshes: ``prior`` had work to
+    # do, and the face plans still found winners beside the edge plans
+    assert overlapped >= 4 and face_wins > 0
+
+
+def test_face_plan_conforms_with_the_prior_plans_new_tets():
+    # a prior plan that creates a tet some face winner would create too: together they
+    # would put that tet's faces in two tets on one side, so that winner must go
+    from jtet._apply import FlipPlan
+    from jtet._multiface import plan_multiface_removal
+
+    mesh = delaunay_mesh(150, seed=2)
+    alone, _ = plan_multiface_removal(mesh)
+    twin = alone.new_tets[:1]
+    prior = FlipPlan(np.zeros(mesh.n_tets, bool), twin, mesh.region[:1])
+    plan, _ = plan_multiface_removal(mesh, prior=prior)
+    as_sets = {tuple(t) for t in np.sort(plan.new_tets, axis=1)}
+    assert tuple(np.sort(twin[0])) not in as_sets
+    assert len(plan.new_tets) > 0  # the other winners stay
