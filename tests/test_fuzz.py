@@ -46,6 +46,7 @@ WEIGHTS = {
     "improve_regions": 0.05,
     "improve_periodic": 0.05,
     "improve_curved": 0.05,
+    "improve_merged": 0.05,
 }
 
 settings.register_profile(
@@ -256,6 +257,22 @@ def test_improve(spec, opts):
 @given(mesh_specs(damage=True, seam=None), options(DAMAGE_OPS))
 def test_improve_inverted_input(spec, opts):
     _improve(spec, opts)
+
+
+@_cases("improve_merged")
+@given(mesh_specs(seam=None), options())
+def test_improve_with_merged_flip_steps(spec, opts):
+    # the fuzz meshes are small: lower the size from which a pass after the first
+    # applies its edge and face steps together (``_driver._flip_steps``), so that the
+    # face plans made beside edge plans meet inverted tets, protection and regions too
+    from jtet import _driver
+
+    before = _driver.MERGE_FLIP_STEPS
+    _driver.MERGE_FLIP_STEPS = 0
+    try:
+        _improve(spec, opts)
+    finally:
+        _driver.MERGE_FLIP_STEPS = before
 
 
 @_cases("improve_regions")
