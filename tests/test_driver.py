@@ -706,3 +706,27 @@ def test_merged_flip_steps_from_the_second_pass(monkeypatch):
     worst = [e["worst_quality"] for e in merged.history]
     assert worst == sorted(worst)
     assert merged.stats_after.quality_min["min_sine"] >= plain.stats_before.quality_min["min_sine"]
+
+
+@pytest.mark.slow
+def test_a_large_mesh_merges_its_later_flip_steps(monkeypatch):
+    # a >= 100k-tet Delaunay mesh at the default threshold: the passes after the first
+    # go through _flip_steps, and the run, checked after every step, stays valid
+    from jtet import _driver
+
+    calls = []
+    flip_steps = _driver._flip_steps
+
+    def counted(*args, **kwargs):
+        out = flip_steps(*args, **kwargs)
+        calls.append(out[0].keep is not None)
+        return out
+
+    monkeypatch.setattr(_driver, "_flip_steps", counted)
+    mesh = delaunay_mesh(20_000, seed=3)
+    assert mesh.n_tets >= _driver.MERGE_FLIP_STEPS
+    r = jtet.improve(mesh, perturb=0, check=True, max_passes=4)
+    assert r.status in ("converged", "max passes")
+    passes = max(e["pass"] for e in r.history) + 1
+    assert len(calls) == passes - 1 and any(calls)
+    assert r.stats_after.min_dihedral > r.stats_before.min_dihedral
