@@ -44,7 +44,14 @@ from ._predicates import (
 from ._select import select_conflict_free
 from ._topology import _perm_parity, local_index
 
-__all__ = ["Forest", "build_forest", "find_roots", "multiface_removal_pass", "solve_forest"]
+__all__ = [
+    "Forest",
+    "build_forest",
+    "find_roots",
+    "multiface_removal_pass",
+    "plan_multiface_removal",
+    "solve_forest",
+]
 
 # Face opposite local vertex i of a positive tet, ordered (u, v, w) so that (u, v, w, p_i)
 # is an even permutation of (p0, p1, p2, p3): then u, v, w are counterclockwise seen from p_i.
@@ -543,7 +550,7 @@ def plan_multiface_removal(
         dirty: (m,) bool; only faces touching a dirty tet are tried (None: all faces).
         min_improvement: a winner must raise its worst tet by more than this.
         sites: (k,) face ids from ``candidate_faces`` to try instead (``dirty`` unused).
-        forbidden: (f, 4) tets no winner may create again (see ``edge_removal_pass``).
+        forbidden: (f, 4) tets no winner may create again (see ``plan_edge_removal``).
         min_scaled_jacobian: floor of the guard on curved tets (``_curved_guard``).
         prior: another plan of this mesh (edge removal's) to be applied together with
             this one (``apply_plans``): no winner removes one of its tets, and the new
