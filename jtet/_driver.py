@@ -5,6 +5,8 @@ smoothing). Every operation only applies changes that raise the worst quality of
 tets it touches, so the mesh's worst quality never decreases. An operation re-attempts
 only sites whose neighbourhood changed since it last tried them ("dirty" tets), which is
 where most of the speed is won: most attempts fail, and failing again is pure waste.
+On a large mesh, the passes after the first choose their edge and face steps on the
+same mesh and apply them together (``_flip_steps``): one topology update for both.
 """
 
 from __future__ import annotations
