@@ -37,28 +37,17 @@ class StepResult:
     measures: tuple = ()
 
 
-def _edge_options(opts: Options, quality, dirty, **extra) -> dict:
-    """The options of an edge-removal step of a run with ``opts``."""
+def _flip_options(op: str, opts: Options, quality, dirty, **extra) -> dict:
+    """The options of an edge-removal (``op`` "edge") or multi-face removal ("face") step
+    of a run with ``opts``."""
+    size = {"max_ring": opts.max_ring} if op == "edge" else {"max_faces": opts.max_faces}
     return dict(
         measure=opts.quality,
-        max_ring=opts.max_ring,
         quality=quality,
         dirty=dirty,
         min_improvement=opts.min_improvement,
         min_scaled_jacobian=opts.min_scaled_jacobian,
-        **extra,
-    )
-
-
-def _face_options(opts: Options, quality, dirty, **extra) -> dict:
-    """The options of a multi-face removal step of a run with ``opts``."""
-    return dict(
-        measure=opts.quality,
-        max_faces=opts.max_faces,
-        quality=quality,
-        dirty=dirty,
-        min_improvement=opts.min_improvement,
-        min_scaled_jacobian=opts.min_scaled_jacobian,
+        **size,
         **extra,
     )
 
@@ -69,7 +58,10 @@ def _edge_step(
     from ._edge_removal import edge_removal_pass
 
     out, stats, keep = edge_removal_pass(
-        mesh, **_edge_options(opts, quality, dirty, prune=prune, sites=sites, forbidden=forbidden)
+        mesh,
+        **_flip_options(
+            "edge", opts, quality, dirty, prune=prune, sites=sites, forbidden=forbidden
+        ),
     )
     return _replaced(mesh, out, stats, keep)
 
@@ -80,7 +72,7 @@ def _face_step(
     from ._multiface import multiface_removal_pass
 
     out, stats, keep = multiface_removal_pass(
-        mesh, **_face_options(opts, quality, dirty, sites=sites, forbidden=forbidden)
+        mesh, **_flip_options("face", opts, quality, dirty, sites=sites, forbidden=forbidden)
     )
     return _replaced(mesh, out, stats, keep)
 
@@ -99,11 +91,13 @@ def _flip_steps(mesh: TetMesh, opts: Options, quality, edge_dirty, face_dirty, f
 
     ts = time.perf_counter()
     edge_plan, edge_stats = plan_edge_removal(
-        mesh, **_edge_options(opts, quality, edge_dirty, forbidden=forbidden)
+        mesh, **_flip_options("edge", opts, quality, edge_dirty, forbidden=forbidden)
     )
     edge_seconds = time.perf_counter() - ts
     face_plan, face_stats = plan_multiface_removal(
-        mesh, **_face_options(opts, quality, face_dirty, forbidden=forbidden), prior=edge_plan
+        mesh,
+        **_flip_options("face", opts, quality, face_dirty, forbidden=forbidden),
+        prior=edge_plan,
     )
     out, keep = apply_plans(mesh, [edge_plan, face_plan])
     return _replaced(mesh, out, face_stats, keep), edge_stats, edge_seconds
