@@ -56,6 +56,20 @@ UPDATE_THREADED_MIN_TETS = 40_000
 # update takes 1.1x the build's time at 47 % changed (the first flip step of an
 # unoptimized mesh), 0.74x at 25 %, 0.2-0.25x below 2 %.
 MAX_CHANGE = 0.4
+# From LARGE_MESH_TETS tets, MAX_CHANGE_LARGE instead: the build's sorts then cost more
+# per tet, and the first edge step of an unoptimized mesh (47 % changed) is updated
+# faster than built. Four alternating pairs each, the first edge step: 182k-tet cube
+# update 0.19-0.25 s, build 0.19-0.25 s; 583k two-region ball in a box 0.67-0.83 /
+# 0.74-0.91 s; 983k cube 1.10-1.51 / 1.30-1.61 s, and the whole 983k run (--perturb 0,
+# three alternating pairs) 0.25-0.74 s faster, peak RSS 2.02 -> 2.18 GB (session 54).
+LARGE_MESH_TETS = 500_000
+MAX_CHANGE_LARGE = 0.55
+
+
+def max_change(n_tets: int) -> float:
+    """The largest fraction of changed tets that an update handles for a mesh of
+    ``n_tets`` tets (``MAX_CHANGE``, ``MAX_CHANGE_LARGE``); above it the full build runs."""
+    return MAX_CHANGE_LARGE if n_tets >= LARGE_MESH_TETS else MAX_CHANGE
 
 
 def update_topology(
@@ -98,7 +112,7 @@ def _compatible(old: Topology, old_mesh, new_mesh, keep: np.ndarray, kept_first:
         return False
     K = int(keep.sum())
     m1 = new_mesh.n_tets
-    if m1 < K or (m0 - K) + (m1 - K) > MAX_CHANGE * m0:
+    if m1 < K or (m0 - K) + (m1 - K) > max_change(m0) * m0:
         return False
     if index_dtype(index_bound(m1, n)) != old.index_dtype:  # ids outgrew int32
         return False

@@ -70,7 +70,7 @@ def run_passes(mesh, n_passes=3, **kw):
             check_step(mesh, out, keep)
             # replace_tets installed the incremental topology on the new mesh
             assert "topology" in out.__dict__ or (~keep).sum() + out.n_tets - keep.sum() > (
-                U.MAX_CHANGE * len(keep)
+                U.max_change(len(keep)) * len(keep)
             )
             steps += 1
             mesh = out
@@ -315,6 +315,17 @@ def test_fallbacks():
     big = np.zeros(mesh.n_tets, bool)
     out2, _ = replace_tets(mesh, ~big, mesh.tets, mesh.region)
     assert U.update_topology(T, mesh, out2, big, fallback=False) is None
+    # half of the tets changed: built on a small mesh, updated on a large one (the
+    # threshold lowered to this mesh's size)
+    half = np.arange(mesh.n_tets) >= mesh.n_tets // 4
+    out3, _ = replace_tets(mesh, ~half, mesh.tets[~half], mesh.region[~half])
+    assert U.update_topology(T, mesh, out3, half, fallback=False) is None
+    saved = U.LARGE_MESH_TETS
+    U.LARGE_MESH_TETS = mesh.n_tets
+    try:
+        assert_same(U.update_topology(T, mesh, out3, half, fallback=False), Topology.build(out3))
+    finally:
+        U.LARGE_MESH_TETS = saved
     # a protected face that is no longer a face: the full build reports it
     t, i = np.argwhere(T.tet_neighbors < 0)[0]  # a tet with a boundary face: remove both
     gone = T.faces[T.tet_faces[t, i]][None]
