@@ -155,15 +155,3 @@ class Parts:
             region=np.concatenate([start.region[kept], *self.region]),
             tets_checked=int(kept.sum()),
         )
-
-
-def kept_parts(
-    start, start_q: Float[np.ndarray, " m"], end, end_q: Float[np.ndarray, " k"],
-    worst: float, limit: float,
-):  # fmt: skip
-    """(mesh, qualities, parts kept, parts) of one attempt's good parts applied to the
-    round's start (``Parts.add``), or None when no part is good."""
-    parts = Parts(start, start_q)
-    if not parts.add(end, end_q, worst, limit):
-        return None
-    return parts.result(), parts.qualities(), parts.kept, parts.seen

@@ -8,10 +8,18 @@ import pytest
 from helpers import delaunay_mesh
 
 from jtet._apply import split_tets
-from jtet._attempt_parts import Parts, kept_parts
+from jtet._attempt_parts import Parts
 from jtet._invariants import InvariantChecker
 
 WORST, LIMIT = 0.3, 0.35  # the round's worst quality and its near-worst bound
+
+
+def kept_parts(start, start_q, end, end_q, worst, limit):
+    """(result, qualities, parts kept, parts judged) of one attempt's parts, or None."""
+    parts = Parts(start, start_q)
+    if not parts.add(end, end_q, worst, limit):
+        return None
+    return parts.result(), parts.qualities(), parts.kept, parts.seen
 
 
 def _tet_set(mesh, q=None) -> dict:
