@@ -38,7 +38,6 @@ import time
 
 import numpy as np
 
-from ._attempt_parts import Parts
 from ._submesh import Submesh
 from ._topology import corner_counts
 
@@ -69,17 +68,6 @@ CLIMB_PATIENCE = 1
 # to the kick that frees it (34.00), and seeds 0-4 of the four reference meshes all end
 # at 32 degrees or more.
 MIN_RAISE = 1e-3
-# An attempt that fails as a whole may still have fixed some of the places of the
-# round's worst tets (``_attempt_parts``): its good parts are kept aside, the next
-# attempts' parts that touch none of them are added, and the round keeps them once
-# together they raise the worst. The 983k-tet cube's late rounds have 30-60 seeds in
-# 5-12 places, and whole attempts failed on one place until a single-site kick at the
-# end of the ladder fixed one place per round. Seeds 1 / 2 / 4 (no helper): 84 / 57 / 63
-# attempts -> 77 / 48 / 43, 33.26 / 32.97 / 33.12 -> 33.30 / 33.06 / 33.44 degrees. The
-# 182k cube, seeds 0-7: 367 -> 363 attempts, mean 33.14 -> 33.04 degrees (each run
-# within 32.12-33.80 either way); the reference meshes and the demo, seeds 0-4, as
-# before but for a few runs (experiments/results/bench_improve.md, session 55).
-KEEP_PARTS = True
 
 
 # After the batched kicks, the insertions and the jiggles, one flip at a time: the edge /
@@ -270,11 +258,6 @@ class _Baseline:
         self.near_worst = int((old_q < self.limit).sum())
         self.outside_worst = float(outside.min(initial=np.inf))
         self.outside_near = int((outside < self.limit).sum())
-
-    def raised_by(self, sub_q: np.ndarray, tol: float) -> bool:
-        """Whether the worst of ``concatenate([outside, sub_q])`` beats the old worst by
-        more than ``tol``."""
-        return min(self.outside_worst, float(sub_q.min(initial=np.inf))) > self.worst + tol
 
     def beaten_by(self, sub_q: np.ndarray, tol: float) -> bool:
         """``better(concatenate([outside, sub_q]), old_q, near, tol)``."""
@@ -545,9 +528,6 @@ def _judge_round(run, t0, part, state, attempts, ladder, tried, baseline, began)
 
     opts = run.opts
     helper = _helper_process.running()
-    tol = max(opts.min_improvement, MIN_RAISE)
-    parts = Parts(*state.start_state[:2]) if KEEP_PARTS else None
-    bounds = (baseline.worst, baseline.limit)
     for index, (slack, _, op, site) in enumerate(attempts):
         while index not in ladder.outcomes:
             run.check_stop(t0)
@@ -568,14 +548,8 @@ def _judge_round(run, t0, part, state, attempts, ladder, tried, baseline, began)
         if outcome.key is None or outcome.key in tried:
             continue
         tried.add(outcome.key)
-        end = outcome.submesh()
-        kept = baseline.beaten_by(outcome.q, tol)
-        if not kept and parts is not None and parts.add(end, outcome.q, *bounds):
-            # the places the round's attempts fixed so far, together: kept once they
-            # raise the worst (every tet at the round's worst is in a part kept)
-            if baseline.raised_by(parts.qualities(), tol):
-                end, kept = parts.result(), True
-        spliced = part.splice(run.current, end) if kept else None
+        kept = baseline.beaten_by(outcome.q, max(opts.min_improvement, MIN_RAISE))
+        spliced = part.splice(run.current, outcome.submesh()) if kept else None
         if spliced is not None:
             out, keep = spliced
             # tets sharing a vertex with the new ones (through a vertex mask, not the new
