@@ -600,3 +600,22 @@ def test_smoothing_call_table_times_the_pass_shapes():
             assert r["one_lane_ms"] > 0 and r["same"] > 0.5
         else:
             assert r["one_lane_ms"] is None
+
+
+def test_round_places_experiment_never_loses_and_keeps_the_mesh_valid(monkeypatch):
+    """experiments/round_places.py (one ladder per place of the worst tets): a run with
+    its rounds passes the invariant checks after every step and ends no worse than its
+    climb, on a mesh whose rounds keep kicks."""
+    import round_places
+
+    from jtet import _perturb
+
+    mesh = jtet.demo_mesh()
+    climb = jtet.improve(mesh, perturb=0)
+    monkeypatch.setattr(_perturb, "perturb", round_places.perturb_by_places)
+    monkeypatch.setenv("JTET_HELPER", "0")
+    result = jtet.improve(mesh, perturb=2, check=True)
+    assert result.status == "converged"
+    kicks = [e for e in result.history if e["op"] == "perturb"]
+    assert sum(e["successes"] for e in kicks) >= 2  # places kept
+    assert result.stats_after.min_dihedral >= climb.stats_after.min_dihedral
