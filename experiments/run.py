@@ -47,7 +47,7 @@ import meshgen  # noqa: E402
 
 import jtet  # noqa: E402
 from jtet import _helper_process  # noqa: E402
-from jtet._driver import _gave_up, _kept, _kicks  # noqa: E402
+from jtet._driver import _gave_up, _kept, _kept_rounds, _kicks  # noqa: E402
 from jtet._io import output_format  # noqa: E402
 from jtet._report import quality_cell_data, write_report, write_text_atomic  # noqa: E402
 
@@ -153,6 +153,7 @@ def run(cfg: DictConfig, out: Path, choices: dict) -> dict:
             perturb_rounds=result.perturb_rounds,
             # the rounds' attempts: kept, tried, and those whose climb was given up
             perturb_kept=_kept(kicks),
+            perturb_kept_rounds=_kept_rounds(kicks),
             perturb_tried=len(kicks),
             perturb_gave_up=_gave_up(kicks),
             regions=int(len(set(result.mesh.region.tolist()))),

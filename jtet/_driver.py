@@ -442,8 +442,13 @@ def _kicks(history: list[dict]) -> list[dict]:
 
 
 def _kept(kicks: list[dict]) -> int:
-    """How many of ``kicks`` were kept (one per kept round)."""
+    """How many of ``kicks`` were kept (one per place of a kept round)."""
     return sum(e["successes"] > 0 for e in kicks)
+
+
+def _kept_rounds(kicks: list[dict]) -> int:
+    """How many rounds of ``kicks`` kept one (``Options.perturb`` counts these)."""
+    return len({e["round"] for e in kicks if e["successes"] > 0})
 
 
 def _gave_up(kicks: list[dict]) -> int:
@@ -596,7 +601,7 @@ def _improve(mesh: TetMesh, opts: Options, callback) -> ImproveResult:
 
     current, history = run.current, run.history
     # rounds cut short by a goal or the time limit did not stop at their own limit
-    kept = _kept(_kicks(history))
+    kept = _kept_rounds(_kicks(history))
     return ImproveResult(
         mesh=current,
         stats_before=stats_before,

@@ -37,6 +37,8 @@ import itertools
 import time
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from ._submesh import Submesh
 from ._topology import corner_counts
@@ -68,6 +70,7 @@ CLIMB_PATIENCE = 1
 # to the kick that frees it (34.00), and seeds 0-4 of the four reference meshes all end
 # at 32 degrees or more.
 MIN_RAISE = 1e-3
+PLACES = True
 
 
 # After the batched kicks, the insertions and the jiggles, one flip at a time: the edge /
@@ -472,7 +475,6 @@ def perturb(run, t0: float, rounds: int) -> str:
     round). Each attempt is one history entry, op "perturb"; its climb may run up to
     ``max_passes`` passes of its own. Attempts are judged in the round's order; a helper
     process (``_helper_process``) runs some of them side by side, with the same result."""
-    from . import _helper_process
 
     opts = run.opts
     attempts = kicks(opts.ops, opts.insert)
@@ -488,46 +490,141 @@ def perturb(run, t0: float, rounds: int) -> str:
     )
     kept_rounds = 0
     began = time.perf_counter()
-    while kept_rounds < rounds and attempts:
+    for round_no in itertools.count():
+        if kept_rounds >= rounds or not attempts:
+            break
         worst = float(run.q.min())
         seeds = round_seeds(run.current, run.q, good)
         if not seeds.any():
             return "converged"
         part = Submesh(run.current, _neighbourhood(run.current, seeds, RINGS))
-        sel = part.sel
-        state = RoundState(
-            part.mesh, run.q[sel], run.lo_t[sel], run.hi_t[sel], sub_opts, worst, good, t0,
-            seeds[sel],
-        )  # fmt: skip
-        baseline = _Baseline(run.q, run.q[~sel], WINDOWS[0])
-        tried = set()  # the kicks of this round so far (they all start from one mesh)
-        # attempts run in the ladder's order, here or in the helper, and are judged in
-        # that order: the outcome is the one of running them all here
-        # (round ids are unique in the process: the helper keeps one round)
-        ladder = _helper_process.Ladder(next(_ROUND_IDS), len(attempts))
-        helper = _helper_process.running()
-        if helper is not None:
-            helper.serve(state, attempts, ladder)
-        try:
-            kept = _judge_round(run, t0, part, state, attempts, ladder, tried, baseline, began)
-        finally:
-            ladder.close()
-        if kept is None:
-            return "converged"  # every attempt of the round failed
+        args = (run, t0, part, seeds, attempts, sub_opts, worst, good, began, round_no)
+        if not _round(*args):
+            return "converged"  # every attempt of every place failed
         kept_rounds += 1
         run.check_goal()  # the round kept may have reached them
     return "converged"
 
 
-def _judge_round(run, t0, part, state, attempts, ladder, tried, baseline, began):
-    """Judge the round's attempts in order, running those nobody has started (and
-    starting the helper once the rounds have lasted ``START_AFTER``); splice the first
-    kept one into ``run`` and return its index, or None if none is kept."""
+def places(mesh) -> np.ndarray:
+    """(m,) a label per tet of ``mesh`` (a round's submesh): tets chained by shared
+    vertices share one (the places of the round, which share no vertex)."""
+    if not PLACES:
+        return np.zeros(mesh.n_tets, np.int64)
+    tets = mesh.tets
+    rows = np.repeat(tets[:, :1], 3, axis=1).reshape(-1)
+    graph = coo_matrix(
+        (np.ones(len(rows), np.int8), (rows, tets[:, 1:].reshape(-1))),
+        shape=(mesh.n_points, mesh.n_points),
+    )
+    return connected_components(graph, directed=False)[1][tets[:, 0]]
+
+
+def with_places(mesh, kept: list[tuple]):
+    """``mesh`` (a round's submesh) with the tets of each kept place replaced by its
+    attempt's: ``kept`` holds (mask (m,) of the place's tets, verts (v,) the place's
+    vertex ids in ``mesh``, or None for a place that is all of ``mesh``, end: the
+    place's submesh after the attempt). New vertices are appended, place by place."""
+    if len(kept) == 1 and kept[0][1] is None:
+        return kept[0][2]
+    points, drop = mesh.points.copy(), np.zeros(mesh.n_tets, bool)
+    new_points, tets, region = [], [mesh.tets], [mesh.region]
+    n = mesh.n_points
+    for mask, verts, end in kept:
+        own = len(verts)
+        ids = np.concatenate([verts, n + np.arange(end.n_points - own)])
+        points[verts] = end.points[:own]  # only the place's tets hold its vertices
+        new_points.append(end.points[own:])
+        n += end.n_points - own
+        tets.append(ids[end.tets])
+        region.append(end.region)
+        drop |= mask
+    tets[0], region[0] = mesh.tets[~drop], mesh.region[~drop]
+    return mesh._derive(
+        points=np.concatenate([points, *new_points]),
+        tets=np.concatenate(tets),
+        region=np.concatenate(region),
+        tets_checked=int((~drop).sum()),
+    )
+
+
+def _round(run, t0, part, seeds, attempts, sub_opts, worst, good, began, round_no) -> bool:
+    """One round on ``part`` (a ``Submesh`` around the ``seeds`` (m,) of ``run``'s
+    mesh): each place of the submesh (``places``), worst first, runs the ladder from the
+    round's start, and the first attempt of each that is better than the start
+    (``_Baseline``, with the rest of the mesh as it was) and splices back is kept. The
+    kept places are spliced into ``run`` together; returns whether one was."""
     from . import _helper_process
-    from ._driver import StepResult, _Stop
+    from ._driver import StepResult
+
+    sel = part.sel
+    q, lo, hi, kickable = run.q[sel], run.lo_t[sel], run.hi_t[sel], seeds[sel]
+    label = places(part.mesh)
+    worst_of = np.full(label.max() + 1, np.inf)
+    np.minimum.at(worst_of, label, q)
+    labels = np.unique(label)
+    rest = run.q[~sel]
+    kept, kept_entries, stats = [], [], None
+    try:
+        for place in labels[np.argsort(worst_of[labels], kind="stable")]:
+            mask = label == place
+            whole = bool(mask.all())
+            mesh, verts = (part.mesh, None) if whole else part.mesh._part(mask)[:2]
+            state = RoundState(
+                mesh, q[mask], lo[mask], hi[mask], sub_opts, worst, good, t0, kickable[mask]
+            )
+            outside = rest if whole else np.concatenate([rest, q[~mask]])
+            baseline = _Baseline(run.q, outside, WINDOWS[0])
+
+            def fits(end, mask=mask, verts=verts):
+                return part.fits(with_places(part.mesh, [(mask, verts, end)]))
+
+            # attempts run in the ladder's order, here or in the helper, and are judged
+            # in that order: the outcome is the one of running them all here
+            # (round ids are unique in the process: the helper keeps one round)
+            ladder = _helper_process.Ladder(next(_ROUND_IDS), len(attempts))
+            helper = _helper_process.running()
+            if helper is not None:
+                helper.serve(state, attempts, ladder)
+            try:
+                found = _judge_round(
+                    run, t0, state, attempts, ladder, baseline, began, fits, round_no
+                )
+            finally:
+                ladder.close()
+            if found is not None:
+                entry, outcome = found
+                kept.append((mask, verts, outcome.submesh()))
+                kept_entries.append((entry, outcome.seconds))
+                stats = outcome.stats if stats is None else stats
+        spliced = part.splice(run.current, with_places(part.mesh, kept)) if kept else None
+        if spliced is not None:  # (each place fits, so all of them together do)
+            out, keep = spliced
+            # tets sharing a vertex with the new ones (through a vertex mask, not the new
+            # mesh's adjacency: its topology would be a full build)
+            new_tets = np.arange(out.n_tets) >= int(keep.sum())
+            result = StepResult(out, stats, keep, _neighbourhood(out, new_tets, 1))
+            run.step("perturb", lambda *_, done=result: done, None, record=False)
+            for entry, _ in kept_entries:
+                entry["successes"] = 1
+        kept = kept if spliced is not None else []
+    finally:  # the kept attempts' entries show the mesh after the round's splice
+        for entry, seconds in kept_entries:
+            run.record(entry, seconds)
+    return bool(kept)
+
+
+def _judge_round(run, t0, state, attempts, ladder, baseline, began, fits, round_no):
+    """Judge a place's attempts in order, running those nobody has started (and
+    starting the helper once the rounds have lasted ``START_AFTER``); returns the
+    history entry and the outcome of the first that beats ``baseline`` and ``fits``
+    (splices back), or None. The other attempts' entries are recorded here."""
+    from . import _helper_process
+    from ._driver import _Stop
 
     opts = run.opts
     helper = _helper_process.running()
+    tried = set()  # the kicks of this place so far (they all start from one mesh)
     for index, (slack, _, op, site) in enumerate(attempts):
         while index not in ladder.outcomes:
             run.check_stop(t0)
@@ -549,27 +646,20 @@ def _judge_round(run, t0, part, state, attempts, ladder, tried, baseline, began)
             continue
         tried.add(outcome.key)
         kept = baseline.beaten_by(outcome.q, max(opts.min_improvement, MIN_RAISE))
-        spliced = part.splice(run.current, outcome.submesh()) if kept else None
-        if spliced is not None:
-            out, keep = spliced
-            # tets sharing a vertex with the new ones (through a vertex mask, not the new
-            # mesh's adjacency: its topology would be a full build)
-            new_tets = np.arange(out.n_tets) >= int(keep.sum())
-            result = StepResult(out, outcome.stats, keep, _neighbourhood(out, new_tets, 1))
-            run.step("perturb", lambda *_, done=result: done, None, record=False)
         entry = {
             "pass": run.passes,
             "op": "perturb",
+            "round": round_no,
             "attempts": 1,
-            "successes": int(spliced is not None),
+            "successes": 0,
             "kick": op,
             "site": site,
             "slack": slack,
             "changes": int(outcome.stats.successes),
             "gave_up": outcome.gave_up,
-            "tets": int(part.sel.sum()),
+            "tets": len(state.start_state[1]),
         }
+        if kept and fits(outcome.submesh()):
+            return entry, outcome
         run.record(entry, outcome.seconds)
-        if spliced is not None:
-            return index
     return None

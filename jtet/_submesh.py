@@ -60,6 +60,17 @@ class Submesh:
         f = T.faces[T.boundary_face]
         return f[np.lexsort(f.T[::-1])]
 
+    def fits(self, sub) -> bool:
+        """Whether ``sub`` (this submesh changed) splices back: it keeps every cut face
+        and makes no face that a tet outside has (``splice``)."""
+        if (match_rows(self.boundary_faces(sub), self.cut, sub.n_points) < 0).any():
+            return False
+        if len(self.ghosts):
+            faces = np.sort(sub.tets[:, TET_FACES].reshape(-1, 3), axis=1)
+            if (match_rows(faces, self.ghosts, sub.n_points) >= 0).any():
+                return False
+        return True
+
     def splice(self, mesh, sub):
         """(new mesh, keep (m,)): ``mesh`` with these tets replaced by ``sub``'s, its
         moved vertices moved and its new vertices appended, or None if ``sub`` changed a
@@ -71,12 +82,8 @@ class Submesh:
         Flips of the mesh's own boundary faces (2-2 flips of coplanar ones, which the
         climb makes on the whole mesh too) are kept: a perturbation around a boundary
         vertex often needs one (holeplate: the hole's top seam)."""
-        if (match_rows(self.boundary_faces(sub), self.cut, sub.n_points) < 0).any():
+        if not self.fits(sub):
             return None
-        if len(self.ghosts):
-            faces = np.sort(sub.tets[:, TET_FACES].reshape(-1, 3), axis=1)
-            if (match_rows(faces, self.ghosts, sub.n_points) >= 0).any():
-                return None
         n_old = len(self.verts)
         to_global = np.concatenate([self.verts, mesh.n_points + np.arange(sub.n_points - n_old)])
         points = np.concatenate([mesh.points, sub.points[n_old:]])

@@ -213,7 +213,7 @@ def _improve(spec, opts):
     rounds = [h for h in result.history if h["op"] == "perturb"]
     assert result.perturb_rounds == opts.perturb_rounds(mesh.n_tets)
     assert not rounds or result.perturb_rounds > 0
-    assert sum(h["successes"] > 0 for h in rounds) <= result.perturb_rounds
+    assert len({h["round"] for h in rounds if h["successes"]}) <= result.perturb_rounds
     assert all(h["worst_quality"] >= q0.min() for h in rounds)
     # insert=False: no insertion kick, exactly the input's points
     if not opts.insert:
