@@ -22,9 +22,12 @@ around them ("jiggle"), a random restart of the climb there; then each flip arou
 worst tets on its own, with a deep slack (``SITES``); last, multi-face removals with the
 same slacks as the edge removals. A round works on a submesh, the tets within
 ``RINGS`` vertex rings of the worst ones with the cut faces pinned, and splices back the
-attempt it keeps, so an attempt costs the neighbourhood, not the mesh. A round's
-attempts all start from that submesh: a helper process (``_helper_process``) runs some of
-them beside this one, and they are judged in the round's order all the same.
+attempts it keeps, so an attempt costs the neighbourhood, not the mesh. The submesh's
+places (``places``: its parts that share no vertex, the worst tets of a large mesh lie
+in several) each run the ladder on their own, worst first, and the round splices the
+first kept attempt of every place at once. A place's attempts all start from its part
+of the submesh: a helper process (``_helper_process``) runs some of them beside this
+one, and they are judged in the ladder's order all the same.
 
 Measured on the Gmsh holeplate with the boundary fixed, where the climb alone converges
 at 29.10 degrees (Stellar's flips + smoothing reach 31.4): 33.14 / 128.64 with 8 kept
@@ -70,7 +73,20 @@ CLIMB_PATIENCE = 1
 # to the kick that frees it (34.00), and seeds 0-4 of the four reference meshes all end
 # at 32 degrees or more.
 MIN_RAISE = 1e-3
+# A round's submesh splits into places that share no vertex (``places``), and each runs
+# the ladder on its own. On the 983k-tet cube the late rounds' seeds lie in 4-12 places
+# on submeshes of 3k-8k tets; judged as one, an attempt failed when one place ended
+# worse, and the round ended on a single-site kick that fixed one place after 12-13
+# attempts. Per place, a kick is judged where it acts, on a part of hundreds of tets.
+# No helper, whole runs: 983k cube seeds 0 / 1: 33.25 / 33.26 -> 33.55 / 33.73 degrees,
+# 57 / 84 -> 78 / 76 attempts; 182k cube seeds 0-3: 32.98 / 33.80 / 32.60 / 32.98 ->
+# 34.29 / 33.41 / 33.46 / 33.94; the reference meshes and the demo over seeds 0-4: 20
+# runs end at the same angle, 4 up to 0.39 degrees higher, the demo's seed 2 0.08
+# lower, in 43.0 s instead of 38.8 s (experiments/results/bench_improve.md, session 55).
+# Small meshes gain little for that time (their rounds rarely have two places), so
+# meshes under PLACES_MIN_TETS judge a round's submesh as one place, as before.
 PLACES = True
+PLACES_MIN_TETS = 100_000
 
 
 # After the batched kicks, the insertions and the jiggles, one flip at a time: the edge /
@@ -506,10 +522,11 @@ def perturb(run, t0: float, rounds: int) -> str:
     return "converged"
 
 
-def places(mesh) -> np.ndarray:
+def places(mesh, whole_mesh_tets: int = PLACES_MIN_TETS) -> np.ndarray:
     """(m,) a label per tet of ``mesh`` (a round's submesh): tets chained by shared
-    vertices share one (the places of the round, which share no vertex)."""
-    if not PLACES:
+    vertices share one (the places of the round, which share no vertex). All zero
+    (one place) when the whole mesh has fewer than ``PLACES_MIN_TETS`` tets."""
+    if not PLACES or whole_mesh_tets < PLACES_MIN_TETS:
         return np.zeros(mesh.n_tets, np.int64)
     tets = mesh.tets
     rows = np.repeat(tets[:, :1], 3, axis=1).reshape(-1)
@@ -559,7 +576,7 @@ def _round(run, t0, part, seeds, attempts, sub_opts, worst, good, began, round_n
 
     sel = part.sel
     q, lo, hi, kickable = run.q[sel], run.lo_t[sel], run.hi_t[sel], seeds[sel]
-    label = places(part.mesh)
+    label = places(part.mesh, run.current.n_tets)
     worst_of = np.full(label.max() + 1, np.inf)
     np.minimum.at(worst_of, label, q)
     labels = np.unique(label)

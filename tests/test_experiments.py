@@ -602,4 +602,3 @@ def test_smoothing_call_table_times_the_pass_shapes():
             assert r["one_lane_ms"] > 0 and r["same"] > 0.5
         else:
             assert r["one_lane_ms"] is None
-

@@ -46,7 +46,7 @@ def test_places_against_brute_force(seed):
     rng = np.random.default_rng(seed)
     mesh = delaunay_mesh(300, seed=seed)
     sub = Submesh(mesh, rng.random(mesh.n_tets) < 0.03).mesh
-    label = places(sub)
+    label = places(sub, _perturb.PLACES_MIN_TETS)  # as in a large mesh
     assert label.shape == (sub.n_tets,)
     assert _grouped(label) == _brute_places(sub.tets)
     assert len(set(label)) > 1  # the case has several places
@@ -63,7 +63,7 @@ def test_with_places_against_the_places_changed_in_place():
     mesh = delaunay_mesh(300, seed=2)
     rng = np.random.default_rng(2)
     sub = Submesh(mesh, rng.random(mesh.n_tets) < 0.03).mesh
-    label = places(sub)
+    label = places(sub, _perturb.PLACES_MIN_TETS)  # as in a large mesh
     first, second = (int(v) for v in np.unique(label)[:2])
     kept, split = [], np.zeros(sub.n_tets, bool)
     for place in (first, second):
@@ -82,11 +82,11 @@ def test_with_places_against_the_places_changed_in_place():
     assert with_places(sub, [(np.ones(sub.n_tets, bool), None, whole)]) is whole
 
 
-def test_a_round_keeps_several_places_and_never_loses():
-    """On the holeplate (seed 0) some rounds keep kicks in several places at once: the
-    run passes the invariant checks after every step, its kept rounds stay within the
-    limit, and the rounds end no lower than the climb. Without places, each round keeps
-    one kick."""
+def test_a_round_keeps_several_places_and_never_loses(monkeypatch):
+    """On the holeplate (seed 0, places at any size) some rounds keep kicks in several
+    places at once: the run passes the invariant checks after every step, its kept
+    rounds stay within the limit, and the rounds end no lower than the climb."""
+    monkeypatch.setattr(_perturb, "PLACES_MIN_TETS", 0)
     mesh = jtet.load(shared_mesh_path("gmsh_holeplate.vtu"))
     result = jtet.improve(mesh, seed=0, check=True)
     assert result.status == "converged"
@@ -99,8 +99,13 @@ def test_a_round_keeps_several_places_and_never_loses():
     assert all(e["worst_quality"] >= climb[-1]["worst_quality"] for e in kicks)
 
 
-def test_without_places_each_round_keeps_one_kick(monkeypatch):
-    monkeypatch.setattr(_perturb, "PLACES", False)
+@pytest.mark.parametrize("switch", ["off", "small mesh"])
+def test_without_places_each_round_keeps_one_kick(monkeypatch, switch):
+    """Places off, or a mesh under ``PLACES_MIN_TETS`` (the holeplate's 33k tets): one
+    kick kept per round, as many as the automatic limit (8)."""
+    if switch == "off":
+        monkeypatch.setattr(_perturb, "PLACES", False)
+        monkeypatch.setattr(_perturb, "PLACES_MIN_TETS", 0)
     result = jtet.improve(jtet.load(shared_mesh_path("gmsh_holeplate.vtu")), seed=0)
     kept = [e["round"] for e in result.history if e["op"] == "perturb" and e["successes"]]
     assert len(kept) == len(set(kept)) == 8
