@@ -47,6 +47,7 @@ WEIGHTS = {
     "improve_periodic": 0.05,
     "improve_curved": 0.05,
     "improve_merged": 0.05,
+    "improve_places": 0.05,
 }
 
 settings.register_profile(
@@ -273,6 +274,22 @@ def test_improve_with_merged_flip_steps(spec, opts):
         _improve(spec, opts)
     finally:
         _driver.MERGE_FLIP_STEPS = before
+
+
+@_cases("improve_places")
+@given(mesh_specs(seam=None), options())
+def test_improve_with_round_places(spec, opts):
+    # the fuzz meshes are small: lower the size from which a perturbation round runs
+    # the ladder per place of its submesh (``_perturb.places``), so that rounds with
+    # several places meet inverted tets, protection, regions and curved edges too
+    from jtet import _perturb
+
+    before = _perturb.PLACES_MIN_TETS
+    _perturb.PLACES_MIN_TETS = 0
+    try:
+        _improve(spec, opts)
+    finally:
+        _perturb.PLACES_MIN_TETS = before
 
 
 @_cases("improve_regions")
