@@ -489,8 +489,9 @@ def perturb(run, t0: float, rounds: int) -> str:
     ``rounds`` kept ones (``Options.perturb_rounds``); returns the run's status,
     "converged", or raises ``_driver._Stop`` (Ctrl-C, time limit, goals met after a kept
     round). Each attempt is one history entry, op "perturb"; its climb may run up to
-    ``max_passes`` passes of its own. Attempts are judged in the round's order; a helper
-    process (``_helper_process``) runs some of them side by side, with the same result."""
+    ``max_passes`` passes of its own. A round's places (``places``) each judge their
+    attempts in the ladder's order; a helper process (``_helper_process``) runs some of
+    them side by side, with the same result."""
 
     opts = run.opts
     attempts = kicks(opts.ops, opts.insert)
@@ -610,8 +611,8 @@ def _round(run, t0, part, seeds, attempts, sub_opts, worst, good, began, round_n
             finally:
                 ladder.close()
             if found is not None:
-                entry, outcome = found
-                kept.append((mask, verts, outcome.submesh()))
+                entry, outcome, end = found
+                kept.append((mask, verts, end))
                 kept_entries.append((entry, outcome.seconds))
                 stats = outcome.stats if stats is None else stats
         spliced = part.splice(run.current, with_places(part.mesh, kept)) if kept else None
@@ -634,8 +635,8 @@ def _round(run, t0, part, seeds, attempts, sub_opts, worst, good, began, round_n
 def _judge_round(run, t0, state, attempts, ladder, baseline, began, fits, round_no):
     """Judge a place's attempts in order, running those nobody has started (and
     starting the helper once the rounds have lasted ``START_AFTER``); returns the
-    history entry and the outcome of the first that beats ``baseline`` and ``fits``
-    (splices back), or None. The other attempts' entries are recorded here."""
+    history entry, the outcome and the submesh after it of the first that beats
+    ``baseline`` and ``fits`` (splices back), or None. The other attempts' entries are recorded here."""
     from . import _helper_process
     from ._driver import _Stop
 
@@ -676,7 +677,8 @@ def _judge_round(run, t0, state, attempts, ladder, baseline, began, fits, round_
             "gave_up": outcome.gave_up,
             "tets": len(state.start_state[1]),
         }
-        if kept and fits(outcome.submesh()):
-            return entry, outcome
+        end = outcome.submesh() if kept else None
+        if kept and fits(end):
+            return entry, outcome, end
         run.record(entry, outcome.seconds)
     return None
