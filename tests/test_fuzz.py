@@ -260,36 +260,37 @@ def test_improve_inverted_input(spec, opts):
     _improve(spec, opts)
 
 
-@_cases("improve_merged")
-@given(mesh_specs(seam=None), options())
-def test_improve_with_merged_flip_steps(spec, opts):
-    # the fuzz meshes are small: lower the size from which a pass after the first
-    # applies its edge and face steps together (``_driver._flip_steps``), so that the
-    # face plans made beside edge plans meet inverted tets, protection and regions too
-    from jtet import _driver
-
-    before = _driver.MERGE_FLIP_STEPS
-    _driver.MERGE_FLIP_STEPS = 0
+def _improve_at_any_size(module, threshold: str, spec, opts) -> None:
+    """``_improve`` with ``module.threshold``, a mesh size from which a run works
+    differently, at 0: the fuzz meshes are small."""
+    before = getattr(module, threshold)
+    setattr(module, threshold, 0)
     try:
         _improve(spec, opts)
     finally:
-        _driver.MERGE_FLIP_STEPS = before
+        setattr(module, threshold, before)
+
+
+@_cases("improve_merged")
+@given(mesh_specs(seam=None), options())
+def test_improve_with_merged_flip_steps(spec, opts):
+    # a pass after the first applies its edge and face steps together
+    # (``_driver._flip_steps``): the face plans made beside edge plans meet inverted
+    # tets, protection and regions too
+    from jtet import _driver
+
+    _improve_at_any_size(_driver, "MERGE_FLIP_STEPS", spec, opts)
 
 
 @_cases("improve_places")
 @given(mesh_specs(seam=None), options())
 def test_improve_with_round_places(spec, opts):
-    # the fuzz meshes are small: lower the size from which a perturbation round runs
-    # the ladder per place of its submesh (``_perturb.places``), so that rounds with
-    # several places meet inverted tets, protection, regions and curved edges too
+    # a perturbation round runs the ladder per place of its submesh
+    # (``_perturb.places``): rounds with several places meet inverted tets, protection,
+    # regions and curved edges too
     from jtet import _perturb
 
-    before = _perturb.PLACES_MIN_TETS
-    _perturb.PLACES_MIN_TETS = 0
-    try:
-        _improve(spec, opts)
-    finally:
-        _perturb.PLACES_MIN_TETS = before
+    _improve_at_any_size(_perturb, "PLACES_MIN_TETS", spec, opts)
 
 
 @_cases("improve_regions")
