@@ -545,8 +545,8 @@ def with_places(mesh, kept: list[tuple]):
     place's submesh after the attempt). New vertices are appended, place by place."""
     if len(kept) == 1 and kept[0][1] is None:
         return kept[0][2]
-    points, drop = mesh.points.copy(), np.zeros(mesh.n_tets, bool)
-    new_points, tets, region = [], [mesh.tets], [mesh.region]
+    points, keep = mesh.points.copy(), np.ones(mesh.n_tets, bool)
+    new_points, new_tets, new_region = [], [], []
     n = mesh.n_points
     for mask, verts, end in kept:
         own = len(verts)
@@ -554,15 +554,14 @@ def with_places(mesh, kept: list[tuple]):
         points[verts] = end.points[:own]  # only the place's tets hold its vertices
         new_points.append(end.points[own:])
         n += end.n_points - own
-        tets.append(ids[end.tets])
-        region.append(end.region)
-        drop |= mask
-    tets[0], region[0] = mesh.tets[~drop], mesh.region[~drop]
+        new_tets.append(ids[end.tets])
+        new_region.append(end.region)
+        keep &= ~mask
     return mesh._derive(
         points=np.concatenate([points, *new_points]),
-        tets=np.concatenate(tets),
-        region=np.concatenate(region),
-        tets_checked=int((~drop).sum()),
+        tets=np.concatenate([mesh.tets[keep], *new_tets]),
+        region=np.concatenate([mesh.region[keep], *new_region]),
+        tets_checked=int(keep.sum()),
     )
 
 
@@ -625,18 +624,18 @@ def _round(run, t0, part, seeds, attempts, sub_opts, worst, good, began, round_n
             run.step("perturb", lambda *_, done=result: done, None, record=False)
             for entry, _ in kept_entries:
                 entry["successes"] = 1
-        kept = kept if spliced is not None else []
     finally:  # the kept attempts' entries show the mesh after the round's splice
         for entry, seconds in kept_entries:
             run.record(entry, seconds)
-    return bool(kept)
+    return spliced is not None
 
 
 def _judge_round(run, t0, state, attempts, ladder, baseline, began, fits, round_no):
     """Judge a place's attempts in order, running those nobody has started (and
     starting the helper once the rounds have lasted ``START_AFTER``); returns the
     history entry, the outcome and the submesh after it of the first that beats
-    ``baseline`` and ``fits`` (splices back), or None. The other attempts' entries are recorded here."""
+    ``baseline`` and ``fits`` (splices back), or None. The other attempts' entries are
+    recorded here."""
     from . import _helper_process
     from ._driver import _Stop
 
