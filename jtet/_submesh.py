@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._apply import kept_then_new
-from ._topology import TET_FACES, corner_counts, match_rows
+from ._topology import TET_FACES, corner_counts, match_rows, row_keys
 
 _TRIANGLE_EDGES = np.array([[0, 1], [0, 2], [1, 2]])
 
@@ -53,23 +53,21 @@ class Submesh:
         edges = self.cut[:, _TRIANGLE_EDGES].reshape(-1, 2)
         return self.mesh._with_pinned(edges, self.cut.reshape(-1))
 
-    @staticmethod
-    def boundary_faces(sub) -> np.ndarray:
-        """(k, 3) sorted vertex triples of ``sub``'s boundary faces, rows sorted."""
-        T = sub.topology
-        f = T.faces[T.boundary_face]
-        return f[np.lexsort(f.T[::-1])]
-
     def fits(self, sub) -> bool:
         """Whether ``sub`` (this submesh changed) splices back: it keeps every cut face
-        and makes no face that a tet outside has (``splice``)."""
-        if (match_rows(self.boundary_faces(sub), self.cut, sub.n_points) < 0).any():
+        as a boundary face (a face of exactly one of its tets) and makes no face that a
+        tet outside has (``splice``). From ``sub``'s face keys, not its topology: a
+        build of that topology, used for nothing else, was ~12 ms per call on the 182k
+        cube's rounds (7 % of the run)."""
+        faces = np.sort(sub.tets[:, TET_FACES].reshape(-1, 3), axis=1)
+        # one call: ``row_keys`` of a huge mesh ranks the rows it is given
+        keys = row_keys(np.concatenate([faces, self.cut, self.ghosts]), sub.n_points)
+        cut = keys[len(faces) : len(faces) + len(self.cut)]
+        ghosts = keys[len(faces) + len(self.cut) :]
+        keys = np.sort(keys[: len(faces)])
+        if (np.searchsorted(keys, cut, "right") - np.searchsorted(keys, cut) != 1).any():
             return False
-        if len(self.ghosts):
-            faces = np.sort(sub.tets[:, TET_FACES].reshape(-1, 3), axis=1)
-            if (match_rows(faces, self.ghosts, sub.n_points) >= 0).any():
-                return False
-        return True
+        return not (np.searchsorted(keys, ghosts, "right") > np.searchsorted(keys, ghosts)).any()
 
     def splice(self, mesh, sub):
         """(new mesh, keep (m,)): ``mesh`` with these tets replaced by ``sub``'s, its
