@@ -29,6 +29,7 @@ import struct
 import subprocess
 import sys
 import threading
+import time
 
 # Seconds of perturbation rounds after which a run starts the helper.
 START_AFTER = 1.0
@@ -125,27 +126,46 @@ def _receive(stream):
 
 
 class Ladder:
-    """The ``n`` attempts of round ``round_id`` (unique in the process), claimed in order
-    by the optimizer and the helper, and their outcomes (shared by the optimizer's thread
-    and the helper's reader thread)."""
+    """The ``n`` attempts of one place of round ``round_id`` (unique in the process),
+    claimed in order by the optimizer and the helper, and their outcomes (shared by the
+    optimizer's thread and the helper's reader thread)."""
 
     def __init__(self, round_id, n: int):
         self.round_id, self.n, self.next, self.closed = round_id, n, 0, False
         self.outcomes: dict = {}  # index -> outcome (None: the helper failed it)
+        # index -> the kick's change (``Outcome.key``) of every outcome so far, judged
+        # or not: a later attempt whose kick repeats one is judged without its climb
+        self.keys: dict = {}
+        self.finished = 0  # outcomes put so far
+        self.kept = False  # an outcome so far looks kept (``Round``'s ``kept`` test)
         self.cond = threading.Condition()
 
-    def claim(self) -> int | None:
-        """The next attempt nobody has started, or None."""
+    def claim(self, needed_only: bool = False, unless_kept: bool = False) -> int | None:
+        """The next attempt nobody has started, or None. ``needed_only``: only if it
+        will be judged unless a running one is kept, i.e. none runs and none so far
+        looks kept; ``unless_kept``: only if none so far looks kept."""
         with self.cond:
-            if self.closed or self.next >= self.n:
+            if self.closed or self.next >= self.n or ((needed_only or unless_kept) and self.kept):
+                return None
+            if needed_only and self.finished < self.next:
                 return None
             self.next += 1
             return self.next - 1
 
-    def put(self, index: int, outcome) -> None:
+    def put(self, index: int, outcome, kept: bool = False) -> None:
         with self.cond:
             self.outcomes[index] = outcome
+            self.finished += 1
+            self.kept |= kept
+            key = getattr(outcome, "key", None)
+            if key is not None:
+                self.keys[index] = key
             self.cond.notify_all()
+
+    def keys_before(self, index: int) -> frozenset:
+        """The kicks' changes of the attempts before ``index`` known so far."""
+        with self.cond:
+            return frozenset(k for i, k in self.keys.items() if i < index)
 
     def wait(self, index: int, helper: Helper | None) -> bool:
         """Wait until attempt ``index`` has an outcome; False if the helper that runs it
@@ -158,15 +178,63 @@ class Ladder:
             return True
 
     def close(self) -> None:
-        """The round is over: the helper claims nothing more."""
+        """The place is judged: nobody claims its attempts any more."""
         with self.cond:
             self.closed = True
 
 
+class Round:
+    """A perturbation round's places (``_perturb._round``): each has its ``RoundState``
+    and its ``Ladder`` of the same ``attempts``; ``kept(place, outcome)`` tells whether
+    an outcome would be kept (a guess: the optimizer also checks that it splices back).
+
+    The places share no vertex and are judged apart, so an attempt of any place may run
+    at any time, and the optimizer judges the places one after the other. A process
+    that would wait or idle first takes a needed attempt (``Ladder.claim``
+    ``needed_only``: a place's first, or the next of a place whose outcomes so far all
+    failed and none runs), the helper from the last place back and the optimizer from
+    the first place on; only then the next attempt of a place whose running attempt may
+    still fail, first place first."""
+
+    def __init__(self, round_id, attempts: list, states: list, kept=None):
+        self.round_id, self.attempts, self.states = round_id, attempts, states
+        self.ladders = [Ladder((round_id, i), len(attempts)) for i in range(len(states))]
+        self.kept = kept or (lambda place, outcome: False)
+
+    def claim(self, from_last: bool) -> tuple[int, int] | None:
+        """(place, index) of an attempt for a process to run (see the class), or None."""
+        places = range(len(self.ladders))
+        for place in reversed(places) if from_last else places:
+            index = self.ladders[place].claim(needed_only=True)
+            if index is not None:
+                return place, index
+        for place in places:
+            index = self.ladders[place].claim(unless_kept=True)
+            if index is not None:
+                return place, index
+        return None
+
+    def put(self, claim: tuple[int, int], outcome) -> None:
+        place, index = claim
+        kept = outcome is not None and self.kept(place, outcome)
+        self.ladders[place].put(index, outcome, kept)
+
+    def close(self) -> None:
+        """The round is over: nobody claims anything more."""
+        for ladder in self.ladders:
+            ladder.close()
+
+    def wake(self) -> None:
+        """Wake whoever waits on an outcome (the helper ended)."""
+        for ladder in self.ladders:
+            with ladder.cond:
+                ladder.cond.notify_all()
+
+
 class Helper:
-    """The helper process, seen from the optimizer: ``serve`` hands it a round; it then
-    claims attempts from the round's ``Ladder`` until none is left, and their outcomes
-    land there."""
+    """The helper process, seen from the optimizer: ``serve`` hands it a ``Round``; it
+    then claims attempts of its places (``Round.claim``) until none is left, and
+    their outcomes land in the places' ladders."""
 
     def __init__(self, opts):
         env = dict(os.environ)
@@ -190,7 +258,7 @@ class Helper:
         self._closing = False
         self.is_ready = False
         self.done = 0  # attempts it ran
-        self._round = None  # (state, attempts, Ladder) of the round being served
+        self._round = None  # the Round being served
         self._lock = threading.Lock()  # guards _round and is_ready
         # messages go out on a thread of their own: a round's state is larger than a pipe
         # buffer, and the helper reads only between attempts
@@ -200,17 +268,16 @@ class Helper:
         threading.Thread(target=self._read, daemon=True, name="jtet-helper-in").start()
         threading.Thread(target=self._write, daemon=True, name="jtet-helper-out").start()
 
-    def serve(self, state, attempts: list, ladder: Ladder) -> None:
-        """Let the helper claim attempts of the ladder's round (``state``: its
-        ``RoundState``)."""
+    def serve(self, round_: Round) -> None:
+        """Let the helper claim attempts of ``round_``'s places."""
         with self._lock:
-            self._round = (state, attempts, ladder)
+            self._round = round_
             if self.is_ready:
                 self._post_round()
 
     def _post_round(self) -> None:
-        state, attempts, ladder = self._round
-        self._post(("round", ladder.round_id, state.for_pipe(), attempts))
+        r = self._round
+        self._post(("round", r.round_id, [s.for_pipe() for s in r.states], r.attempts))
 
     def _read(self) -> None:
         """Reader thread: answers the helper's claims, files its outcomes."""
@@ -225,8 +292,7 @@ class Helper:
         self.alive = False
         current = self._round
         if current is not None:  # wake an optimizer waiting for an outcome
-            with current[2].cond:
-                current[2].cond.notify_all()
+            current.wake()
 
     def _handle(self, msg) -> None:
         kind = msg[0]
@@ -236,17 +302,19 @@ class Helper:
                 if self._round is not None:
                     self._post_round()
                 return
-            ladder = None if self._round is None else self._round[2]
-            if ladder is None or ladder.round_id != msg[1]:
+            current = self._round
+            if current is None or current.round_id != msg[1]:
                 if kind == "claim":  # a round that ended: nothing to claim
                     self._post(("index", msg[1], None))
                 return
             if kind == "claim":
-                self._post(("index", msg[1], ladder.claim()))
+                claim = current.claim(from_last=True)
+                known = None if claim is None else current.ladders[claim[0]].keys_before(claim[1])
+                self._post(("index", msg[1], claim, known))
                 return
-        # ("result" | "error", round, index, outcome | message)
+        # ("result" | "error", round, (place, index), outcome | message)
         self.done += kind == "result"
-        ladder.put(msg[2], msg[3] if kind == "result" else None)
+        current.put(msg[2], msg[3] if kind == "result" else None)
 
     def _post(self, msg) -> None:
         self._outbox.put(msg)
@@ -276,7 +344,9 @@ def _serve(inp, out) -> None:
     """The helper's loop: warm the kernels, then run the attempts it claims."""
     from ._perturb import RoundState
 
-    state = round_id = attempts = None
+    round_id = attempts = None
+    # the round's places as sent, those started here, the kicks' changes run here
+    piped, states, keys = [], {}, {}
     while (msg := _receive(inp)) is not None:
         kind = msg[0]
         if kind == "warm":
@@ -285,16 +355,24 @@ def _serve(inp, out) -> None:
             continue
         if kind == "round":
             _, round_id, piped, attempts = msg
-            state = RoundState.start(piped)
+            states, keys, received = {}, {}, time.perf_counter()
         elif kind == "index":
             if msg[1] != round_id or msg[2] is None:
                 continue  # nothing left: idle until the next round
-            index = msg[2]
+            place, index = claim = msg[2]
+            # the kicks tried before this one, here or in the optimizer: a repeat is
+            # judged without its climb (``_perturb._judge_round``)
+            mine = {k for (p, i), k in keys.items() if p == place and i < index}
             try:
-                outcome = state.attempt(attempts[index]).for_pipe()
-                _send(out, ("result", round_id, index, outcome))
+                if place not in states:
+                    states[place] = RoundState.start(piped[place], received)
+                outcome = states[place].attempt(attempts[index], msg[3] | mine)
+                if outcome.key is not None:
+                    keys[claim] = outcome.key
+                outcome = outcome.for_pipe()
+                _send(out, ("result", round_id, claim, outcome))
             except Exception as e:  # noqa: BLE001  (the optimizer runs it itself)
-                _send(out, ("error", round_id, index, repr(e)))
+                _send(out, ("error", round_id, claim, repr(e)))
         _send(out, ("claim", round_id))
 
 

@@ -393,13 +393,13 @@ class RoundState:
                 elapsed, self.kickable)  # fmt: skip
 
     @classmethod
-    def start(cls, piped: tuple) -> RoundState:
-        """The state ``for_pipe`` sent (the helper's run clock starts where the
-        optimizer's was)."""
+    def start(cls, piped: tuple, received: float) -> RoundState:
+        """The state ``for_pipe`` sent, which arrived at ``received`` (``perf_counter``
+        seconds): the helper's run clock starts where the optimizer's was."""
 
         mesh, angle, q, lo, hi, opts, worst, good, elapsed, kickable = piped
         sub = _from_arrays(mesh)._with_feature_angle(angle)
-        return cls(sub, q, lo, hi, opts, worst, good, time.perf_counter() - elapsed, kickable)
+        return cls(sub, q, lo, hi, opts, worst, good, received - elapsed, kickable)
 
     def attempt(self, attempt: tuple, tried=frozenset()) -> Outcome:
         """Attempt ``(slack, window, kick, site)``: the kick, then (unless its change is
@@ -581,34 +581,39 @@ def _round(run, t0, part, seeds, attempts, sub_opts, worst, good, began, round_n
     np.minimum.at(worst_of, label, q)
     labels = np.unique(label)
     rest = run.q[~sel]
+    spots, states = [], []  # per place, worst first: (mask, verts, baseline); its state
+    for place in labels[np.argsort(worst_of[labels], kind="stable")]:
+        mask = label == place
+        whole = bool(mask.all())
+        mesh, verts = (part.mesh, None) if whole else part.mesh._part(mask)[:2]
+        states.append(
+            RoundState(mesh, q[mask], lo[mask], hi[mask], sub_opts, worst, good, t0, kickable[mask])
+        )
+        outside = rest if whole else np.concatenate([rest, q[~mask]])
+        spots.append((mask, verts, _Baseline(run.q, outside, WINDOWS[0])))
+    # attempts run in each place's ladder order, here or in the helper, and are judged
+    # in that order: the outcome is the one of running them all here
+    # (round ids are unique in the process: the helper keeps one round)
+    tol = max(run.opts.min_improvement, MIN_RAISE)
+
+    def looks_kept(place, outcome):  # ``_judge_round``'s test, without ``fits``
+        return outcome.mesh is not None and spots[place][2].beaten_by(outcome.q, tol)
+
+    round_ = _helper_process.Round(next(_ROUND_IDS), attempts, states, looks_kept)
+    helper = _helper_process.running()
+    if helper is not None:
+        helper.serve(round_)
     kept, kept_entries, stats = [], [], None
     try:
-        for place in labels[np.argsort(worst_of[labels], kind="stable")]:
-            mask = label == place
-            whole = bool(mask.all())
-            mesh, verts = (part.mesh, None) if whole else part.mesh._part(mask)[:2]
-            state = RoundState(
-                mesh, q[mask], lo[mask], hi[mask], sub_opts, worst, good, t0, kickable[mask]
-            )
-            outside = rest if whole else np.concatenate([rest, q[~mask]])
-            baseline = _Baseline(run.q, outside, WINDOWS[0])
+        for place, (mask, verts, baseline) in enumerate(spots):
 
             def fits(end, mask=mask, verts=verts):
                 return part.fits(with_places(part.mesh, [(mask, verts, end)]))
 
-            # attempts run in the ladder's order, here or in the helper, and are judged
-            # in that order: the outcome is the one of running them all here
-            # (round ids are unique in the process: the helper keeps one round)
-            ladder = _helper_process.Ladder(next(_ROUND_IDS), len(attempts))
-            helper = _helper_process.running()
-            if helper is not None:
-                helper.serve(state, attempts, ladder)
             try:
-                found = _judge_round(
-                    run, t0, state, attempts, ladder, baseline, began, fits, round_no
-                )
+                found = _judge_round(run, t0, round_, place, baseline, began, fits, round_no)
             finally:
-                ladder.close()
+                round_.ladders[place].close()
             if found is not None:
                 entry, outcome, end = found
                 kept.append((mask, verts, end))
@@ -625,33 +630,48 @@ def _round(run, t0, part, seeds, attempts, sub_opts, worst, good, began, round_n
             for entry, _ in kept_entries:
                 entry["successes"] = 1
     finally:  # the kept attempts' entries show the mesh after the round's splice
+        round_.close()
         for entry, seconds in kept_entries:
             run.record(entry, seconds)
     return spliced is not None
 
 
-def _judge_round(run, t0, state, attempts, ladder, baseline, began, fits, round_no):
-    """Judge a place's attempts in order, running those nobody has started (and
-    starting the helper once the rounds have lasted ``START_AFTER``); returns the
-    history entry, the outcome and the submesh after it of the first that beats
-    ``baseline`` and ``fits`` (splices back), or None. The other attempts' entries are
-    recorded here."""
+def _judge_round(run, t0, round_, place, baseline, began, fits, round_no):
+    """Judge the attempts of ``round_``'s ``place`` in order, running those nobody has
+    started (and starting the helper once the rounds have lasted ``START_AFTER``);
+    returns the history entry, the outcome and the submesh after it of the first that
+    beats ``baseline`` and ``fits`` (splices back), or None. The other attempts' entries
+    are recorded here. While the helper runs the attempt this place needs, this process
+    runs another (``Round.claim``)."""
     from . import _helper_process
     from ._driver import _Stop
 
     opts = run.opts
     helper = _helper_process.running()
+    attempts, state, ladder = round_.attempts, round_.states[place], round_.ladders[place]
     tried = set()  # the kicks of this place so far (they all start from one mesh)
+
+    def run_here(claim):
+        # the kicks of earlier attempts of that place, judged or not: a repeat is
+        # judged without its climb, so it needs none
+        other, index = claim
+        known = round_.ladders[other].keys_before(index)
+        round_.put(claim, round_.states[other].attempt(attempts[index], known))
+
     for index, (slack, _, op, site) in enumerate(attempts):
         while index not in ladder.outcomes:
             run.check_stop(t0)
             if helper is None and time.perf_counter() - began >= _helper_process.START_AFTER:
                 helper = _helper_process.start(opts)
                 if helper is not None:
-                    helper.serve(state, attempts, ladder)
-            mine = ladder.claim()
-            if mine is not None:  # this one, or a later one while the helper runs this
-                ladder.put(mine, state.attempt(attempts[mine], tried))
+                    helper.serve(round_)
+            if ladder.next <= index:  # nobody runs this one yet
+                run_here((place, ladder.claim()))
+                continue
+            # the helper runs it: run another one meanwhile (``Round.claim``)
+            claim = round_.claim(from_last=False)
+            if claim is not None:
+                run_here(claim)
             elif not ladder.wait(index, helper):  # the helper ended: run it here
                 ladder.put(index, state.attempt(attempts[index], tried))
         outcome = ladder.outcomes.pop(index)

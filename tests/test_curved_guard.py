@@ -10,6 +10,8 @@ them. The guard must keep min over the output >= min(floor, min over the input).
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from helpers import delaunay_mesh, grid_mesh
@@ -230,7 +232,8 @@ def test_perturbation_rounds_see_the_curved_edges():
     assert pairs(Outcome(mesh=sub).for_pipe().submesh()) == expected
     q = sub.quality("biased_min_sine")
     state = RoundState(sub, q, q, q, jtet.Options(), 0.0, 0.6, 0.0, q < 0.3)
-    assert pairs(RoundState.start(state.for_pipe()).sub.current) == expected
+    received = time.perf_counter()
+    assert pairs(RoundState.start(state.for_pipe(), received).sub.current) == expected
 
 
 def test_sliding_keeps_the_ends_of_curved_edges():

@@ -11,6 +11,7 @@ import time
 import warnings
 
 import pytest
+from helpers import shared_mesh_path
 
 import jtet
 from jtet import _config, _helper_process, _perturb
@@ -59,6 +60,22 @@ def test_attempts_in_the_helper_give_the_same_run(demo, alone, helper):
     assert not helper.proc.poll(), "the helper stays for the next run"
 
 
+def test_places_shared_with_the_helper_give_the_same_run(helper, monkeypatch):
+    """Rounds with several places (the holeplate, seed 0, places at any size): the helper
+    and this process each start places the other has not, and the run is the one
+    without a helper."""
+    monkeypatch.setattr(_perturb, "PLACES_MIN_TETS", 0)
+    mesh = jtet.load(shared_mesh_path("gmsh_holeplate.vtu"))
+    monkeypatch.setattr(_helper_process, "_shared", None)
+    alone = jtet.improve(mesh, seed=0)
+    monkeypatch.setattr(_helper_process, "_shared", helper)
+    shared = jtet.improve(mesh, seed=0)
+    kept = [e["round"] for e in alone.history if e["op"] == "perturb" and e["successes"]]
+    assert len(kept) > len(set(kept)), "no round kept two places"
+    assert helper.done > 0, "the helper ran no attempt"
+    assert _summary(shared) == _summary(alone)
+
+
 def test_a_helper_that_dies_in_a_round_changes_nothing(demo, alone, helper, monkeypatch):
     attempt = _perturb.RoundState.attempt
     calls = []
@@ -87,6 +104,29 @@ def test_ladder_claims_in_order_until_closed():
     assert [ladder.claim(), ladder.claim()] == [0, 1]
     ladder.close()
     assert ladder.claim() is None  # a kept attempt ended the round
+
+
+def test_round_claims_needed_attempts_first_then_speculative_ones():
+    """Needed attempts (a place's first; the next of a place whose outcomes all failed
+    and none runs) come first, from the last place (the helper) or the first (the
+    optimizer); then the next of a place whose running attempt may still fail, first
+    place first; none of a place whose outcome looks kept, or that is judged."""
+    r = _helper_process.Round(0, ["a", "b", "c"], [None] * 4, lambda place, o: o == "kept")
+    assert r.ladders[0].claim() == 0  # the optimizer judges place 0, attempt 0 runs
+    assert [r.claim(from_last=True), r.claim(from_last=False)] == [(3, 0), (1, 0)]
+    r.put((3, 0), "failed")
+    r.put((1, 0), "kept")
+    # place 3 failed and runs nothing: its next is needed; place 2 was never started
+    assert [r.claim(from_last=True), r.claim(from_last=True)] == [(3, 1), (2, 0)]
+    # only speculative ones are left: places 0, 2, 3 run one each (1 looks kept)
+    assert [r.claim(from_last=True), r.claim(from_last=False)] == [(0, 1), (0, 2)]
+    assert r.claim(from_last=False) == (2, 1)
+    r.ladders[2].close()  # judged
+    assert r.claim(from_last=False) == (3, 2)
+    assert r.claim(from_last=False) is None  # out of attempts
+    r.close()
+    assert r.ladders[1].outcomes == {0: "kept"}
+    assert r.ladders[3].keys_before(5) == frozenset()  # the outcomes had no kicks
 
 
 def test_ladder_wait_returns_the_outcome_or_gives_up_on_a_dead_helper():
