@@ -76,17 +76,34 @@ def test_places_shared_with_the_helper_give_the_same_run(helper, monkeypatch):
     assert _summary(shared) == _summary(alone)
 
 
-def test_a_helper_that_dies_in_a_round_changes_nothing(demo, alone, helper, monkeypatch):
+def _kill_at_third_attempt(helper, monkeypatch):
+    """Kill the helper when this process starts its third attempt (by then the helper
+    runs one)."""
     attempt = _perturb.RoundState.attempt
     calls = []
 
     def kill_then_attempt(self, *args, **kwargs):
         calls.append(1)
-        if len(calls) == 3:  # the helper is running an attempt of this round by now
+        if len(calls) == 3:
             helper.proc.kill()
         return attempt(self, *args, **kwargs)
 
     monkeypatch.setattr(_perturb.RoundState, "attempt", kill_then_attempt)
+
+
+def test_a_helper_that_dies_while_sharing_places_changes_nothing(helper, monkeypatch):
+    monkeypatch.setattr(_perturb, "PLACES_MIN_TETS", 0)
+    mesh = jtet.load(shared_mesh_path("gmsh_holeplate.vtu"))
+    monkeypatch.setattr(_helper_process, "_shared", None)
+    alone = jtet.improve(mesh, seed=0)
+    monkeypatch.setattr(_helper_process, "_shared", helper)
+    _kill_at_third_attempt(helper, monkeypatch)
+    assert _summary(jtet.improve(mesh, seed=0)) == _summary(alone)
+    helper.proc.wait(timeout=10)
+
+
+def test_a_helper_that_dies_in_a_round_changes_nothing(demo, alone, helper, monkeypatch):
+    _kill_at_third_attempt(helper, monkeypatch)
     r = jtet.improve(demo, perturb=8)
     assert _summary(r) == _summary(alone)
     helper.proc.wait(timeout=10)
