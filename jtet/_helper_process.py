@@ -4,9 +4,11 @@ A perturbation round (``_perturb``) tries kicks one after the other, each from t
 submesh, until one is kept. Until then its attempts are independent, so two can run at
 once: the optimizer's process runs one, this helper the next, and the optimizer judges
 the outcomes in the round's order, exactly as if it had run them all itself (the same
-output, bit for bit). An attempt is many small NumPy calls on a ~1000-5000-tet submesh
-that hold the GIL: two improve() calls on threads ran 1.1x as fast as one after the
-other, so the second core needs a second process.
+output, bit for bit). On a large mesh a round has several places, each with its own
+kicks, and the two processes work on different places where they can (``Round``). An
+attempt is many small NumPy calls on a ~300-5000-tet submesh that hold the GIL: two
+improve() calls on threads ran 1.1x as fast as one after the other, so the second core
+needs a second process.
 
 The helper is started by the first run whose perturbation rounds last ``START_AFTER``
 seconds (short ones never pay its ~3 s of CPU to import jtet and load the kernels), only
