@@ -249,7 +249,9 @@ class Helper:
             self._to_helper.setsockopt(socket.SOL_SOCKET, socket.SO_NOSIGPIPE, 1)
         with theirs:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "jtet._helper_process"],
+                # -P: not the working directory first on its path, whose own ``jtet``
+                # (another checkout) would answer this one's messages
+                [sys.executable, "-P", "-m", "jtet._helper_process"],
                 stdin=theirs,
                 stdout=subprocess.PIPE,
                 stderr=subprocess.DEVNULL,

@@ -35,6 +35,13 @@ def alone(demo):
     return jtet.improve(demo, perturb=8)
 
 
+def _wait_ready(h) -> None:
+    deadline = time.monotonic() + 120
+    while not h.is_ready and h.alive and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert h.is_ready, "the helper did not load within 2 minutes"
+
+
 @pytest.fixture
 def helper(monkeypatch, demo):
     """A helper process, loaded and idle; closed afterwards."""
@@ -45,10 +52,7 @@ def helper(monkeypatch, demo):
     monkeypatch.setattr(_helper_process, "_failed", False)
     h = _helper_process.start(jtet.Options())
     assert h is not None and h.alive
-    deadline = time.monotonic() + 120
-    while not h.is_ready and h.alive and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert h.is_ready, "the helper did not load within 2 minutes"
+    _wait_ready(h)
     yield h
     h.close()
 
@@ -114,6 +118,21 @@ def test_a_helper_that_dies_in_a_round_changes_nothing(demo, alone, helper, monk
     # and no other helper is started after one failed
     assert _helper_process.running() is None
     assert _helper_process.start(jtet.Options()) is None
+
+
+def test_the_helper_imports_this_jtet_from_any_working_directory(monkeypatch, tmp_path):
+    """Started from a directory holding another ``jtet`` (a checkout of another
+    version), the helper still imports the optimizer's and gets ready."""
+    if _config.CACHE_DIR is None or _config.WORKERS < 2:
+        pytest.skip("the helper needs the compilation cache and two threads")
+    (tmp_path / "jtet").mkdir()
+    (tmp_path / "jtet" / "__init__.py").write_text("raise ImportError('another jtet')\n")
+    monkeypatch.chdir(tmp_path)
+    h = _helper_process.Helper(jtet.Options())
+    try:
+        _wait_ready(h)
+    finally:
+        h.close()
 
 
 def test_ladder_claims_in_order_until_closed():
